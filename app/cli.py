@@ -1,0 +1,96 @@
+"""`bagit`: the one command-line entry point.
+
+Errors the user can fix (bad files, bad input, infeasible goals) print one line on stderr and exit
+with status 2; a job that ran but did not succeed exits with 1. Set BAGIT_DEBUG=1 for tracebacks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import sys
+from types import ModuleType
+from typing import Any, Sequence
+
+import numpy as np
+
+from bagit import __version__
+from bagit.common.errors import BagItError
+
+# The subcommands, in the order `bagit --help` lists them.
+COMMAND_MODULES: list[str] = [
+    "bagit.commands.demo",
+    "bagit.commands.extract",
+]
+
+
+def _load(name: str) -> ModuleType:
+    return importlib.import_module(name)
+
+
+def _to_jsonable(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer, np.bool_)):
+        return obj.item()
+    if isinstance(obj, dict):
+        return {str(k): _to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_to_jsonable(v) for v in obj]
+    return obj
+
+
+def print_json(result: dict[str, Any]) -> None:
+    """Print a result as one JSON document on stdout."""
+    print(json.dumps(_to_jsonable(result)))
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
+    parser = argparse.ArgumentParser(prog="bagit", description="Dual-arm bagging of objects into fabric bags.")
+    parser.add_argument("--version", action="version", version=f"bagit {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    modules: dict[str, ModuleType] = {}
+    for modname in COMMAND_MODULES:
+        mod = _load(modname)
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
+        p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+        mod.add_arguments(p)
+        modules[mod.NAME] = mod
+    return parser, modules
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser, modules = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    mod = modules[args.command]
+    try:
+        result = mod.run(args)
+    except KeyboardInterrupt:
+        print(f"bagit {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except (BagItError, OSError, ValueError) as e:
+        if os.environ.get("BAGIT_DEBUG"):
+            raise
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        print(f"bagit {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    if result is None:
+        return 0
+    if args.json:
+        print_json(result)
+    elif hasattr(mod, "human"):
+        print(mod.human(result))
+    if result.get("success") is False:
+        if not args.json:
+            print(f"bagit {args.command}: failed: {result.get('reason', 'unknown reason')}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Benchmarks behind `bagit bench`: each prints numbers, none is a pass/fail test."""

@@ -1,0 +1,41 @@
+"""The project's error types.
+
+Bad input raises one of these with a one-line reason; the CLI prints it and exits non-zero.
+Input errors are also `ValueError` so callers that only know the standard library still catch them.
+"""
+
+
+class BagItError(Exception):
+    """Base of every error BagIt raises on purpose."""
+
+
+class BadCloud(BagItError, ValueError):
+    """A point cloud that cannot give an SOI: empty, non-finite, too small or degenerate."""
+
+
+class BadVertices(BagItError, ValueError):
+    """An object's bottom outline V that is not a usable polygon."""
+
+
+class InfeasibleGoal(BagItError, ValueError):
+    """No bagging ellipse with the bag's rim perimeter can hold the object under C1-C3."""
+
+
+class BadScenario(BagItError, ValueError):
+    """A scenario file that is missing, unreadable or invalid."""
+
+
+class BadMessage(BagItError, ValueError):
+    """A payload that does not decode to a known message of the expected schema version."""
+
+
+class PlanningFailed(BagItError, RuntimeError):
+    """The SOI planner found no path within its budget."""
+
+
+class ProtocolError(BagItError, RuntimeError):
+    """A Dobot controller reply or feedback packet that does not parse, or an error it reported."""
+
+
+class SafetyViolation(BagItError, ValueError):
+    """A command that would leave the arms' safe envelope (non-finite, out of limits)."""

@@ -1,0 +1,259 @@
+"""Messages the services exchange, as pydantic v2 models.
+
+Every message carries `schema_version` and `stamp` (seconds since the epoch, when it was made).
+Units are SI throughout (metres, radians, seconds) whatever the device speaks. Array fields hold
+numpy arrays; on the wire (`bagit.common.wire`) they travel as raw little-endian bytes beside a
+JSON header, never as JSON numbers.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator
+
+SCHEMA_VERSION = 1
+
+
+def _array(dtype: str) -> Any:
+    def coerce(v: Any) -> np.ndarray:
+        a = np.asarray(v)
+        if a.dtype == object:
+            raise ValueError("array of mixed or non-numeric values")
+        return np.ascontiguousarray(a, dtype=np.dtype(dtype))
+
+    return Annotated[
+        np.ndarray,
+        BeforeValidator(coerce),
+        PlainSerializer(lambda a: a.tolist(), when_used="json"),
+    ]
+
+
+ArrayF64 = _array("<f8")
+ArrayF32 = _array("<f4")
+ArrayU8 = _array("u1")
+ArrayU16 = _array("<u2")
+
+
+def _check_points(a: np.ndarray, what: str) -> np.ndarray:
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{what} must have shape (n, 3), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} has NaN or infinite values")
+    return a
+
+
+class Message(BaseModel):
+    """Base of every message: a kind (for the wire), a schema version and a timestamp."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid")
+    KIND: ClassVar[str] = ""
+
+    schema_version: int = SCHEMA_VERSION
+    stamp: float = Field(default_factory=time.time)
+
+    @field_validator("schema_version")
+    @classmethod
+    def _version(cls, v: int) -> int:
+        if v != SCHEMA_VERSION:
+            raise ValueError(f"schema version {v} is not the supported {SCHEMA_VERSION}")
+        return v
+
+
+class CameraInfo(BaseModel):
+    """Pinhole intrinsics and extrinsics of an RGB-D camera (the frame header)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(640, ge=1, le=8192)
+    height: int = Field(480, ge=1, le=8192)
+    fx: float = Field(390.7, gt=0)
+    fy: float = Field(390.7, gt=0)
+    cx: float = 320.0
+    cy: float = 240.0
+    depth_scale: float = Field(0.001, gt=0, description="metres per depth unit")
+    T_world_camera: list[list[float]] = Field(default_factory=lambda: np.eye(4).tolist())
+
+    def K(self) -> np.ndarray:
+        """The 3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def extrinsics(self) -> np.ndarray:
+        """4x4 world <- camera."""
+        return np.asarray(self.T_world_camera, dtype=float)
+
+
+class RgbdFrame(Message):
+    """One aligned colour + depth frame. color: (H, W, 3) uint8 RGB; depth: (H, W) uint16 in depth units."""
+
+    KIND: ClassVar[str] = "rgbd"
+    seq: int = 0
+    camera: CameraInfo = CameraInfo()
+    color: ArrayU8
+    depth: ArrayU16
+
+    @field_validator("depth")
+    @classmethod
+    def _shape(cls, v: np.ndarray) -> np.ndarray:
+        if v.ndim != 2:
+            raise ValueError(f"depth must be (H, W), got {v.shape}")
+        return v
+
+
+class PointCloud(Message):
+    """A (down-sampled) cloud for display. points: (n, 3) float32 world; colors: (n, 3) uint8."""
+
+    KIND: ClassVar[str] = "cloud"
+    seq: int = 0
+    points: ArrayF32
+    colors: ArrayU8 | None = None
+
+
+class SoiState(Message):
+    """The bag rim as n_x ordered points. rim: (n_x, 3) world frame."""
+
+    KIND: ClassVar[str] = "soi"
+    seq: int = 0
+    source_stamp: float = 0.0
+    rim: ArrayF64
+    n_points: int = 0
+    inlier_fraction: float = 1.0
+    solve_ms: float = 0.0
+
+    @field_validator("rim")
+    @classmethod
+    def _rim(cls, v: np.ndarray) -> np.ndarray:
+        return _check_points(v, "rim")
+
+
+class EllipseParams(BaseModel):
+    """A 2-D ellipse in the bottom frame F_m: centre, semi-axes (a >= b) and angle of the major axis."""
+
+    model_config = ConfigDict(extra="forbid")
+    center: tuple[float, float]
+    a: float
+    b: float
+    alpha: float
+
+
+class Goal(Message):
+    """Bagging SOI g† and goal SOI g* with the ellipse they came from. g_*: (n_x, 3); frame: (4, 4) world <- F_m."""
+
+    KIND: ClassVar[str] = "goal"
+    run_id: str | None = None
+    g_dagger: ArrayF64
+    g_star: ArrayF64
+    frame: ArrayF64
+    ellipse: EllipseParams
+    perimeter: float
+    c1: float
+    c2: float
+    c3: float
+    vertices: ArrayF64
+    object_height: float = 0.0
+
+
+class Path(Message):
+    """A planned SOI path g0 ... g† ... g*. nodes: (n_nodes, n_x, 3)."""
+
+    KIND: ClassVar[str] = "path"
+    run_id: str | None = None
+    success: bool = True
+    planner: str = "cbirrt"
+    nodes: ArrayF64
+    dagger_index: int
+    time_s: float = 0.0
+    iterations: int = 0
+
+
+class Command(Message):
+    """A dual-arm increment u: (12,) = [left dx dy dz drx dry drz, right ...] (m, rad) over `dt` seconds."""
+
+    KIND: ClassVar[str] = "cmd"
+    run_id: str | None = None
+    seq: int = 0
+    u: ArrayF64
+    dt: float = Field(1 / 30, gt=0, le=1.0)
+    mode: Literal["servo", "hold"] = "servo"
+    reason: str | None = None
+
+    @field_validator("u")
+    @classmethod
+    def _u(cls, v: np.ndarray) -> np.ndarray:
+        if v.shape != (12,):
+            raise ValueError(f"u must have shape (12,), got {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("u has NaN or infinite values")
+        return v
+
+
+class ArmState(Message):
+    """One arm as its controller reports it. q, qd: (6,) rad, rad/s; tool_pose: (6,) world [x y z rx ry rz] m, rad."""
+
+    KIND: ClassVar[str] = "arm_state"
+    arm: Literal["left", "right"]
+    robot_mode: int = 0
+    q: ArrayF64
+    qd: ArrayF64
+    tool_pose: ArrayF64
+    tool_speed: float = 0.0
+    enabled: bool = False
+    error: bool = False
+    error_reason: str | None = None
+    command_id: int = 0
+    estopped: bool = False
+
+
+Stage = Literal["idle", "perceiving", "goal", "planning", "pre-bagging", "bagging", "done", "failed", "aborted"]
+
+
+class RunState(Message):
+    """Where the current run is: its id, stage, progress through the path (0..1) and any failure reason."""
+
+    KIND: ClassVar[str] = "run_state"
+    run_id: str | None = None
+    scenario: str | None = None
+    stage: Stage = "idle"
+    progress: float = Field(0.0, ge=0.0, le=1.0)
+    elapsed_s: float = 0.0
+    reason: str | None = None
+    result: dict[str, Any] | None = None
+
+
+class RunControl(Message):
+    """A request on run/control: start a scenario (by name or as a document), stop, or reset."""
+
+    KIND: ClassVar[str] = "run_control"
+    action: Literal["start", "stop", "reset"]
+    scenario: str | None = None
+    scenario_doc: dict[str, Any] | None = None
+    params: dict[str, Any] = {}
+    controller: str | None = None
+    planner: str | None = None
+    seed: int | None = None
+
+
+class RunControlReply(Message):
+    """The answer to a RunControl: accepted or refused, with the reason."""
+
+    KIND: ClassVar[str] = "run_control_reply"
+    accepted: bool
+    run_id: str | None = None
+    reason: str | None = None
+
+
+class EStop(Message):
+    """Engage (latching) or reset the emergency stop."""
+
+    KIND: ClassVar[str] = "estop"
+    engage: bool = True
+    source: str = "unknown"
+    reason: str | None = None
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    m.KIND: m
+    for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ArmState, RunState, RunControl, RunControlReply, EStop)
+}

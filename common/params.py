@@ -1,0 +1,44 @@
+"""Method parameters, with the paper's values as defaults.
+
+One model for every stage so a scenario's `params:` block (and the dashboard's parameter panel)
+is validated in one place; unknown keys are rejected so a typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+# lambda_d when only V is known (no object height): a 4 cm lift of the rim along the object.
+DEFAULT_LAMBDA_D_M = 0.04
+
+
+class MethodParams(BaseModel):
+    """Parameters of the BagIt method (sections V and VI of the paper)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # Bagging ellipse (eq. 7-10): C1 inside margin, C2 concentricity (m), C3 parallelism.
+    lambda_1: float = Field(0.912, gt=0.0, lt=1.0, description="C1: max F_e of any vertex (< 1)")
+    lambda_2: float = Field(0.007, ge=0.0, le=0.2, description="C2: max ellipse-centre offset (m)")
+    lambda_3: float = Field(0.9943, ge=0.0, le=1.0, description="C3: min |d_e . d_v|")
+    # Regularisation (eq. 13-15): C4 perimeter ratio, C5 concentricity (m).
+    lambda_4: float = Field(0.002, ge=0.0, le=0.5, description="C4: max |R_x/R_y - 1|")
+    lambda_5: float = Field(0.021, ge=0.0, le=0.5, description="C5: max ellipse-centre offset (m)")
+    # Goal SOI (eq. 11): lift of g_dagger along the object; None = half the object height.
+    lambda_d: float | None = Field(None, gt=0.0, le=1.0, description="g* = g_dagger + lambda_d a_z (m)")
+    # Planner.
+    planner_max_iterations: int = Field(4000, ge=10, le=1_000_000)
+    planner_step_m: float = Field(0.03, gt=0.0, le=0.05, description="max rim-point move per tree step (m)")
+    planner_connect_eps_m: float = Field(0.03, gt=0.0, le=0.05, description="tree-connection distance (m)")
+    planner_perimeter_tol: float = Field(0.05, gt=0.0, le=0.5, description="node perimeter within this of R")
+    planner_clearance_m: float = Field(0.01, ge=0.0, le=0.2, description="rim clearance to object and obstacles")
+    # Controller (section VI-B).
+    horizon: int = Field(10, ge=1, le=100, description="MPC horizon T")
+    control_rate_hz: float = Field(30.0, gt=0.0, le=500.0)
+    epsilon: float = Field(0.3, gt=0.0, le=1.0, description="Broyden update rate")
+    q_weight: float = Field(1.0, gt=0.0)
+    r_weight: float = Field(0.05, ge=0.0)
+    max_linear_speed_mps: float = Field(0.05, gt=0.0, le=0.25, description="C7: gripper speed (m/s)")
+    max_angular_speed_rps: float = Field(0.3, gt=0.0, le=2.0, description="C7: gripper angular speed (rad/s)")
+    subgoal_tol_m: float = Field(0.01, gt=0.0, le=0.2, description="advance along the path below this RMS error")
+    goal_tol_m: float = Field(0.008, gt=0.0, le=0.2, description="the run is at g* below this RMS error")

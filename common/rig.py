@@ -1,0 +1,137 @@
+"""The rig: where the two arms, the camera and the world are, and how to reach the arm controllers.
+
+Loaded from YAML (`RigConfig.from_file`); the defaults are the paper's set-up in simulation: two
+CR5s facing each other across the object, an eye-to-hand D455 above, both controllers on loopback.
+World frame: z up, origin on the table under the object, arms along world y (left at -y).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from bagit.common.errors import BadScenario
+from bagit.common.geometry import make_transform, pose_to_matrix
+from bagit.common.messages import CameraInfo
+
+ArmName = Literal["left", "right"]
+ARMS: tuple[ArmName, ArmName] = ("left", "right")
+
+
+class ArmConfig(BaseModel):
+    """One CR5: its base in the world, its controller's address, its workspace box (world frame)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    base_position: tuple[float, float, float]
+    base_rpy: tuple[float, float, float]
+    host: str = "127.0.0.1"
+    dashboard_port: int = Field(29999, ge=1, le=65535)
+    feedback_port: int = Field(30004, ge=1, le=65535)
+    workspace_min: tuple[float, float, float] = (-0.45, -0.45, 0.15)
+    workspace_max: tuple[float, float, float] = (0.45, 0.45, 0.95)
+    payload_kg: float = Field(0.3, ge=0.0, le=5.0, description="mount + bag handle, for EnableRobot")
+    speed_factor: int = Field(50, ge=1, le=100)
+
+    def T_world_base(self) -> np.ndarray:
+        """4x4 world <- arm base."""
+        return pose_to_matrix(self.base_position, self.base_rpy)
+
+
+class CameraConfig(BaseModel):
+    """An eye-to-hand RGB-D camera, placed by position and look-at point; D455 intrinsics at 640x480."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    position: tuple[float, float, float] = (0.55, 0.0, 1.25)
+    look_at: tuple[float, float, float] = (0.0, 0.0, 0.45)
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    width: int = Field(640, ge=16, le=4096)
+    height: int = Field(480, ge=16, le=4096)
+    fx: float = Field(390.7, gt=0)
+    fy: float = Field(390.7, gt=0)
+    cx: float | None = None
+    cy: float | None = None
+    fps: float = Field(30.0, gt=0, le=120)
+    depth_scale: float = Field(0.001, gt=0)
+    serial: str | None = None
+
+    def T_world_camera(self) -> np.ndarray:
+        """4x4 world <- camera, camera axes as in OpenCV/RealSense: x right, y down, z forward."""
+        p = np.asarray(self.position, dtype=float)
+        z = np.asarray(self.look_at, dtype=float) - p
+        z /= np.linalg.norm(z)
+        x = np.cross(z, np.asarray(self.up, dtype=float))
+        if np.linalg.norm(x) < 1e-9:  # looking straight along `up`
+            x = np.cross(z, [0.0, 1.0, 0.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        return make_transform(np.column_stack([x, y, z]), p)
+
+    def info(self) -> CameraInfo:
+        """The frame header for this camera."""
+        return CameraInfo(
+            width=self.width,
+            height=self.height,
+            fx=self.fx,
+            fy=self.fy,
+            cx=self.cx if self.cx is not None else (self.width - 1) / 2,
+            cy=self.cy if self.cy is not None else (self.height - 1) / 2,
+            depth_scale=self.depth_scale,
+            T_world_camera=self.T_world_camera().tolist(),
+        )
+
+
+def _default_arms() -> dict[str, ArmConfig]:
+    return {
+        # Bases 0.6 m either side of the object, facing each other (the right arm turned by pi).
+        "left": ArmConfig(base_position=(0.0, -0.6, 0.0), base_rpy=(0.0, 0.0, np.pi / 2)),
+        "right": ArmConfig(
+            base_position=(0.0, 0.6, 0.0), base_rpy=(0.0, 0.0, -np.pi / 2), dashboard_port=29989, feedback_port=30014
+        ),
+    }
+
+
+class SafetyLimits(BaseModel):
+    """Limits the arm driver enforces on every outgoing command."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_tcp_speed_mps: float = Field(0.25, gt=0, le=1.0)
+    max_tcp_accel_mps2: float = Field(1.0, gt=0, le=10.0)
+    max_tcp_jerk_mps3: float = Field(10.0, gt=0, le=500.0)
+    max_angular_speed_rps: float = Field(1.0, gt=0, le=5.0)
+    max_angular_accel_rps2: float = Field(4.0, gt=0, le=50.0)
+    max_angular_jerk_rps3: float = Field(40.0, gt=0, le=1000.0)
+    min_flange_distance_m: float = Field(0.08, ge=0.0)
+    max_flange_distance_m: float = Field(0.32, gt=0.0, description="the rim cannot stretch further")
+    watchdog_s: float = Field(0.2, gt=0, le=5.0)
+    servo_period_s: float = Field(0.03, ge=0.03, le=0.2, description="ServoP no faster than every 30 ms")
+
+
+class RigConfig(BaseModel):
+    """The whole rig."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field("sim", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="rig name, the Zenoh key prefix")
+    arms: dict[ArmName, ArmConfig] = Field(default_factory=_default_arms)
+    camera: CameraConfig = CameraConfig()
+    safety: SafetyLimits = SafetyLimits()
+    table_height: float = 0.0
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "RigConfig":
+        p = Path(path)
+        try:
+            data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+            return cls.model_validate(data)
+        except (OSError, yaml.YAMLError) as e:
+            raise BadScenario(f"cannot read rig config {p}: {e}") from None
+        except ValidationError as e:
+            first = e.errors()[0]
+            raise BadScenario(f"{p}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None

@@ -1,0 +1,1 @@
+"""The Viser web dashboard service."""
