@@ -36,10 +36,17 @@ class ArmConfig(BaseModel):
     workspace_max: tuple[float, float, float] = (0.45, 0.45, 0.95)
     payload_kg: float = Field(0.3, ge=0.0, le=5.0, description="mount + bag handle, for EnableRobot")
     speed_factor: int = Field(50, ge=1, le=100)
+    mount_offset: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.06), description="the bag mount's centre in the tool-flange frame (m)"
+    )
 
     def T_world_base(self) -> np.ndarray:
         """4x4 world <- arm base."""
         return pose_to_matrix(self.base_position, self.base_rpy)
+
+    def T_flange_mount(self) -> np.ndarray:
+        """4x4 tool flange <- bag mount (a rigid offset; the mount is bolted to the flange)."""
+        return make_transform(None, np.asarray(self.mount_offset, dtype=float))
 
 
 class CameraConfig(BaseModel):
