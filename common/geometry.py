@@ -49,7 +49,7 @@ def pca_axis(points: np.ndarray) -> np.ndarray:
 def ramanujan_perimeter(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray | float:
     """Perimeter of an ellipse with semi-axes a, b by Ramanujan's second approximation.
 
-    Relative error below 1e-9 for the aspect ratios a bag rim takes, and cheap enough to sit
+    Relative error below 1e-6 up to a 5:1 aspect ratio (1e-4 at 20:1), and cheap enough to sit
     inside an optimiser's objective.
     """
     a = np.asarray(a, dtype=float)

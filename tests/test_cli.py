@@ -1,0 +1,60 @@
+"""The `bagit` command line: one entry point, --json everywhere, one-line errors."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bagit.cli import COMMAND_MODULES, build_parser, main
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bagit.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_help_lists_every_subcommand():
+    res = run_cli("--help")
+    assert res.returncode == 0
+    _, modules = build_parser()
+    assert len(modules) == len(COMMAND_MODULES)
+    for name in modules:
+        assert name in res.stdout
+
+
+def test_every_subcommand_takes_json():
+    parser, modules = build_parser()
+    for name, mod in modules.items():
+        sub = parser._subparsers._group_actions[0].choices[name]  # noqa: SLF001 - argparse has no public accessor
+        assert any("--json" in a.option_strings for a in sub._actions), name
+
+
+def test_bad_input_is_one_line_error_without_traceback(tmp_path):
+    res = run_cli("extract", str(tmp_path / "missing.ply"), "--n-x", "32")
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and "error" in res.stderr
+    bad = tmp_path / "nan.npy"
+    np.save(bad, np.full((100, 3), np.nan))
+    res = run_cli("extract", str(bad), "--n-x", "32")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+
+
+def test_extract_json_output(tmp_path, capsys):
+    t = np.linspace(0, 2 * np.pi, 3000, endpoint=False)
+    rng = np.random.default_rng(0)
+    cloud = np.stack([0.12 * np.cos(t), 0.09 * np.sin(t), 0.4 + 0 * t], axis=1) + rng.normal(0, 0.001, (3000, 3))
+    f = tmp_path / "c.npy"
+    np.save(f, cloud)
+    assert main(["extract", str(f), "--n-x", "16", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    soi = np.asarray(out["soi"])
+    assert soi.shape == (16, 3)
+    r = np.hypot(soi[:, 0] / 0.12, soi[:, 1] / 0.09)
+    assert np.all(np.abs(r - 1) < 0.05)
+
+
+def test_no_command_prints_help():
+    res = run_cli()
+    assert res.returncode == 2 and "usage" in res.stdout.lower()
