@@ -23,6 +23,7 @@ from bagit.common.errors import BagItError
 COMMAND_MODULES: list[str] = [
     "bagit.commands.demo",
     "bagit.commands.extract",
+    "bagit.commands.bench",
 ]
 
 

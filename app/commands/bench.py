@@ -1,0 +1,99 @@
+"""`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), compare runs (`compare`)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+NAME = "bench"
+HELP = "run the benchmarks: `stages`, `paper`, or `compare OLD NEW`"
+
+# The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
+STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "sim", "zenoh"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("what", choices=["stages", "paper", "compare"], help="which benchmark")
+    p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
+    p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
+    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner")
+    p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from bagit.bench.common import machine, write_results
+
+    if args.what == "compare":
+        if len(args.files) != 2:
+            raise ValueError("bench compare needs two result files: OLD.json NEW.json")
+        return compare(Path(args.files[0]), Path(args.files[1]))
+    if args.what == "paper":
+        from bagit.bench import paper
+
+        return paper.run(quick=args.quick, out_dir=args.out)
+    stages = args.only or STAGES
+    unknown = sorted(set(stages) - set(STAGES))
+    if unknown:
+        raise ValueError(f"unknown stage(s) {unknown}; choose from {STAGES}")
+    results: dict[str, Any] = {"machine": machine(), "quick": args.quick, "stages": {}}
+    for name in stages:
+        print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        mod = importlib.import_module(f"bagit.bench.{name}")
+        results["stages"][name] = mod.run(quick=args.quick)
+        print(f"[bench] {name} done in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    jp, mp = write_results(f"stages-{stamp}", results, stages_markdown(results), args.out)
+    results["files"] = {"json": str(jp), "markdown": str(mp)}
+    return results
+
+
+def stages_markdown(results: dict[str, Any]) -> str:
+    """A readable summary: one table per stage of every numeric result."""
+    from bagit.bench.common import flatten
+
+    m = results["machine"]
+    lines = [
+        "# Stage benchmarks",
+        "",
+        f"Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, numpy {m['numpy']}; {m['when']}"
+        + ("; quick subset" if results.get("quick") else ""),
+        "",
+    ]
+    for name, res in results["stages"].items():
+        lines += [f"## {name}", "", "| metric | value |", "| --- | --- |"]
+        for k, v in flatten(res).items():
+            lines.append(f"| {k} | {v:.4g} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def compare(old: Path, new: Path) -> dict[str, Any]:
+    """Every numeric metric present in both files, with its change."""
+    from bagit.bench.common import flatten
+
+    try:
+        a, b = (flatten(json.loads(p.read_text())) for p in (old, new))
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"cannot read benchmark results: {e}") from None
+    rows = []
+    for k in sorted(set(a) & set(b)):
+        ratio = b[k] / a[k] if a[k] else float("inf") if b[k] else 1.0
+        rows.append({"metric": k, "old": a[k], "new": b[k], "ratio": ratio})
+    return {"old": str(old), "new": str(new), "rows": rows, "only_old": sorted(set(a) - set(b)), "only_new": sorted(set(b) - set(a))}
+
+
+def human(result: dict[str, Any]) -> str:
+    if "rows" in result:
+        out = [f"{'metric':60s} {'old':>12s} {'new':>12s} {'new/old':>8s}"]
+        for r in result["rows"]:
+            out.append(f"{r['metric']:60s} {r['old']:12.4g} {r['new']:12.4g} {r['ratio']:8.2f}")
+        return "\n".join(out)
+    if "stages" in result:
+        return stages_markdown(result) + f"\nwritten: {result['files']['markdown']}"
+    return json.dumps(result, indent=2, default=str)
