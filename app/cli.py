@@ -23,6 +23,8 @@ from bagit.common.errors import BagItError
 COMMAND_MODULES: list[str] = [
     "bagit.commands.demo",
     "bagit.commands.extract",
+    "bagit.commands.goal",
+    "bagit.commands.plan",
     "bagit.commands.bench",
 ]
 

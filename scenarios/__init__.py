@@ -17,6 +17,9 @@ def find_scenario(name_or_path: str) -> Path:
     cand = SCENARIO_DIR / (name_or_path if name_or_path.endswith(".yaml") else name_or_path + ".yaml")
     if cand.exists():
         return cand
+    prefixed = [s for s in list_scenarios() if s.stem.startswith(name_or_path)]
+    if len(prefixed) == 1:  # `exp01` for exp01-coffee-box
+        return prefixed[0]
     from bagit.common.errors import BadScenario
 
     known = ", ".join(s.stem for s in list_scenarios()) or "none"

@@ -1,0 +1,206 @@
+"""The bagging SOI g† and the goal SOI g* (paper section V).
+
+Bottom frame F_m: origin at V's centroid, z normal to V's plane (taken upward, the paper's sgn
+rule), x along V's principal axis. The bagging ellipse minimises (L - R)^2 under C1 (every vertex
+inside with F_e <= lambda_1), C2 (centre within lambda_2 of the centroid) and C3 (major axis
+parallel to V's principal axis, |d_e . d_v| >= lambda_3; dropped when V has no principal axis).
+
+The minimum (L = R exactly) is reached in closed form: the smallest centred, axis-aligned ellipse
+holding V under C1 is found over its aspect ratio (a 1-D search), then scaled up about its centre
+until its Ramanujan perimeter equals R; scaling up only lowers F_e, and the centre and axis stay,
+so C1-C3 hold. If even the smallest ellipse is longer than R, the bag is too small: InfeasibleGoal
+says which rim perimeter would do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from bagit.common.errors import BadVertices, InfeasibleGoal
+from bagit.common.geometry import (
+    align_cyclic,
+    ellipse_points_2d,
+    farthest_point_sampling,
+    make_transform,
+    pca,
+    ramanujan_perimeter,
+    transform_points,
+)
+from bagit.common.messages import EllipseParams, Goal
+from bagit.common.params import DEFAULT_LAMBDA_D_M, MethodParams
+
+N_ELLIPSE = 720  # n_e: dense ellipse samples before farthest point sampling
+ISOTROPY_RATIO = 1.08  # principal variances closer than this: no principal axis, C3 is dropped
+MAX_ASPECT = 8.0
+
+
+@dataclass
+class BaggingGoal:
+    """g† and g* with the ellipse they came from. g_dagger, g_star: (n_x, 3) world; frame: (4, 4) world <- F_m."""
+
+    g_dagger: np.ndarray
+    g_star: np.ndarray
+    frame: np.ndarray
+    ellipse: EllipseParams
+    perimeter: float
+    c1: float
+    c2: float
+    c3: float
+    c3_applied: bool
+    lambda_d: float
+    vertices: np.ndarray = field(repr=False)
+
+    @property
+    def up(self) -> np.ndarray:
+        """The object's upward axis a_z (after the sgn rule), world frame."""
+        return self.frame[:3, 2]
+
+    def to_message(self, run_id: str | None = None, object_height: float = 0.0) -> Goal:
+        return Goal(
+            run_id=run_id,
+            g_dagger=self.g_dagger,
+            g_star=self.g_star,
+            frame=self.frame,
+            ellipse=self.ellipse,
+            perimeter=self.perimeter,
+            c1=self.c1,
+            c2=self.c2,
+            c3=self.c3,
+            vertices=self.vertices,
+            object_height=object_height,
+        )
+
+
+def validate_vertices(vertices: object) -> np.ndarray:
+    """V as a finite `(n_v, 3)` float array spanning a plane, or BadVertices."""
+    try:
+        v = np.asarray(vertices, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise BadVertices(f"vertices are not numeric: {e}") from None
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise BadVertices(f"vertices must have shape (n_v, 3), got {v.shape}")
+    if len(v) < 3:
+        raise BadVertices(f"need at least 3 vertices for a bottom outline, got {len(v)}")
+    if not np.all(np.isfinite(v)):
+        raise BadVertices("vertices contain NaN or infinite coordinates")
+    _, var, _ = pca(v)
+    if var[1] < 1e-8:
+        raise BadVertices("vertices are collinear or coincident: they outline no bottom face")
+    if np.sqrt(var[2]) > 0.05 * np.sqrt(var[0]) + 1e-3:
+        raise BadVertices("vertices are not coplanar: V must be the outline of a flat bottom")
+    return v
+
+
+def bottom_frame(vertices: np.ndarray) -> np.ndarray:
+    """4x4 world <- F_m: origin at the centroid, z normal to V (upward), x along V's principal axis."""
+    centroid, _, axes = pca(vertices)
+    z = axes[2] if axes[2][2] >= 0 else -axes[2]  # sgn(a_z . b_z): the object's side is up
+    x = axes[0] - np.dot(axes[0], z) * z
+    x /= np.linalg.norm(x)
+    return make_transform(np.column_stack([x, np.cross(z, x), z]), centroid)
+
+
+def _f_e(xy: np.ndarray, center: np.ndarray, a: float, b: float, alpha: float) -> np.ndarray:
+    """F_e of points `xy (n, 2)` for the ellipse (centre, a, b, alpha): < 1 inside."""
+    c, s = np.cos(alpha), np.sin(alpha)
+    d = xy - center
+    xr = d[:, 0] * c + d[:, 1] * s
+    yr = -d[:, 0] * s + d[:, 1] * c
+    return (xr / a) ** 2 + (yr / b) ** 2
+
+
+def _tight(xy: np.ndarray, q: float, lambda_1: float) -> tuple[float, float]:
+    """Semi-axes (a, b = a/q) of the smallest centred, x-aligned ellipse with F_e <= lambda_1 on `xy`."""
+    a = np.sqrt(np.max(xy[:, 0] ** 2 + (q * xy[:, 1]) ** 2) / lambda_1)
+    return float(a), float(a / q)
+
+
+def smallest_ellipse(xy: np.ndarray, lambda_1: float) -> tuple[float, float, float]:
+    """(a, b, L) of the shortest centred, x-aligned ellipse holding `xy (n, 2)` under C1."""
+
+    def perim(log_q: float) -> float:
+        return float(ramanujan_perimeter(*_tight(xy, np.exp(log_q), lambda_1)))
+
+    res = minimize_scalar(perim, bounds=(0.0, np.log(MAX_ASPECT)), method="bounded", options={"xatol": 1e-4})
+    best_q = np.exp(res.x) if res.fun <= perim(0.0) else 1.0
+    a, b = _tight(xy, best_q, lambda_1)
+    if b > a:  # keep a the major semi-axis
+        a, b = b, a
+    return a, b, float(ramanujan_perimeter(a, b))
+
+
+def bagging_soi(
+    vertices: np.ndarray,
+    rim_perimeter: float,
+    n_x: int,
+    params: MethodParams | None = None,
+    *,
+    lambda_d: float | None = None,
+    g0: np.ndarray | None = None,
+) -> BaggingGoal:
+    """g† and g* for an object with bottom outline `vertices (n_v, 3)` and a bag of rim perimeter R.
+
+    `lambda_d` defaults to the parameter, else DEFAULT_LAMBDA_D_M; with `g0 (n_x, 3)` the points of
+    g† and g* are indexed like g0's (best cyclic shift and direction).
+    """
+    p = params or MethodParams()
+    v = validate_vertices(vertices)
+    if not (np.isfinite(rim_perimeter) and rim_perimeter > 0):
+        raise BadVertices(f"rim perimeter must be positive, got {rim_perimeter}")
+    if n_x < 4:
+        raise BadVertices(f"n_x must be at least 4, got {n_x}")
+    T = bottom_frame(v)
+    xy = transform_points(np.linalg.inv(T), v)[:, :2]
+    _, var, _ = pca(xy)
+    c3_applied = var[0] > ISOTROPY_RATIO * var[1]
+
+    a, b, L_min = smallest_ellipse(xy, p.lambda_1)
+    if L_min > rim_perimeter:
+        raise InfeasibleGoal(
+            f"the object is too large for the bag: no ellipse of perimeter {rim_perimeter:.3f} m holds its "
+            f"bottom under C1-C3; the rim perimeter would have to be at least {L_min:.3f} m"
+        )
+    k = rim_perimeter / L_min
+    a, b = a * k, b * k
+    # With x along V's principal axis the major axis is parallel to it (alpha = 0) unless the
+    # aspect search preferred the minor direction; then the ellipse is turned by 90 degrees.
+    alpha = 0.0
+    f_aligned = _f_e(xy, np.zeros(2), a, b, 0.0).max()
+    f_turned = _f_e(xy, np.zeros(2), a, b, np.pi / 2).max()
+    if f_turned < f_aligned and not c3_applied:
+        alpha = np.pi / 2
+    c1 = float(_f_e(xy, np.zeros(2), a, b, alpha).max())
+    if c1 > p.lambda_1 + 1e-9:
+        raise InfeasibleGoal(f"internal: the bagging ellipse breaks C1 (max F_e {c1:.3f} > {p.lambda_1})")
+
+    theta = np.linspace(0.0, 2 * np.pi, N_ELLIPSE, endpoint=False)
+    dense = ellipse_points_2d(np.zeros(2), a, b, alpha, theta)
+    idx = farthest_point_sampling(dense, n_x)
+    ring = dense[np.sort(idx)]  # FPS picks the points; sorting by theta orders them counter-clockwise
+    d_e = pca(dense)[2][0]
+    d_v = pca(xy)[2][0]
+    c3 = float(abs(np.dot(d_e, d_v)))
+    if c3_applied and c3 < p.lambda_3:
+        raise InfeasibleGoal(f"internal: the bagging ellipse breaks C3 (|d_e . d_v| = {c3:.4f})")
+
+    g_dagger = transform_points(T, np.column_stack([ring, np.zeros(n_x)]))
+    if g0 is not None:
+        g_dagger = align_cyclic(g_dagger, np.asarray(g0, dtype=float))
+    ld = lambda_d if lambda_d is not None else (p.lambda_d if p.lambda_d is not None else DEFAULT_LAMBDA_D_M)
+    g_star = g_dagger + ld * T[:3, 2]  # eq. (11) with a_z already turned upward
+    return BaggingGoal(
+        g_dagger=g_dagger,
+        g_star=g_star,
+        frame=T,
+        ellipse=EllipseParams(center=(0.0, 0.0), a=a, b=b, alpha=alpha),
+        perimeter=float(ramanujan_perimeter(a, b)),
+        c1=c1,
+        c2=0.0,
+        c3=c3,
+        c3_applied=bool(c3_applied),
+        lambda_d=ld,
+        vertices=v,
+    )

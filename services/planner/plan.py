@@ -1,0 +1,141 @@
+"""Planning a whole bagging path g0 -> g† -> g* for a scenario, with any of the planners."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bagit.common.geometry import align_cyclic, closed_polyline_length
+from bagit.common.messages import Path
+from bagit.common.params import MethodParams
+from bagit.common.scenario import Scenario
+from bagit.services.planner.collision import RimCollision, box_polytope, prism_polytope
+from bagit.services.planner.goal import BaggingGoal, bagging_soi
+from bagit.services.planner.rrt import PLANNERS, postprocess
+from bagit.services.planner.space import SoiSpace
+
+OBJECT_MARGIN_M = 0.002  # the rim may come this close to the object (the ellipse's C1 margin does the rest)
+REGION_MARGIN = np.array([0.12, 0.12, 0.08])  # the sampled centres' box around g0, g† and g*
+
+
+@dataclass
+class PlanResult:
+    """A planned SOI path. path: (n_nodes, n_x, 3); path[dagger_index] is g†, path[-1] is g*."""
+
+    success: bool
+    planner: str
+    path: np.ndarray
+    dagger_index: int
+    time_s: float
+    iterations: int
+    reason: str | None = None
+    goal: BaggingGoal | None = field(default=None, repr=False)
+
+    def to_message(self, run_id: str | None = None) -> Path:
+        return Path(
+            run_id=run_id,
+            success=self.success,
+            planner=self.planner,
+            nodes=self.path if self.success else np.zeros((0, 1, 3)),
+            dagger_index=self.dagger_index,
+            time_s=self.time_s,
+            iterations=self.iterations,
+        )
+
+    def path_length(self) -> float:
+        """Summed RMS point motion along the path (metres)."""
+        if len(self.path) < 2:
+            return 0.0
+        return float(np.sqrt(np.mean(np.sum(np.diff(self.path, axis=0) ** 2, axis=2), axis=1)).sum())
+
+
+def collision_model(scenario: Scenario, up: np.ndarray, clearance: float) -> RimCollision:
+    """The object (V extruded along `up`) and the scenario's cuboid obstacles."""
+    polys = [prism_polytope(scenario.object.bottom_vertices(), up, scenario.object.effective_height())]
+    margins = [OBJECT_MARGIN_M]
+    for k, ob in enumerate(scenario.obstacles):
+        polys.append(box_polytope(ob, f"obstacle {k}"))
+        margins.append(clearance)
+    return RimCollision(polys, margins)
+
+
+def plan_path(
+    g0: np.ndarray,
+    goal: BaggingGoal,
+    collision: RimCollision,
+    perimeter: float,
+    params: MethodParams,
+    planner: str = "cbirrt",
+    seed: int = 0,
+    time_budget_s: float = 10.0,
+) -> PlanResult:
+    """Plan g0 -> g† and g† -> g*, trimmed, smoothed and densified; every node aligned to g0."""
+    if planner not in PLANNERS:
+        raise ValueError(f"unknown planner {planner!r}; choose from {sorted(PLANNERS)}")
+    t0 = time.perf_counter()
+    g0 = np.asarray(g0, dtype=float)
+    gd = align_cyclic(goal.g_dagger, g0)
+    gs = align_cyclic(goal.g_star, g0)
+    empty = np.zeros((0,) + g0.shape)
+
+    def fail(reason: str, iters: int = 0) -> PlanResult:
+        return PlanResult(False, planner, empty, -1, time.perf_counter() - t0, iters, reason, goal)
+
+    for name, rim in (("g0", g0), ("g†", gd), ("g*", gs)):
+        hit = collision.first_hit(rim)
+        if hit is not None:
+            return fail(f"{name} touches the {hit}: no collision-free path can start or end there")
+    centres = np.stack([g0.mean(0), gd.mean(0), gs.mean(0)])
+    space = SoiSpace(
+        perimeter=perimeter,
+        collision=collision,
+        rng=np.random.default_rng(seed),
+        center_lo=centres.min(0) - REGION_MARGIN,
+        center_hi=centres.max(0) + REGION_MARGIN,
+        up=goal.up,
+        lambda_4=params.lambda_4,
+        lambda_5=params.lambda_5,
+        perimeter_tol=params.planner_perimeter_tol,
+        step_m=params.planner_step_m,
+    )
+    g0_perim = closed_polyline_length(g0)
+    if abs(g0_perim / perimeter - 1) > params.planner_perimeter_tol:
+        return fail(f"g0's perimeter {g0_perim:.3f} m is not within {params.planner_perimeter_tol:.0%} of R = {perimeter:.3f} m")
+    deadline = t0 + time_budget_s
+    search = PLANNERS[planner]
+    total_iters = 0
+    pieces = []
+    for a, b, stage in ((g0, gd, "pre-bagging"), (gd, gs, "bagging")):
+        raw, iters = search(space, a, b, params.planner_connect_eps_m, params.planner_max_iterations, deadline)
+        total_iters += iters
+        if raw is None:
+            why = "time budget" if time.perf_counter() > deadline else f"{params.planner_max_iterations} iterations"
+            return fail(f"{planner} found no {stage} path within its {why}", total_iters)
+        pieces.append(postprocess(space, raw))
+    pre, bag = pieces
+    path = np.stack(pre + bag[1:])
+    path[0], path[len(pre) - 1], path[-1] = g0, gd, gs
+    return PlanResult(True, planner, path, len(pre) - 1, time.perf_counter() - t0, total_iters, None, goal)
+
+
+def plan_scenario(
+    scenario: Scenario,
+    planner: str = "cbirrt",
+    seed: int = 0,
+    g0: np.ndarray | None = None,
+    time_budget_s: float = 10.0,
+) -> PlanResult:
+    """Goal and path for a scenario; g0 from the argument (perception) or the scenario's initial rim."""
+    if g0 is None:
+        g0 = scenario.bag.g0()
+        if g0 is None:
+            raise ValueError(f"scenario {scenario.name!r} has no bag.initial_rim: perception must give g0")
+    g0 = np.asarray(g0, dtype=float)
+    perimeter = scenario.bag.rim_perimeter or closed_polyline_length(g0)
+    goal = bagging_soi(
+        scenario.object.bottom_vertices(), perimeter, len(g0), scenario.params, lambda_d=scenario.lambda_d(), g0=g0
+    )
+    coll = collision_model(scenario, goal.up, scenario.params.planner_clearance_m)
+    return plan_path(g0, goal, coll, perimeter, scenario.params, planner, seed, time_budget_s)

@@ -1,0 +1,137 @@
+"""The SOI state space the planners search: sampling, the paper's ellipse regularisation (C4, C5),
+the perimeter constraint, steering and edge checks. States are rims `(n_x, 3)` whose point i means
+the same place on the rim in every state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bagit.common.geometry import align_cyclic, closed_polyline_length, ramanujan_perimeter
+from bagit.services.planner.collision import RimCollision
+
+EDGE_RESOLUTION_M = 0.01  # collision-check an edge every this much point motion
+MAX_NODE_STEP_M = 0.05  # no rim point moves more than this between consecutive path nodes
+
+
+def fit_ellipse(x: np.ndarray, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Centre `(3,)` and axis matrix `A (3, 2)` of the ellipse c + A [cos t, sin t] nearest `x (n, 3)`.
+
+    Linear least squares with t_i = 2 pi i / n first, then a few rounds re-assigning each t_i to its
+    point's angle in the ellipse's own coordinates: a Chamfer-style fit that stays closed-form.
+    """
+    n = len(x)
+    t = 2 * np.pi * np.arange(n) / n
+    c = x.mean(axis=0)
+    A = np.zeros((3, 2))
+    for _ in range(iterations):
+        M = np.column_stack([np.cos(t), np.sin(t)])
+        A = np.linalg.lstsq(M, x - c, rcond=None)[0].T  # (3, 2)
+        coords = (x - c) @ np.linalg.pinv(A).T  # (n, 2) in the ellipse's frame
+        t = np.unwrap(np.arctan2(coords[:, 1], coords[:, 0]))
+    return c, A
+
+
+def ellipse_rim(c: np.ndarray, A: np.ndarray, n: int, phase: float = 0.0) -> np.ndarray:
+    """`(n, 3)` points c + A [cos t_i, sin t_i], t_i = phase + 2 pi i / n."""
+    t = phase + 2 * np.pi * np.arange(n) / n
+    return c + np.column_stack([np.cos(t), np.sin(t)]) @ A.T
+
+
+def scale_to_perimeter(rim: np.ndarray, perimeter: float) -> np.ndarray:
+    """`rim (n, 3)` scaled about its centroid so its polyline length is `perimeter` (the constraint projection)."""
+    c = rim.mean(axis=0)
+    return c + (rim - c) * (perimeter / closed_polyline_length(rim))
+
+
+def regularize(x_rand: np.ndarray, lambda_4: float, lambda_5: float) -> np.ndarray:
+    """The paper's Regularization: the ellipse `(n, 3)` fitted to `x_rand` under C4 and C5.
+
+    C4 (|R_x / R_y - 1| <= lambda_4) holds exactly after scaling the fit to R_x; C5 (centre within
+    lambda_5 of x_rand's centroid) by clamping the centre.
+    """
+    n = len(x_rand)
+    c, A = fit_ellipse(x_rand)
+    centroid = x_rand.mean(axis=0)
+    off = c - centroid
+    if np.linalg.norm(off) > lambda_5:
+        c = centroid + off * (lambda_5 / np.linalg.norm(off))
+    y = ellipse_rim(c, A, n)
+    r_x, r_y = closed_polyline_length(x_rand), closed_polyline_length(y)
+    if abs(r_x / r_y - 1) > lambda_4:
+        y = c + (y - c) * (r_x / r_y)
+    return y
+
+
+def max_step(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest single-point displacement between two rims."""
+    return float(np.linalg.norm(a - b, axis=-1).max())
+
+
+@dataclass
+class SoiSpace:
+    """Everything a planner needs to know about valid rims."""
+
+    perimeter: float
+    collision: RimCollision
+    rng: np.random.Generator
+    center_lo: np.ndarray
+    center_hi: np.ndarray
+    up: np.ndarray
+    lambda_4: float = 0.002
+    lambda_5: float = 0.021
+    perimeter_tol: float = 0.05
+    step_m: float = 0.03
+    max_tilt_rad: float = 0.6
+
+    def perimeter_ok(self, rims: np.ndarray) -> np.ndarray:
+        p = np.linalg.norm(np.roll(rims, -1, axis=-2) - rims, axis=-1).sum(axis=-1)
+        return np.abs(p / self.perimeter - 1) <= self.perimeter_tol
+
+    def project(self, rim: np.ndarray) -> np.ndarray:
+        """Onto the perimeter constraint, when it is broken."""
+        return rim if self.perimeter_ok(rim) else scale_to_perimeter(rim, self.perimeter)
+
+    def valid(self, rim: np.ndarray) -> bool:
+        return bool(self.perimeter_ok(rim) and not self.collision.rims_hit(rim[None])[0])
+
+    def sample(self, n: int) -> np.ndarray:
+        """A random regularised SOI: a random ellipse of about the bag's perimeter, with a tilt,
+        centred in the task region, perturbed point by point, then regularised to an ellipse."""
+        rng = self.rng
+        c = rng.uniform(self.center_lo, self.center_hi)
+        tilt = rng.uniform(0, self.max_tilt_rad)
+        az = rng.uniform(0, 2 * np.pi)
+        normal = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+        normal = normal if self.up @ normal > 0 else -normal
+        e1 = np.cross(normal, [0.0, 0.0, 1.0] if abs(normal[2]) < 0.9 else [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(normal, e1)
+        ang = rng.uniform(0, np.pi)
+        u, v = np.cos(ang) * e1 + np.sin(ang) * e2, -np.sin(ang) * e1 + np.cos(ang) * e2
+        q = rng.uniform(1.0, 2.5)
+        scale = self.perimeter * rng.uniform(0.98, 1.02) / ramanujan_perimeter(1.0, 1.0 / q)
+        A = np.column_stack([u * scale, v * scale / q])
+        x_rand = ellipse_rim(c, A, n, rng.uniform(0, 2 * np.pi)) + rng.normal(0, 0.003, (n, 3))
+        return regularize(x_rand, self.lambda_4, self.lambda_5)
+
+    def steer(self, frm: np.ndarray, to: np.ndarray, step: float | None = None) -> np.ndarray:
+        """From `frm` towards `to` (aligned first) by at most `step` of any point's motion, projected."""
+        to = align_cyclic(to, frm)
+        d = max_step(frm, to)
+        s = step or self.step_m
+        x = to if d <= s else frm + (to - frm) * (s / d)
+        return self.project(x)
+
+    def edge_ok(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """The straight SOI motion a -> b stays valid: every interpolated rim checked at 1 cm resolution."""
+        d = max_step(a, b)
+        k = max(int(np.ceil(d / EDGE_RESOLUTION_M)), 1)
+        s = np.linspace(0.0, 1.0, k + 1)[1:, None, None]
+        rims = a[None] + s * (b - a)[None]
+        bad = ~self.perimeter_ok(rims)
+        if bad.any():
+            rims[bad] = np.stack([scale_to_perimeter(r, self.perimeter) for r in rims[bad]])
+        return not self.collision.rims_hit(rims).any()
