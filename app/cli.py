@@ -25,6 +25,7 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.extract",
     "bagit.commands.goal",
     "bagit.commands.plan",
+    "bagit.commands.run",
     "bagit.commands.bench",
 ]
 

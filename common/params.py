@@ -40,5 +40,5 @@ class MethodParams(BaseModel):
     r_weight: float = Field(0.05, ge=0.0)
     max_linear_speed_mps: float = Field(0.05, gt=0.0, le=0.25, description="C7: gripper speed (m/s)")
     max_angular_speed_rps: float = Field(0.3, gt=0.0, le=2.0, description="C7: gripper angular speed (rad/s)")
-    subgoal_tol_m: float = Field(0.01, gt=0.0, le=0.2, description="advance along the path below this RMS error")
+    subgoal_tol_m: float = Field(0.02, gt=0.0, le=0.2, description="advance along the path below this RMS error")
     goal_tol_m: float = Field(0.008, gt=0.0, le=0.2, description="the run is at g* below this RMS error")

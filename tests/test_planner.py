@@ -90,10 +90,10 @@ def test_unreachable_goal_fails_fast_with_reason():
 def test_walled_in_start_gives_up_within_budget():
     s = Scenario.from_file(find_scenario("exp02"))
     g0 = s.bag.g0()
-    # a thin wall, as wide and tall as the workspace, between the bag (x > 0.11) and the object
-    assert g0[:, 0].min() > 0.11
+    # a thin wall, as wide and tall as the workspace, between the bag (x > 0.06) and the object
+    assert g0[:, 0].min() > 0.06
     doc = s.model_dump(exclude_none=True)
-    doc["obstacles"] = [{"center": [0.105, 0.0, 0.5], "size": [0.006, 2.0, 2.0]}]
+    doc["obstacles"] = [{"center": [0.057, 0.0, 0.5], "size": [0.004, 2.0, 2.0]}]
     res = plan_scenario(Scenario.from_dict(doc), "cbirrt", 0, time_budget_s=1.0)
     assert not res.success
     assert res.reason and ("time budget" in res.reason or "touches" in res.reason)

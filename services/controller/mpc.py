@@ -21,6 +21,9 @@ import numpy as np
 import piqp
 
 
+ROTATION_COST_FACTOR = 10.0
+
+
 @dataclass
 class MpcSolution:
     u: np.ndarray  # (12,) first input
@@ -40,6 +43,10 @@ class MpcSolver:
         self._LtL = L.T @ L
         self._Lt1 = L.T @ np.ones(horizon)
         self._L = L
+        # Rotations cost ROTATION_COST_FACTOR more per unit: a mount's turn moves the rim little, and an
+        # input that barely shows in the SOI must not be spent on the camera's noise.
+        per_tick = np.array([1.0] * 3 + [ROTATION_COST_FACTOR] * 3 + [1.0] * 3 + [ROTATION_COST_FACTOR] * 3)
+        self._r_diag = r * np.tile(per_tick, horizon)
         self._solver: piqp.DenseSolver | None = None
         self._shape: tuple[int, int] | None = None
 
@@ -61,7 +68,7 @@ class MpcSolver:
         T = self.T
         t0 = time.perf_counter()
         JtJ = J.T @ J
-        H = self.q * np.kron(self._LtL, JtJ) + self.r * np.eye(12 * T)
+        H = self.q * np.kron(self._LtL, JtJ) + np.diag(self._r_diag)
         g = self.q * np.kron(self._Lt1, J.T @ (x - target))
         ub = np.tile(u_max, T)
         lb = -ub

@@ -14,7 +14,7 @@ class SubgoalTracker:
     """Walks along path `(n_nodes, n_x, 3)`: advance when close enough to the current subgoal or when a
     later node is already nearer, but never past g† (dagger_index) before g† itself was reached."""
 
-    def __init__(self, path: np.ndarray, dagger_index: int, subgoal_tol: float, goal_tol: float):
+    def __init__(self, path: np.ndarray, dagger_index: int, subgoal_tol: float, goal_tol: float, stall_ticks: int = 45):
         self.path = np.asarray(path, dtype=float)
         if self.path.ndim != 3 or len(self.path) < 1:
             raise ValueError("path must have shape (n_nodes, n_x, 3)")
@@ -25,24 +25,47 @@ class SubgoalTracker:
         self.goal_tol = goal_tol
         self.index = min(1, len(self.path) - 1)
         self.dagger_reached = dagger_index == 0
+        # A node the bag cannot match exactly (the path's nodes are ideal ellipses) counts as reached
+        # once the error to it stops improving for `stall_ticks` ticks while within 2x the tolerance.
+        self.stall_ticks = stall_ticks
+        self._best = np.inf
+        self._since_best = 0
+
+    def _reached(self, x: np.ndarray, k: int) -> bool:
+        e = self.error(x, k)
+        if e <= self.subgoal_tol:
+            return True
+        return self._since_best >= self.stall_ticks and e <= 2 * self.subgoal_tol
 
     def update(self, x: np.ndarray) -> int:
         """The index of g_next for the SOI `x (n_x, 3)`."""
         last = len(self.path) - 1
+        e = self.error(x, self.index)
+        if e < self._best - 1e-3:
+            self._best, self._since_best = e, 0
+        else:
+            self._since_best += 1
+        start = self.index
         while self.index < last:
             limit = last if self.dagger_reached else self.dagger
-            if self.index == self.dagger and rms_error(x, self.path[self.index]) <= self.subgoal_tol:
+            if self.index == self.dagger and self._reached(x, self.index):
                 self.dagger_reached = True
                 limit = last
-            close = rms_error(x, self.path[self.index]) <= self.subgoal_tol
-            ahead = self.index + 1 <= limit and rms_error(x, self.path[self.index + 1]) < rms_error(x, self.path[self.index])
+            close = self._reached(x, self.index)
+            ahead = self.index + 1 <= limit and self.error(x, self.index + 1) < self.error(x, self.index)
             if (close or ahead) and self.index + 1 <= limit:
                 self.index += 1
             else:
                 break
-        if self.index == self.dagger and rms_error(x, self.path[self.dagger]) <= self.subgoal_tol:
+        if self.index == self.dagger and self._reached(x, self.dagger):
             self.dagger_reached = True
+        if self.index != start:
+            self._best, self._since_best = np.inf, 0
         return self.index
+
+    def error(self, x: np.ndarray, k: int) -> float:
+        """RMS error of `x` to node k once the node is slid along itself to match x (see `slide_to`)."""
+        return rms_error(x, slide_to(self.path[k], x))
 
     @property
     def stage(self) -> str:
@@ -52,4 +75,25 @@ class SubgoalTracker:
         return self.index / max(len(self.path) - 1, 1)
 
     def done(self, x: np.ndarray) -> bool:
-        return self.dagger_reached and self.index == len(self.path) - 1 and rms_error(x, self.path[-1]) <= self.goal_tol
+        return self.dagger_reached and self.index == len(self.path) - 1 and self.error(x, len(self.path) - 1) <= self.goal_tol
+
+
+def slide_to(target: np.ndarray, x: np.ndarray, steps: int = 16) -> np.ndarray:
+    """`target (n_x, 3)` re-sampled along its own closed polyline with the phase (a fraction of a
+    spacing either way, plus whole shifts) that best matches `x (n_x, 3)`.
+
+    SOI points have no material identity: between frames they slide along the rim. Comparing x with
+    a subgoal after this slide leaves only the rim's shape and pose in the error, not the sliding.
+    """
+    n = len(target)
+    nxt = np.roll(target, -1, axis=0)
+    prv = np.roll(target, 1, axis=0)
+    best, best_cost = target, rms_error(x, target)
+    for f in np.linspace(-0.5, 0.5, steps + 1):
+        cand = target + f * (nxt - target) if f >= 0 else target + (-f) * (prv - target)
+        for shift in (-1, 0, 1):
+            c = np.roll(cand, shift, axis=0)
+            cost = rms_error(x, c)
+            if cost < best_cost:
+                best, best_cost = c, cost
+    return best
