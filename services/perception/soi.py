@@ -33,6 +33,7 @@ MIN_SIGMA_M = 0.0015  # floor on the component spread: the rim band is a few mm 
 CHAIN_WEIGHT = 0.02  # neighbour pull, as a fraction of a component's typical support
 SUPPORT_FRACTION = 0.25  # a component with less than this share of the median support is starved
 DENSE_SAMPLES = 24
+PHASE_STEPS = 41  # phases tried within one spacing either way when following the previous SOI
 CONVERGED_M = 1e-4  # EM stops when no mean moves more than this  # spline samples per SOI point for the arc-length resampling
 
 
@@ -74,8 +75,7 @@ def extract_soi(
     if init is not None:
         # Keep the phase too: start where init's first point projects, then point i stays point i.
         prev = np.asarray(init, dtype=float)
-        rim = _resample_even(_supported(mu, support), n_x, start_near=prev[0])
-        return align_cyclic(rim, prev)
+        return _resample_even(_supported(mu, support), n_x, follow=prev)
     rim = _resample_even(_supported(mu, support), n_x)
     return _canonical_order(rim, normal, start_hint)
 
@@ -186,9 +186,12 @@ def _supported(mu: np.ndarray, support: np.ndarray) -> np.ndarray:
     return good[~stray] if (~stray).sum() >= 4 else good
 
 
-def _resample_even(mu: np.ndarray, n: int, start_near: np.ndarray | None = None) -> np.ndarray:
-    """n points at equal arc length along a periodic spline through the closed chain `mu (k, 3)`,
-    the first at the spline point nearest `start_near` when given."""
+def _resample_even(mu: np.ndarray, n: int, follow: np.ndarray | None = None) -> np.ndarray:
+    """n points at equal arc length along a periodic spline through the closed chain `mu (k, 3)`.
+
+    With `follow (n, 3)` (the previous SOI) the points are indexed like it and their phase along the
+    rim is the one that moves them least from it: points do not creep round the rim frame after frame.
+    """
     closed = np.vstack([mu, mu[:1]])
     seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
     t = np.concatenate([[0.0], np.cumsum(np.maximum(seg, 1e-9))])
@@ -196,12 +199,25 @@ def _resample_even(mu: np.ndarray, n: int, start_near: np.ndarray | None = None)
     tt = np.linspace(0.0, t[-1], n * DENSE_SAMPLES, endpoint=False)
     dense = spl(tt)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(np.vstack([dense, dense[:1]]), axis=0), axis=1))])
-    start = 0.0
-    if start_near is not None:
-        start = arc[int(np.argmin(np.sum((dense - start_near) ** 2, axis=1)))]
-    target = (start + np.arange(n) * arc[-1] / n) % arc[-1]
-    tq = np.interp(target, arc, np.concatenate([tt, [t[-1]]]))
-    return spl(tq)
+    knots = np.concatenate([tt, [t[-1]]])
+    spacing = arc[-1] / n
+
+    def at(start: np.ndarray) -> np.ndarray:  # (m,) phases -> (m, n, 3)
+        target = (start[:, None] + np.arange(n)[None] * spacing) % arc[-1]
+        return spl(np.interp(target, arc, knots))
+
+    if follow is None:
+        return at(np.zeros(1))[0]
+    base = align_cyclic(at(np.zeros(1))[0], follow)
+    # where point 0 of the aligned rim sits, as an arc phase; then search +-1 spacing around it
+    k0 = int(np.argmin(np.sum((dense - base[0]) ** 2, axis=1)))
+    phases = arc[k0] + np.linspace(-1.0, 1.0, PHASE_STEPS) * spacing
+    cands = at(phases)  # (m, n, 3), each in the base rim's direction
+    forward = np.sum((np.roll(base, -1, axis=0) - base) * (np.roll(cands[0], -1, axis=0) - cands[0])) > 0
+    if not forward:
+        cands = np.concatenate([cands[:, :1], cands[:, :0:-1]], axis=1)
+    cost = np.sum((cands - follow[None]) ** 2, axis=(1, 2))
+    return cands[int(np.argmin(cost))]
 
 
 def _canonical_order(rim: np.ndarray, normal: np.ndarray, start_hint: np.ndarray | None) -> np.ndarray:
