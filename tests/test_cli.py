@@ -58,3 +58,27 @@ def test_extract_json_output(tmp_path, capsys):
 def test_no_command_prints_help():
     res = run_cli()
     assert res.returncode == 2 and "usage" in res.stdout.lower()
+
+
+def test_demo_sample_extracts_from_the_bundled_cloud(capsys):
+    assert main(["demo", "--sample", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert np.asarray(out["soi"]).shape == (32, 3) and out["n_points"] == 12000
+
+
+def test_goal_and_plan_commands(capsys):
+    assert main(["goal", "exp04", "--json"]) == 0
+    g = json.loads(capsys.readouterr().out)
+    assert g["c1"] <= 0.912 and np.asarray(g["g_star"]).shape == (32, 3)
+    assert main(["plan", "exp04", "--seed", "2", "--json"]) == 0
+    p = json.loads(capsys.readouterr().out)
+    assert p["success"] and len(p["path"]) == p["n_nodes"] and 0 < p["dagger_index"] < p["n_nodes"]
+    for key in ("time_s", "iterations"):
+        assert key in p
+
+
+def test_too_large_object_exits_2_with_the_needed_perimeter(tmp_path):
+    doc = tmp_path / "big.yaml"
+    doc.write_text("name: big\nobject: {shape: {type: box, size: [0.4, 0.3, 0.1], position: [0, 0, 0.5]}}\nbag: {rim_perimeter: 0.68}\n")
+    res = run_cli("goal", str(doc))
+    assert res.returncode == 2 and "at least" in res.stderr and "Traceback" not in res.stderr
