@@ -12,6 +12,20 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 
+def as_points(obj: object, error: type[Exception], what: str) -> np.ndarray:
+    """`obj` as a float64 `(n, 3)` array, or `error` naming `what` is wrong (not numeric, wrong shape).
+
+    Finiteness and counts are left to the caller, whose messages know what the points are for.
+    """
+    try:
+        a = np.asarray(obj, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise error(f"{what} is not numeric: {e}") from None
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise error(f"{what} must have shape (n, 3), got {a.shape}")
+    return a
+
+
 def farthest_point_sampling(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:
     """Indices `(k,)` of `k` points of `points (n, d)` chosen greedily farthest from those already chosen.
 

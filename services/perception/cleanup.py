@@ -7,6 +7,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from bagit.common.errors import BadCloud
+from bagit.common.geometry import as_points
 
 MAX_POINTS = 2_000_000  # refuse clouds beyond this (a 640x480 frame has 307,200 pixels)
 VOXEL_M = 0.004  # voxel size for down-sampling: well under the rim band's width and the 2 mm accuracy goal
@@ -20,12 +21,7 @@ def validate_cloud(points: object, n_x: int) -> np.ndarray:
     """`points` as a finite float64 `(n, 3)` array, or BadCloud saying what is wrong."""
     if not isinstance(n_x, (int, np.integer)) or isinstance(n_x, bool) or n_x < 4:
         raise BadCloud(f"n_x must be an integer >= 4, got {n_x!r}")
-    try:
-        a = np.asarray(points, dtype=float)
-    except (TypeError, ValueError) as e:
-        raise BadCloud(f"cloud is not numeric: {e}") from None
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise BadCloud(f"cloud must have shape (n, 3), got {a.shape}")
+    a = as_points(points, BadCloud, "cloud")
     if len(a) == 0:
         raise BadCloud("cloud is empty")
     if len(a) > MAX_POINTS:

@@ -22,6 +22,7 @@ from scipy.optimize import minimize_scalar
 from bagit.common.errors import BadVertices, InfeasibleGoal
 from bagit.common.geometry import (
     align_cyclic,
+    as_points,
     ellipse_points_2d,
     farthest_point_sampling,
     make_transform,
@@ -76,12 +77,7 @@ class BaggingGoal:
 
 def validate_vertices(vertices: object) -> np.ndarray:
     """V as a finite `(n_v, 3)` float array spanning a plane, or BadVertices."""
-    try:
-        v = np.asarray(vertices, dtype=float)
-    except (TypeError, ValueError) as e:
-        raise BadVertices(f"vertices are not numeric: {e}") from None
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise BadVertices(f"vertices must have shape (n_v, 3), got {v.shape}")
+    v = as_points(vertices, BadVertices, "vertices")
     if len(v) < 3:
         raise BadVertices(f"need at least 3 vertices for a bottom outline, got {len(v)}")
     if not np.all(np.isfinite(v)):

@@ -99,45 +99,46 @@ def cbirrt(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max
     return None, max_iter
 
 
-def ffg_rrt(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max_iter: int, deadline: float) -> tuple[list[np.ndarray] | None, int]:
-    """Forward-growing RRT from the start, steered to the goal with probability GOAL_BIAS."""
+def _forward_search(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max_iter: int, deadline: float, extend) -> tuple[list[np.ndarray] | None, int]:
+    """One tree from the start, grown by `extend(tree, target)` toward the goal (with probability
+    GOAL_BIAS) or a regularised random SOI, until a node can be joined to the goal."""
     tree = Tree(start)
     n = len(start)
     for it in range(1, max_iter + 1):
         if time.perf_counter() > deadline:
             return None, it
         target = goal if space.rng.random() < GOAL_BIAS else space.sample(n)
-        i = _extend(space, tree, target)
+        i = extend(space, tree, target)
         if i is not None and max_step(tree.nodes[i], goal) <= eps and space.edge_ok(tree.nodes[i], goal):
             return tree.branch(i) + [goal], it
     return None, max_iter
 
 
+def ffg_rrt(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max_iter: int, deadline: float) -> tuple[list[np.ndarray] | None, int]:
+    """Forward-growing RRT from the start, steered to the goal with probability GOAL_BIAS."""
+    return _forward_search(space, start, goal, eps, max_iter, deadline, _extend)
+
+
+def _tangent_extend(space: SoiSpace, tree: Tree, target: np.ndarray) -> int | None:
+    """A step from the nearest node in the tangent space of the perimeter constraint (the direction's
+    component along the perimeter gradient removed), projected back onto the constraint."""
+    i = tree.nearest(target)
+    x = tree.nodes[i]
+    d = align_cyclic(target, x) - x
+    grad = _perimeter_gradient(x)
+    d = d - (np.sum(d * grad) / max(np.sum(grad * grad), 1e-12)) * grad
+    m = np.linalg.norm(d, axis=1).max()
+    if m < 1e-9:
+        return None
+    x_new = scale_to_perimeter(x + d * min(1.0, space.step_m / m), space.perimeter)
+    if not space.edge_ok(x, x_new):
+        return None
+    return tree.add(x_new, i)
+
+
 def ts_rrt(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max_iter: int, deadline: float) -> tuple[list[np.ndarray] | None, int]:
-    """Tangent-space RRT: steps taken in the tangent space of the perimeter constraint at the nearest
-    node (the direction's component along the perimeter gradient removed), then projected back."""
-    tree = Tree(start)
-    n = len(start)
-    for it in range(1, max_iter + 1):
-        if time.perf_counter() > deadline:
-            return None, it
-        target = goal if space.rng.random() < GOAL_BIAS else space.sample(n)
-        i = tree.nearest(target)
-        x = tree.nodes[i]
-        d = align_cyclic(target, x) - x
-        grad = _perimeter_gradient(x)
-        d = d - (np.sum(d * grad) / max(np.sum(grad * grad), 1e-12)) * grad
-        m = np.linalg.norm(d, axis=1).max()
-        if m < 1e-9:
-            continue
-        x_new = x + d * min(1.0, space.step_m / m)
-        x_new = scale_to_perimeter(x_new, space.perimeter)
-        if not space.edge_ok(x, x_new):
-            continue
-        j = tree.add(x_new, i)
-        if max_step(x_new, goal) <= eps and space.edge_ok(x_new, goal):
-            return tree.branch(j) + [goal], it
-    return None, max_iter
+    """Tangent-space RRT: every extension is a tangent step projected back (`_tangent_extend`)."""
+    return _forward_search(space, start, goal, eps, max_iter, deadline, _tangent_extend)
 
 
 def _perimeter_gradient(rim: np.ndarray) -> np.ndarray:
