@@ -20,7 +20,8 @@ from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.controller import ShapeServo
 from bagit.services.controller.synthetic import apply_increment
-from bagit.services.perception import extract_soi, rim_cloud
+from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
+from bagit.services.perception.rgbd import solid_rim_segmenter
 from bagit.services.planner import bagging_soi, collision_model, plan_path
 from bagit.services.sim.world import SimWorld
 
@@ -98,12 +99,14 @@ def run_bagging(
         return RunResult(ok, stage, reason, err, max(world.time - SETTLE_S, 0.0), plan_t, ticks, gt.rim, V, gt.passed_through,
                          controller, planner, seed, time.perf_counter() - t_wall, nodes, history)
 
+    # How the rim looks is a property of the bag the rig is set up for, not ground truth.
+    segmenter = red_rim_mask if scenario.bag.kind == "red-edged" else solid_rim_segmenter(scenario.bag.color)
     world.step(SETTLE_S)
     grippers = world.mount_home_poses()
     seq = 0
     progress("perceiving: g0 from the camera")
     try:
-        g0 = extract_soi(rim_cloud(world.render_rgbd(seq)), n_x, start_hint=grippers["left"][:3, 3])
+        g0 = extract_soi(rim_cloud(world.render_rgbd(seq), segmenter), n_x, start_hint=grippers["left"][:3, 3])
     except BagItError as e:
         return finish(False, "perceiving", f"no SOI in the first frame: {e}")
     R = scenario.bag.rim_perimeter or closed_polyline_length(g0)
@@ -140,7 +143,7 @@ def run_bagging(
         ticks += 1
         seq += 1
         try:
-            x = extract_soi(rim_cloud(world.render_rgbd(seq)), n_x, init=x)
+            x = extract_soi(rim_cloud(world.render_rgbd(seq), segmenter), n_x, init=x)
         except BagItError:
             x = None  # the guard holds the arms and says why
     gt = world.ground_truth()

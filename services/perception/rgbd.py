@@ -62,3 +62,28 @@ def rim_cloud(
         raise BadCloud(f"segmenter returned a mask of shape {mask.shape}, expected {(h, w)}")
     pts_cam = back_project(depth_m, frame.camera, mask & in_range)
     return transform_points(frame.camera.extrinsics(), pts_cam)
+
+
+def solid_rim_segmenter(color_rgb: tuple[float, float, float], band_m: float = 0.015, hue_tol: int = 12) -> Segmenter:
+    """A segmenter for a solid-colour bag (no red edge): the bag's pixels by hue, then only its top
+    band (within `band_m` of the highest bag point, measured along world z), where the rim is."""
+    rgb = np.uint8([[[int(c * 255) for c in color_rgb]]])
+    hue = int(cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)[0, 0, 0])
+
+    def mask(frame: RgbdFrame) -> np.ndarray:
+        hsv = cv2.cvtColor(frame.color, cv2.COLOR_RGB2HSV)
+        h = hsv[..., 0].astype(int)
+        dh = np.minimum(np.abs(h - hue), 180 - np.abs(h - hue))
+        bag = (dh <= hue_tol) & (hsv[..., 1] >= 60) & (hsv[..., 2] >= 30) & (frame.depth > 0)
+        if not bag.any():
+            return bag
+        depth_m = frame.depth.astype(np.float64) * frame.camera.depth_scale
+        v, u = np.nonzero(bag)
+        pts = transform_points(frame.camera.extrinsics(), back_project(depth_m, frame.camera, bag))
+        top = np.percentile(pts[:, 2], 99)
+        keep = pts[:, 2] >= top - band_m
+        out = np.zeros_like(bag)
+        out[v[keep], u[keep]] = True
+        return out
+
+    return mask

@@ -1,0 +1,24 @@
+"""A solid-colour bag (no red edge): the rim is the top band of the bag's colour."""
+
+import numpy as np
+
+from bagit.common.geometry import points_to_polyline_distance
+from bagit.common.scenario import Scenario
+from bagit.scenarios import find_scenario
+from bagit.services.perception import extract_soi, rim_cloud
+from bagit.services.perception.rgbd import solid_rim_segmenter
+from bagit.services.sim.world import SimWorld
+
+
+def test_solid_bag_rim_from_its_top_band():
+    s = Scenario.from_file(find_scenario("exp09-tea-bucket-solid-bag"))
+    assert s.bag.kind == "solid"
+    w = SimWorld(s, seed=0)
+    w.step(0.5)
+    frame = w.render_rgbd(0)
+    assert len(rim_cloud(frame)) < 50  # no red edge to find
+    cloud = rim_cloud(frame, solid_rim_segmenter(s.bag.color))
+    soi = extract_soi(cloud, 32)
+    d = points_to_polyline_distance(soi, w.true_rim())
+    assert d.mean() < 0.012 and d.max() < 0.03
+    w.close()
