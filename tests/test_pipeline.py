@@ -53,3 +53,13 @@ def test_run_cli_json_fields(capsys):
     for key in ("success", "error_cm", "duration_s", "planning_time_s", "ticks", "stage_reached", "final_rim", "object_vertices"):
         assert key in out
     assert code == (0 if out["success"] else 1)
+
+
+@pytest.mark.slow
+def test_a_whole_simulated_bagging_run_succeeds():
+    """The canned pineapple, end to end from camera frames: judged on the simulator's ground truth."""
+    s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
+    r = run_bagging(s, "mpc", "cbirrt", seed=0, time_limit_s=40.0)
+    assert r.success, (r.stage_reached, r.reason)
+    assert r.stage_reached == "done" and not r.passed_through
+    assert r.error_cm < 2.0 and r.duration_s < 40.0
