@@ -19,8 +19,8 @@ from bagit.services.controller.subgoal import SubgoalTracker, rms_error, slide_t
 
 CONTROLLERS = ("mpc", "ibvs", "ssvs")
 IBVS_GAIN = 0.5
-EXPLORE_TICKS = 6  # ticks each exploratory push lasts (at the C7 limit)
-EXPLORE_SETTLE_TICKS = 3
+EXPLORE_TICKS = 4  # ticks each exploratory push lasts (at the C7 limit)
+EXPLORE_SETTLE_TICKS = 2
 BROYDEN_WINDOW = 5  # ticks of input and SOI change summed per Broyden update
 SEPARATION_MARGIN = 0.9  # the grippers stay within this share of the rim's half perimeter apart
 

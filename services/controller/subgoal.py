@@ -75,11 +75,12 @@ class SubgoalTracker:
         return self.index / max(len(self.path) - 1, 1)
 
     def done(self, x: np.ndarray) -> bool:
-        """At g*: within goal_tol, or as close as the bag gets (stalled within 3x goal_tol)."""
+        """At g*: within goal_tol, or as close as the bag gets (stalled within 2x the subgoal tolerance;
+        the run is then judged on what the rim really does round the object)."""
         if not (self.dagger_reached and self.index == len(self.path) - 1):
             return False
         e = self.error(x, self.index)
-        return e <= self.goal_tol or (self._since_best >= self.stall_ticks and e <= 3 * self.goal_tol)
+        return e <= self.goal_tol or (self._since_best >= self.stall_ticks and e <= 2 * self.subgoal_tol)
 
 
 def slide_to(target: np.ndarray, x: np.ndarray, steps: int = 16) -> np.ndarray:
