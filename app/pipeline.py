@@ -45,6 +45,7 @@ class RunResult:
     seed: int
     wall_s: float
     path_nodes: int = 0
+    max_penetration_mm: float = 0.0
     history: dict[str, list[float]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -97,7 +98,7 @@ def run_bagging(
         gt = world.ground_truth()
         world.close()
         return RunResult(ok, stage, reason, err, max(world.time - SETTLE_S, 0.0), plan_t, ticks, gt.rim, V, gt.passed_through,
-                         controller, planner, seed, time.perf_counter() - t_wall, nodes, history)
+                         controller, planner, seed, time.perf_counter() - t_wall, nodes, gt.max_penetration_m * 1e3, history)
 
     # How the rim looks is a property of the bag the rig is set up for, not ground truth.
     segmenter = red_rim_mask if scenario.bag.kind == "red-edged" else solid_rim_segmenter(scenario.bag.color)
@@ -116,7 +117,7 @@ def run_bagging(
     except BagItError as e:
         return finish(False, "goal", str(e))
     progress(f"planning: {planner}")
-    plan = plan_path(g0, goal, collision_model(scenario, goal.up, p.planner_clearance_m), closed_polyline_length(g0), p, planner, seed)
+    plan = plan_path(g0, goal, collision_model(scenario, goal.up, p.planner_clearance_m, goal.g_dagger), closed_polyline_length(g0), p, planner, seed)
     if not plan.success:
         return finish(False, "planning", plan.reason, plan_t=plan.time_s)
     progress(f"pre-bagging: {len(plan.path)} nodes, g† at {plan.dagger_index} (planned in {plan.time_s:.2f} s)")

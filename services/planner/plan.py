@@ -16,7 +16,7 @@ from bagit.services.planner.goal import BaggingGoal, bagging_soi
 from bagit.services.planner.rrt import PLANNERS, postprocess
 from bagit.services.planner.space import SoiSpace
 
-OBJECT_MARGIN_M = 0.002  # the rim may come this close to the object (the ellipse's C1 margin does the rest)
+OBJECT_MARGIN_M = (0.002, 0.02)  # the rim keeps half of g†'s clearance from the object, within these bounds
 REGION_MARGIN = np.array([0.12, 0.12, 0.08])  # the sampled centres' box around g0, g† and g*
 
 
@@ -51,10 +51,22 @@ class PlanResult:
         return float(np.sqrt(np.mean(np.sum(np.diff(self.path, axis=0) ** 2, axis=2), axis=1)).sum())
 
 
-def collision_model(scenario: Scenario, up: np.ndarray, clearance: float) -> RimCollision:
-    """The object (V extruded along `up`) and the scenario's cuboid obstacles."""
-    polys = [prism_polytope(scenario.object.bottom_vertices(), up, scenario.object.effective_height())]
-    margins = [OBJECT_MARGIN_M]
+def collision_model(scenario: Scenario, up: np.ndarray, clearance: float, g_dagger: np.ndarray | None = None) -> RimCollision:
+    """The object (V extruded along `up`) and the scenario's cuboid obstacles.
+
+    The rim is kept off the object by half the clearance g† itself has (between 2 mm and 2 cm): the
+    real rim only approximates the planned ellipses, and a path that grazes the object lets the fabric
+    catch on a corner.
+    """
+    obj = prism_polytope(scenario.object.bottom_vertices(), up, scenario.object.effective_height())
+    margin = OBJECT_MARGIN_M[0]
+    if g_dagger is not None:
+        s = np.linspace(0, 1, 8, endpoint=False)[:, None, None]
+        dense = (g_dagger[None] + s * (np.roll(g_dagger, -1, axis=0) - g_dagger)[None]).reshape(-1, 3)
+        gap = float((dense @ obj.A.T - obj.b).max(axis=1).min())  # >= 0 outside; a lower bound at corners
+        margin = float(np.clip(0.5 * gap, *OBJECT_MARGIN_M))
+    polys = [obj]
+    margins = [margin]
     for k, ob in enumerate(scenario.obstacles):
         polys.append(box_polytope(ob, f"obstacle {k}"))
         margins.append(clearance)
@@ -137,5 +149,5 @@ def plan_scenario(
     goal = bagging_soi(
         scenario.object.bottom_vertices(), perimeter, len(g0), scenario.params, lambda_d=scenario.lambda_d(), g0=g0
     )
-    coll = collision_model(scenario, goal.up, scenario.params.planner_clearance_m)
+    coll = collision_model(scenario, goal.up, scenario.params.planner_clearance_m, goal.g_dagger)
     return plan_path(g0, goal, coll, perimeter, scenario.params, planner, seed, time_budget_s)
