@@ -1,24 +1,40 @@
 """Kinematics of the Dobot CR5, shared by the simulator, the arm driver and the dashboard.
 
-A UR-like 6R arm with Dobot's published link offsets (d1 0.147, a2 0.427, a3 0.357, d4 0.141,
-d5 0.116, d6 0.105 m) in standard Denavit-Hartenberg form; reach about 900 mm; J3 within ±160°,
-the other joints ±360°. Dobot's pose convention is [x, y, z, rx, ry, rz] in millimetres and degrees,
-rx, ry, rz being fixed-axis X-Y-Z angles (R = Rz(rz) Ry(ry) Rx(rx)).
+The CR5 is a UR-like 6R arm. Dobot's published URDF (`cr5_robot.urdf`) puts the link offsets at
+d1 0.147, a2 0.427, a3 0.357, d4 0.141, d5 0.116, d6 0.105 m; reach about 900 mm; J3 within
+±160°, the other joints ±360°. Its chain equals the standard UR Denavit-Hartenberg chain with the
+joint angles shifted: theta_DH = q + JOINT_OFFSET (J2 and J4 by -90°). So q = 0 is Dobot's zero
+(the arm straight up), and `fk(np.radians([0, 0, -90, 0, 90, 0]))` gives the flange at
+(473, -141, 469) mm, rx, ry, rz = (-180, 0, -90)°, as in Dobot's own PositiveKin example.
+
+Angles `q` are radians here; the wire protocol speaks degrees (see bagit.common.dobot). Dobot's
+pose convention is [x, y, z, rx, ry, rz] in millimetres and degrees, rx, ry, rz being fixed-axis
+X-Y-Z angles (R = Rz(rz) Ry(ry) Rx(rx)).
+
+Public API: `fk(q) -> (4, 4)` base <- flange; `link_frames(q) -> (7, 4, 4)`; `ik_all(T) -> (k, 6)`
+(the analytic solutions); `ik(T, q_seed) -> (6,) | None` (the valid solution nearest the seed);
+`within_limits(q)`; `self_collision(q)`; `pose6_to_matrix(pose)`, `matrix_to_pose6(T)`.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 D1, A2, A3, D4, D5, D6 = 0.147, -0.427, -0.357, 0.141, 0.116, 0.105
 DH_D = np.array([D1, 0.0, 0.0, D4, D5, D6])
 DH_A = np.array([0.0, A2, A3, 0.0, 0.0, 0.0])
 DH_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
+JOINT_OFFSET = np.array([0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0])  # theta_DH = q + JOINT_OFFSET
 JOINT_LIMITS = np.radians([[-360, 360], [-360, 360], [-160, 160], [-360, 360], [-360, 360], [-360, 360]])
 JOINT_SPEED_LIMIT = np.radians(180.0)  # rad/s per joint
 REACH_M = 0.9
+_TWO_PI = 2 * np.pi
+
+# Self-collision model: the flange and wrist as spheres against the base column and the upper arm.
+BASE_COLUMN_RADIUS = 0.075
+UPPER_ARM_RADIUS = 0.06
+WRIST_RADIUS = 0.05
 
 
 def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
@@ -27,47 +43,144 @@ def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
 
 
 def link_frames(q: np.ndarray) -> np.ndarray:
-    """`(7, 4, 4)`: base, then each joint's frame after it (the last is the tool flange), base frame."""
+    """`(7, 4, 4)`: the base, then each joint's frame after it (the last is the tool flange), base frame."""
+    theta = np.asarray(q, dtype=float) + JOINT_OFFSET
     out = [np.eye(4)]
     for i in range(6):
-        out.append(out[-1] @ _dh(q[i], DH_D[i], DH_A[i], DH_ALPHA[i]))
+        out.append(out[-1] @ _dh(theta[i], DH_D[i], DH_A[i], DH_ALPHA[i]))
     return np.stack(out)
 
 
 def fk(q: np.ndarray) -> np.ndarray:
     """4x4 base <- flange for joint angles `q (6,)` in radians."""
-    return link_frames(np.asarray(q, dtype=float))[-1]
+    return link_frames(q)[-1]
 
 
 def within_limits(q: np.ndarray) -> bool:
     q = np.asarray(q, dtype=float)
-    return bool(np.all(q >= JOINT_LIMITS[:, 0]) and np.all(q <= JOINT_LIMITS[:, 1]))
+    return bool(q.shape == (6,) and np.all(np.isfinite(q)) and np.all(q >= JOINT_LIMITS[:, 0]) and np.all(q <= JOINT_LIMITS[:, 1]))
 
 
-def ik(T: np.ndarray, q_seed: np.ndarray, tol: float = 1e-4) -> np.ndarray | None:
-    """Joint angles `(6,)` reaching the flange pose T (base frame) nearest `q_seed`, or None if out of reach.
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    t = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0)
+    return float(np.linalg.norm(p - (a + t * ab)))
 
-    Damped least squares on the position and rotation-vector error, bounded by the joint limits,
-    started from the seed (a streaming arm's current angles), so consecutive targets give
-    consecutive solutions.
+
+def self_collision(q: np.ndarray, tool_offset: np.ndarray | None = None) -> bool:
+    """Whether the wrist, flange or tool (`tool_offset (3,)` in the flange frame) hits the base column or upper arm.
+
+    A coarse sphere/capsule model, enough to refuse the folded poses a real CR5 alarms on
+    ("end flange interferes with the robot body"); adjacent links are not tested against each other.
+    """
+    F = link_frames(q)
+    wrist = [F[5][:3, 3], F[6][:3, 3]]
+    if tool_offset is not None:
+        wrist.append((F[6] @ np.append(np.asarray(tool_offset, dtype=float), 1.0))[:3])
+    base_a, base_b = np.zeros(3), F[1][:3, 3]
+    shoulder, elbow = F[1][:3, 3], F[2][:3, 3]
+    for p in wrist:
+        if _segment_distance(p, base_a, base_b) < BASE_COLUMN_RADIUS + WRIST_RADIUS:
+            return True
+        if _segment_distance(p, shoulder, elbow) < UPPER_ARM_RADIUS + WRIST_RADIUS:
+            return True
+    # the wrist-1 joint at the forearm's end against the base column
+    return _segment_distance(F[4][:3, 3], base_a, base_b) < BASE_COLUMN_RADIUS + WRIST_RADIUS
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (np.asarray(a) + np.pi) % _TWO_PI - np.pi
+
+
+def ik_all(T: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
+    """All analytic solutions `(k, 6)`, k <= 8, in Dobot angles wrapped to [-pi, pi); empty if out of reach.
+
+    The UR closed form: the shoulder angle from the wrist centre, the wrist angle from the
+    flange's lateral offset, then a planar two-link problem for J2, J3 and J4. At a wrist
+    singularity (J5 = 0) J6 is free and set to `q6_free`.
     """
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        return None
-    if np.linalg.norm(T[:3, 3] - [0, 0, D1]) > REACH_M + D6:
-        return None
-    R_goal = T[:3, :3]
+        return np.zeros((0, 6))
+    p05 = T[:3, 3] - D6 * T[:3, 2]
+    r = np.hypot(p05[0], p05[1])
+    if r < abs(D4) + 1e-9:
+        return np.zeros((0, 6))
+    sols = []
+    phi = np.arctan2(p05[1], p05[0])
+    psi = np.arccos(np.clip(D4 / r, -1.0, 1.0))
+    for t1 in (phi + psi + np.pi / 2, phi - psi + np.pi / 2):
+        s1, c1 = np.sin(t1), np.cos(t1)
+        c5 = (T[0, 3] * s1 - T[1, 3] * c1 - D4) / D6
+        if abs(c5) > 1.0 + 1e-9:
+            continue
+        for sign5 in (1.0, -1.0):
+            t5 = sign5 * np.arccos(np.clip(c5, -1.0, 1.0))
+            s5 = np.sin(t5)
+            # J6 from the base x and y axes seen in the flange frame
+            Ti = np.linalg.inv(T)
+            if abs(s5) < 1e-9:
+                t6 = q6_free - JOINT_OFFSET[5]
+            else:
+                t6 = np.arctan2((-Ti[1, 0] * s1 + Ti[1, 1] * c1) / s5, (Ti[0, 0] * s1 - Ti[0, 1] * c1) / s5)
+            T01 = _dh(t1, D1, 0.0, DH_ALPHA[0])
+            T45 = _dh(t5, D5, 0.0, DH_ALPHA[4])
+            T56 = _dh(t6, D6, 0.0, DH_ALPHA[5])
+            T14 = np.linalg.inv(T01) @ T @ np.linalg.inv(T45 @ T56)
+            p13 = T14 @ np.array([0.0, -D4, 0.0, 1.0])
+            d2 = p13[0] ** 2 + p13[1] ** 2
+            c3 = (d2 - A2**2 - A3**2) / (2 * A2 * A3)
+            if abs(c3) > 1.0 + 1e-9:
+                continue
+            for sign3 in (1.0, -1.0):
+                t3 = sign3 * np.arccos(np.clip(c3, -1.0, 1.0))
+                t2 = -np.arctan2(p13[1], -p13[0]) + np.arcsin(np.clip(A3 * np.sin(t3) / np.sqrt(d2), -1.0, 1.0))
+                T13 = _dh(t2, 0.0, A2, 0.0) @ _dh(t3, 0.0, A3, 0.0)
+                T34 = np.linalg.inv(T13) @ T14
+                t4 = np.arctan2(T34[1, 0], T34[0, 0])
+                sols.append(np.array([t1, t2, t3, t4, t5, t6]) - JOINT_OFFSET)
+    if not sols:
+        return np.zeros((0, 6))
+    out = _wrap(np.array(sols))
+    # keep only exact solutions (the clipped arccos/arcsin near the workspace edge may not be)
+    good = [q for q in out if np.allclose(fk(q), T, atol=1e-6)]
+    return np.array(good) if good else np.zeros((0, 6))
 
-    def residual(q: np.ndarray) -> np.ndarray:
-        F = fk(q)
-        rot = Rotation.from_matrix(R_goal @ F[:3, :3].T).as_rotvec()
-        return np.concatenate([F[:3, 3] - T[:3, 3], 0.1 * rot])
 
-    seed = np.clip(np.asarray(q_seed, dtype=float), JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
-    res = least_squares(residual, seed, bounds=(JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1]), xtol=1e-10, ftol=1e-10)
-    if np.linalg.norm(res.fun[:3]) > tol or np.linalg.norm(res.fun[3:]) > 10 * tol:
+def _nearest_within_limits(q: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
+    """`q` with each joint shifted by whole turns to lie nearest `seed` inside the joint limits."""
+    out = np.empty(6)
+    for j in range(6):
+        base = q[j] + _TWO_PI * np.round((seed[j] - q[j]) / _TWO_PI)
+        cands = [c for c in (base - _TWO_PI, base, base + _TWO_PI) if JOINT_LIMITS[j, 0] <= c <= JOINT_LIMITS[j, 1]]
+        if not cands:
+            return None
+        out[j] = min(cands, key=lambda c: abs(c - seed[j]))
+    return out
+
+
+def ik(T: np.ndarray, q_seed: np.ndarray, tol: float = 1e-4, avoid_self_collision: bool = False) -> np.ndarray | None:
+    """Joint angles `(6,)` reaching the flange pose T (base frame) nearest `q_seed`, or None if out of reach.
+
+    Of the analytic solutions, each joint is moved by whole turns to the nearest angle within
+    limits, and the one closest to the seed (a streaming arm's current angles) wins, so
+    consecutive targets give consecutive solutions. `tol` bounds the position error (m).
+    """
+    T = np.asarray(T, dtype=float)
+    seed = np.asarray(q_seed, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or seed.shape != (6,) or not np.all(np.isfinite(seed)):
         return None
-    return res.x
+    best, best_cost = None, np.inf
+    for q in ik_all(T, q6_free=float(seed[5])):
+        qn = _nearest_within_limits(q, seed)
+        if qn is None or (avoid_self_collision and self_collision(qn)):
+            continue
+        cost = float(np.sum((qn - seed) ** 2))
+        if cost < best_cost:
+            best, best_cost = qn, cost
+    if best is None or np.linalg.norm(fk(best)[:3, 3] - T[:3, 3]) > tol:
+        return None
+    return best
 
 
 def pose6_to_matrix(pose: np.ndarray) -> np.ndarray:
@@ -81,4 +194,5 @@ def pose6_to_matrix(pose: np.ndarray) -> np.ndarray:
 
 def matrix_to_pose6(T: np.ndarray) -> np.ndarray:
     """4x4 (metres) -> Dobot [x, y, z, rx, ry, rz] (mm, deg)."""
+    T = np.asarray(T, dtype=float)
     return np.concatenate([T[:3, 3] * 1000.0, np.degrees(Rotation.from_matrix(T[:3, :3]).as_euler("xyz"))])
