@@ -1,0 +1,546 @@
+"""Dobot TCP/IP protocol V4 (CR series): the pieces both ends share.
+
+The simulated controllers (bagit.services.sim.dobot_server) and the arm driver's client speak
+the same text and binary formats through this module, so the two cannot drift apart.
+
+Ports. V4 controllers take every command, settings and motion alike, on the dashboard port
+29999, one command and one reply at a time; port 30004 pushes a 1440-byte little-endian
+feedback packet every 8 ms (30005 every 200 ms, 30006 configurable; not used here).
+
+Commands. ASCII, `Name(arg, ..., key=value, ...)`; names are case-insensitive; a pose or joint
+vector travels as `{a,b,c,d,e,f}`, e.g. `MovL(pose={-500,100,200,150,0,90},v=50)` or
+`ServoP(-500,100,200,150,0,90,t=0.1,aheadtime=50,gain=500)`. Angles are degrees, lengths
+millimetres, a Cartesian pose is [x, y, z, rx, ry, rz] (see bagit.common.cr5 for the Euler
+convention). `format_command` writes one; `parse_command` reads one with a small hand-written
+grammar (no eval); `CommandSplitter` cuts a byte stream into commands (a command ends at its
+closing parenthesis; blank space, newlines and `;` between commands are ignored).
+
+Replies. `ErrorID,{value,...},Command(...);` with the command echoed as sent: `0,{},EnableRobot();`,
+`0,{1},MovL(pose={...});` (queued motions return their command id), `-10000,{},Mov(...);`.
+`format_reply` / `parse_reply` / `split_replies`.
+
+Error ids (V4 manual, chapter 5): 0 ok; -1 not executed; -2 refused, robot in error (alarm);
+-3 refused, emergency stop pressed; -4 refused, powered off; -10000 no such command; -20000 wrong
+number of parameters; -3000k type/format of required parameter k wrong; -4000k range of required
+parameter k wrong; -5000k type/name of optional parameter k wrong; -6000k range of optional
+parameter k wrong (k counts from 1 within its group; a named optional is counted in the order
+given). `ErrorId` holds the fixed ones, `param_error(...)` builds the others.
+While in error only ClearError, GetErrorID, EmergencyStop and RobotMode run; with the emergency
+stop pressed, the same (EmergencyStop(0) releases it). A motion command to a disabled arm gets -1.
+
+Alarms (the controller's alarm ids, as GetErrorID lists them; alarmController.json): 17 inverse
+kinematics has no solution, 18 solution outside the joint limits, 48+j joint j overspeed,
+64+2j / 65+2j joint j beyond its positive / negative limit (j = 0..5), 77 flange interferes with
+the robot body, 132 software emergency stop. See `Alarm`.
+
+Robot modes (RobotMode() and the feedback's RobotMode): `RobotMode`, 4 disabled, 5 enabled and
+idle, 7 running, 9 error, 11 collision.
+
+Feedback packet: `FEEDBACK_DTYPE`, a numpy structured dtype with the documented byte offsets
+(`FEEDBACK_FIELDS`), itemsize 1440; `TestValue` is always 0x0123456789ABCDEF, `MessageSize` 1440.
+Units as the controller sends them: QActual/QTarget degrees, QDActual degrees/s,
+ToolVectorActual/Target [x, y, z, rx, ry, rz] mm and degrees (the same numbers as GetPose),
+TimeStamp milliseconds since the epoch. The two one-byte `User`/`Tool` fields are the selected
+frame indices and `UserValue`/`ToolValue` (the manual's "User[6]"/"Tool[6]") their values.
+`new_feedback()` makes a blank packet, `parse_feedback(bytes)` checks and reads one,
+`FeedbackAssembler` cuts a TCP stream into packets.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Iterable, Sequence, Union
+
+import numpy as np
+
+from bagit.common.errors import ProtocolError
+
+DASHBOARD_PORT = 29999
+FEEDBACK_PORT = 30004
+FEEDBACK_PERIOD_S = 0.008
+FEEDBACK_SIZE = 1440
+TEST_VALUE = 0x0123456789ABCDEF
+ROBOT_TYPE_CR5 = 5
+MAX_COMMAND_CHARS = 4096
+
+
+class RobotMode(IntEnum):
+    INIT = 1
+    BRAKE_OPEN = 2
+    POWEROFF = 3
+    DISABLED = 4
+    ENABLE = 5
+    BACKDRIVE = 6
+    RUNNING = 7
+    SINGLE_MOVE = 8
+    ERROR = 9
+    PAUSE = 10
+    COLLISION = 11
+
+
+class ErrorId(IntEnum):
+    OK = 0
+    FAILED = -1
+    IN_ERROR = -2
+    EMERGENCY_STOP = -3
+    POWER_OFF = -4
+    UNKNOWN_COMMAND = -10000
+    PARAM_COUNT = -20000
+    REQUIRED_TYPE = -30000
+    REQUIRED_RANGE = -40000
+    OPTIONAL_TYPE = -50000
+    OPTIONAL_RANGE = -60000
+
+
+def param_error(kind: ErrorId, k: int) -> int:
+    """The error id for parameter `k` (1-based in its group), e.g. param_error(REQUIRED_RANGE, 1) = -40001."""
+    if kind not in (ErrorId.REQUIRED_TYPE, ErrorId.REQUIRED_RANGE, ErrorId.OPTIONAL_TYPE, ErrorId.OPTIONAL_RANGE):
+        raise ValueError(f"{kind!r} is not a per-parameter error")
+    return int(kind) - int(k)
+
+
+class Alarm(IntEnum):
+    IK_NO_SOLUTION = 17
+    IK_OUT_OF_LIMITS = 18
+    JOINT1_OVERSPEED = 48  # + j for joint j (0-based)
+    JOINT1_POSITIVE_LIMIT = 64  # + 2j positive, + 2j + 1 negative
+    FLANGE_INTERFERENCE = 77
+    SOFTWARE_ESTOP = 132
+
+
+def overspeed_alarm(j: int) -> int:
+    return int(Alarm.JOINT1_OVERSPEED) + j
+
+
+def joint_limit_alarm(j: int, positive: bool) -> int:
+    return int(Alarm.JOINT1_POSITIVE_LIMIT) + 2 * j + (0 if positive else 1)
+
+
+# -- the real-time feedback packet ---------------------------------------------------------------
+
+# (name, numpy format, byte offset) as in the V4 manual's table; reserved bytes are named Reserved*.
+FEEDBACK_FIELDS: list[tuple[str, str | tuple[str, int], int]] = [
+    ("MessageSize", "<u2", 0),
+    ("Reserved0", ("<u2", 3), 2),
+    ("DigitalInputs", "<u8", 8),
+    ("DigitalOutputs", "<u8", 16),
+    ("RobotMode", "<u8", 24),
+    ("TimeStamp", "<u8", 32),
+    ("RunTime", "<u8", 40),
+    ("TestValue", "<u8", 48),
+    ("Reserved1", "<f8", 56),
+    ("SpeedScaling", "<f8", 64),
+    ("LinearMomentumNorm", "<f8", 72),
+    ("VMain", "<f8", 80),
+    ("VRobot", "<f8", 88),
+    ("IRobot", "<f8", 96),
+    ("ProgramState", "<f8", 104),
+    ("SafetyStatus", "<f8", 112),
+    ("ToolAccelerometer", ("<f8", 3), 120),
+    ("ElbowPosition", ("<f8", 3), 144),
+    ("ElbowVelocity", ("<f8", 3), 168),
+    ("QTarget", ("<f8", 6), 192),
+    ("QDTarget", ("<f8", 6), 240),
+    ("QDDTarget", ("<f8", 6), 288),
+    ("ITarget", ("<f8", 6), 336),
+    ("MTarget", ("<f8", 6), 384),
+    ("QActual", ("<f8", 6), 432),
+    ("QDActual", ("<f8", 6), 480),
+    ("IActual", ("<f8", 6), 528),
+    ("ActualTCPForce", ("<f8", 6), 576),
+    ("ToolVectorActual", ("<f8", 6), 624),
+    ("TCPSpeedActual", ("<f8", 6), 672),
+    ("TCPForce", ("<f8", 6), 720),
+    ("ToolVectorTarget", ("<f8", 6), 768),
+    ("TCPSpeedTarget", ("<f8", 6), 816),
+    ("MotorTemperatures", ("<f8", 6), 864),
+    ("JointModes", ("<f8", 6), 912),
+    ("VActual", ("<f8", 6), 960),
+    ("HandType", ("u1", 4), 1008),
+    ("User", "u1", 1012),
+    ("Tool", "u1", 1013),
+    ("RunQueuedCmd", "u1", 1014),
+    ("PauseCmdFlag", "u1", 1015),
+    ("VelocityRatio", "u1", 1016),
+    ("AccelerationRatio", "u1", 1017),
+    ("JerkRatio", "u1", 1018),
+    ("XYZVelocityRatio", "u1", 1019),
+    ("RVelocityRatio", "u1", 1020),
+    ("XYZAccelerationRatio", "u1", 1021),
+    ("RAccelerationRatio", "u1", 1022),
+    ("XYZJerkRatio", "u1", 1023),
+    ("RJerkRatio", "u1", 1024),
+    ("BrakeStatus", "u1", 1025),
+    ("EnableStatus", "u1", 1026),
+    ("DragStatus", "u1", 1027),
+    ("RunningStatus", "u1", 1028),
+    ("ErrorStatus", "u1", 1029),
+    ("JogStatus", "u1", 1030),
+    ("RobotType", "u1", 1031),
+    ("DragButtonSignal", "u1", 1032),
+    ("EnableButtonSignal", "u1", 1033),
+    ("RecordButtonSignal", "u1", 1034),
+    ("ReappearButtonSignal", "u1", 1035),
+    ("JawButtonSignal", "u1", 1036),
+    ("SixForceOnline", "u1", 1037),
+    ("CollisionState", "u1", 1038),
+    ("ArmApproachState", "u1", 1039),
+    ("J4ApproachState", "u1", 1040),
+    ("J5ApproachState", "u1", 1041),
+    ("J6ApproachState", "u1", 1042),
+    ("Reserved2", ("u1", 61), 1043),
+    ("VibrationDisZ", "<f8", 1104),
+    ("CurrentCommandId", "<u8", 1112),
+    ("MActual", ("<f8", 6), 1120),
+    ("Load", "<f8", 1168),
+    ("CenterX", "<f8", 1176),
+    ("CenterY", "<f8", 1184),
+    ("CenterZ", "<f8", 1192),
+    ("UserValue", ("<f8", 6), 1200),
+    ("ToolValue", ("<f8", 6), 1248),
+    ("TraceIndex", "<f8", 1296),
+    ("SixForceValue", ("<f8", 6), 1304),
+    ("TargetQuaternion", ("<f8", 4), 1352),
+    ("ActualQuaternion", ("<f8", 4), 1384),
+    ("AutoManualMode", "<u2", 1416),
+    ("Reserved3", ("u1", 22), 1418),
+]
+
+FEEDBACK_DTYPE = np.dtype(
+    {
+        "names": [f[0] for f in FEEDBACK_FIELDS],
+        "formats": [f[1] for f in FEEDBACK_FIELDS],
+        "offsets": [f[2] for f in FEEDBACK_FIELDS],
+        "itemsize": FEEDBACK_SIZE,
+    }
+)
+
+
+def _check_layout() -> None:
+    """The table leaves no gap and no overlap: each field starts where the previous one ends."""
+    end = 0
+    for name, _, off in FEEDBACK_FIELDS:
+        if off != end:
+            raise AssertionError(f"feedback field {name} at {off}, expected {end}")
+        end = off + FEEDBACK_DTYPE.fields[name][0].itemsize
+    if end != FEEDBACK_SIZE:
+        raise AssertionError(f"feedback fields end at {end}, not {FEEDBACK_SIZE}")
+
+
+_check_layout()
+
+
+def new_feedback() -> np.ndarray:
+    """A zeroed feedback record (shape `()`) with MessageSize, TestValue and RobotType filled in."""
+    rec = np.zeros((), dtype=FEEDBACK_DTYPE)
+    rec["MessageSize"] = FEEDBACK_SIZE
+    rec["TestValue"] = TEST_VALUE
+    rec["RobotType"] = ROBOT_TYPE_CR5
+    return rec
+
+
+def parse_feedback(data: bytes | bytearray | memoryview) -> np.ndarray:
+    """One 1440-byte packet as a record (shape `()`), or ProtocolError if it is not a valid packet."""
+    buf = bytes(data)
+    if len(buf) != FEEDBACK_SIZE:
+        raise ProtocolError(f"feedback packet has {len(buf)} bytes, expected {FEEDBACK_SIZE}")
+    rec = np.frombuffer(buf, dtype=FEEDBACK_DTYPE)[0]
+    if int(rec["TestValue"]) != TEST_VALUE:
+        raise ProtocolError(f"feedback test value is {int(rec['TestValue']):#x}, expected {TEST_VALUE:#x} (byte order or framing)")
+    if int(rec["MessageSize"]) != FEEDBACK_SIZE:
+        raise ProtocolError(f"feedback MessageSize is {int(rec['MessageSize'])}, expected {FEEDBACK_SIZE}")
+    return np.array(rec, dtype=FEEDBACK_DTYPE)
+
+
+class FeedbackAssembler:
+    """Cuts the feedback port's byte stream into 1440-byte packets, checking each one's test value.
+
+    `feed(chunk)` returns the packets completed by the chunk (oldest first); a packet that fails the
+    check raises ProtocolError (the stream has lost its framing; reconnect).
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[np.ndarray]:
+        self._buf.extend(chunk)
+        out = []
+        while len(self._buf) >= FEEDBACK_SIZE:
+            packet = bytes(self._buf[:FEEDBACK_SIZE])
+            del self._buf[:FEEDBACK_SIZE]
+            out.append(parse_feedback(packet))
+        return out
+
+    @property
+    def pending(self) -> int:
+        """Bytes received towards the next packet."""
+        return len(self._buf)
+
+
+# -- commands ------------------------------------------------------------------------------------
+
+Value = Union[int, float, str, tuple[float, ...]]
+
+
+@dataclass
+class Command:
+    """A parsed command: `name` as sent, `key` its lower-case form, positional `args`, `named` args in order.
+
+    `text` is the command as received (whitespace-trimmed), which replies echo.
+    """
+
+    name: str
+    args: list[Value] = field(default_factory=list)
+    named: dict[str, Value] = field(default_factory=dict)
+    text: str = ""
+
+    @property
+    def key(self) -> str:
+        return self.name.lower()
+
+
+def _fmt_number(v: float | int) -> str:
+    if isinstance(v, (bool, np.bool_)):
+        return str(int(v))
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    x = float(v)
+    if not math.isfinite(x):
+        raise ProtocolError(f"cannot send a non-finite number ({x})")
+    s = f"{x:.6f}".rstrip("0").rstrip(".")
+    return "0" if s in ("-0", "") else s
+
+
+def _fmt_value(v: object) -> str:
+    if isinstance(v, str):
+        if not _BARE_RE.fullmatch(v):
+            raise ProtocolError(f"cannot send {v!r}: only letters, digits and _ . - are allowed in a bare word")
+        return v
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "{" + ",".join(_fmt_number(x) for x in np.asarray(v, dtype=float).ravel()) + "}"
+    return _fmt_number(v)  # type: ignore[arg-type]
+
+
+def format_command(name: str, *args: object, **named: object) -> str:
+    """`Name(a,b,...,key=value,...)`; sequences become `{...}`; floats get up to 6 decimals."""
+    if not _NAME_RE.fullmatch(name):
+        raise ProtocolError(f"bad command name {name!r}")
+    parts = [_fmt_value(a) for a in args]
+    for k, v in named.items():
+        if not _NAME_RE.fullmatch(k):
+            raise ProtocolError(f"bad parameter name {k!r}")
+        parts.append(f"{k}={_fmt_value(v)}")
+    return f"{name}({','.join(parts)})"
+
+
+_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_BARE_RE = re.compile(r"[A-Za-z0-9_.\-]+")
+_NUMBER_RE = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+_INT_RE = re.compile(r"[+-]?\d+")
+
+
+def _parse_scalar(tok: str) -> Value:
+    tok = tok.strip()
+    if _INT_RE.fullmatch(tok):
+        return int(tok)
+    if _NUMBER_RE.fullmatch(tok):
+        return float(tok)
+    if len(tok) >= 2 and tok[0] == tok[-1] == '"' and '"' not in tok[1:-1]:
+        return tok[1:-1]
+    if _BARE_RE.fullmatch(tok):
+        return tok
+    raise ProtocolError(f"bad value {tok!r}")
+
+
+def _parse_value(tok: str) -> Value:
+    tok = tok.strip()
+    if tok.startswith("{"):
+        if not tok.endswith("}") or "{" in tok[1:-1] or "}" in tok[1:-1]:
+            raise ProtocolError(f"bad vector {tok!r}")
+        inner = tok[1:-1].strip()
+        if not inner:
+            return ()
+        items = [s.strip() for s in inner.split(",")]
+        if not all(_NUMBER_RE.fullmatch(s) for s in items):
+            raise ProtocolError(f"vector {tok!r} holds a non-number")
+        return tuple(float(s) for s in items)
+    if not tok:
+        raise ProtocolError("empty parameter")
+    return _parse_scalar(tok)
+
+
+def _split_top(s: str) -> list[str]:
+    """`s` split at commas outside braces."""
+    parts, depth, cur = [], 0, []
+    for ch in s:
+        if ch == "{":
+            depth += 1
+        elif ch == "}":
+            depth -= 1
+            if depth < 0:
+                raise ProtocolError("unbalanced '}'")
+        if ch == "," and depth == 0:
+            parts.append("".join(cur))
+            cur = []
+        else:
+            cur.append(ch)
+    if depth != 0:
+        raise ProtocolError("unbalanced '{'")
+    parts.append("".join(cur))
+    return parts
+
+
+def parse_command(text: str) -> Command:
+    """One command `Name(args)` (case kept; compare `Command.key`), or ProtocolError saying what is wrong.
+
+    Positional parameters must come before named ones; a name may appear once.
+    """
+    t = text.strip()
+    if len(t) > MAX_COMMAND_CHARS:
+        raise ProtocolError(f"command longer than {MAX_COMMAND_CHARS} characters")
+    m = re.fullmatch(r"([A-Za-z_][A-Za-z0-9_]*)\s*\((.*)\)", t, flags=re.S)
+    if not m:
+        raise ProtocolError(f"not a command: {t[:60]!r}")
+    name, body = m.group(1), m.group(2)
+    cmd = Command(name=name, text=t)
+    if not body.strip():
+        return cmd
+    for part in _split_top(body):
+        km = re.fullmatch(r"\s*([A-Za-z_][A-Za-z0-9_]*)\s*=(.*)", part, flags=re.S)
+        if km:
+            key = km.group(1)
+            if key in cmd.named:
+                raise ProtocolError(f"parameter {key} given twice")
+            cmd.named[key] = _parse_value(km.group(2))
+        else:
+            if cmd.named:
+                raise ProtocolError("positional parameter after a named one")
+            cmd.args.append(_parse_value(part))
+    return cmd
+
+
+class CommandSplitter:
+    """Cuts the dashboard port's byte stream into command strings.
+
+    A command ends at the ')' that closes its '(' (braces inside are skipped); whitespace, newlines
+    and ';' between commands are dropped. Text that cannot start a command, or a command longer than
+    MAX_COMMAND_CHARS, comes out as it is so the server can answer it with an error rather than wait.
+    """
+
+    def __init__(self) -> None:
+        self._buf = ""
+
+    def feed(self, chunk: bytes | str) -> list[str]:
+        self._buf += chunk.decode("utf-8", errors="replace") if isinstance(chunk, (bytes, bytearray)) else chunk
+        out = []
+        while True:
+            self._buf = self._buf.lstrip(" \t\r\n;")
+            if not self._buf:
+                break
+            end = self._command_end(self._buf)
+            if end is None:
+                if len(self._buf) > MAX_COMMAND_CHARS:
+                    out.append(self._buf[: MAX_COMMAND_CHARS + 1])
+                    self._buf = ""
+                break
+            if end < 0:  # a line ended before any '(': hand it over as malformed
+                out.append(self._buf[: -end].rstrip())
+                self._buf = self._buf[-end + 1 :]
+                continue
+            out.append(self._buf[:end])
+            self._buf = self._buf[end:]
+        return out
+
+    @staticmethod
+    def _command_end(s: str) -> int | None:
+        """Index after the command's closing ')', -(index of a newline) met before any '(', or None."""
+        paren = 0
+        for i, ch in enumerate(s):
+            if ch == "(":
+                paren += 1
+            elif ch == ")":
+                paren -= 1
+                if paren <= 0:
+                    return i + 1
+            elif ch == "\n" and paren == 0:
+                return -i
+        return None
+
+
+# -- replies -------------------------------------------------------------------------------------
+
+
+@dataclass
+class Reply:
+    """A parsed reply: `error_id`, the values between the braces (numbers as float, others as text),
+    `raw_values` (the text between the braces) and the echoed `command`."""
+
+    error_id: int
+    values: list[float | str]
+    raw_values: str
+    command: str
+
+    @property
+    def ok(self) -> bool:
+        return self.error_id == 0
+
+
+def format_reply(error_id: int, values: Sequence[float | int] | str | None, command_text: str) -> str:
+    """`ErrorID,{v1,...},Command(...);`; `values` a sequence of numbers or preformatted text."""
+    if values is None:
+        body = ""
+    elif isinstance(values, str):
+        body = values
+    else:
+        body = ",".join(_fmt_number(v) if isinstance(v, (int, np.integer)) else f"{float(v):.6f}" for v in values)
+    return f"{int(error_id)},{{{body}}},{command_text.strip()};"
+
+
+_REPLY_RE = re.compile(r"\s*(-?\d+)\s*,\s*\{(.*?)\}\s*,(.*);\s*", flags=re.S)
+
+
+def parse_reply(text: str) -> Reply:
+    """One reply, or ProtocolError if it is not `ErrorID,{...},Command;`."""
+    m = _REPLY_RE.fullmatch(text)
+    if not m:
+        # values with nested brackets (GetErrorID) contain no '}' before the last: retry greedily
+        m = re.fullmatch(r"\s*(-?\d+)\s*,\s*\{(.*)\}\s*,([^{}]*);\s*", text, flags=re.S)
+    if not m:
+        raise ProtocolError(f"not a Dobot reply: {text.strip()[:80]!r}")
+    raw = m.group(2).strip()
+    values: list[float | str] = []
+    if raw and not raw.startswith("["):
+        for s in raw.split(","):
+            s = s.strip()
+            values.append(float(s) if _NUMBER_RE.fullmatch(s) else s)
+    elif raw:
+        values.append(raw)
+    return Reply(error_id=int(m.group(1)), values=values, raw_values=raw, command=m.group(3).strip())
+
+
+def split_replies(buffer: str) -> tuple[list[str], str]:
+    """Complete replies in `buffer` (each ends with ';') and the incomplete rest."""
+    parts = buffer.split(";")
+    return [p + ";" for p in parts[:-1] if p.strip()], parts[-1]
+
+
+def format_error_ids(controller: Iterable[int], servos: Sequence[Iterable[int]] | None = None) -> str:
+    """GetErrorID's value text: `[[controller ids],[servo 1 ids],...,[servo 6 ids]]`."""
+    servos = servos or [[] for _ in range(6)]
+    groups = [list(controller)] + [list(s) for s in servos]
+    return "[" + ",".join("[" + ",".join(str(int(i)) for i in g) + "]" for g in groups) + "]"
+
+
+def parse_error_ids(raw_values: str) -> list[list[int]]:
+    """GetErrorID's value text back to 7 lists of ids (controller first, then the six servos)."""
+    s = raw_values.strip()
+    if not (s.startswith("[") and s.endswith("]")):
+        raise ProtocolError(f"bad GetErrorID value {s[:80]!r}")
+    groups = re.findall(r"\[([^\[\]]*)\]", s[1:-1])
+    try:
+        return [[int(x) for x in g.split(",") if x.strip()] for g in groups]
+    except ValueError:
+        raise ProtocolError(f"bad GetErrorID value {s[:80]!r}") from None
