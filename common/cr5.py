@@ -18,6 +18,8 @@ Public API: `fk(q) -> (4, 4)` base <- flange; `link_frames(q) -> (7, 4, 4)`; `ik
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -38,7 +40,7 @@ WRIST_RADIUS = 0.05
 
 
 def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
-    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
     return np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1.0]])
 
 
@@ -92,20 +94,20 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (np.asarray(a) + np.pi) % _TWO_PI - np.pi
 
 
-def ik_all(T: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
-    """All analytic solutions `(k, 6)`, k <= 8, in Dobot angles wrapped to [-pi, pi); empty if out of reach.
+def _rigid_inv(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
 
-    The UR closed form: the shoulder angle from the wrist centre, the wrist angle from the
-    flange's lateral offset, then a planar two-link problem for J2, J3 and J4. At a wrist
-    singularity (J5 = 0) J6 is free and set to `q6_free`.
-    """
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        return np.zeros((0, 6))
+
+def _ik_candidates(T: np.ndarray, q6_free: float) -> list[np.ndarray]:
+    """The closed-form candidates (Dobot angles, unwrapped), not yet checked against T."""
     p05 = T[:3, 3] - D6 * T[:3, 2]
     r = np.hypot(p05[0], p05[1])
     if r < abs(D4) + 1e-9:
-        return np.zeros((0, 6))
+        return []
+    Ti = _rigid_inv(T)
     sols = []
     phi = np.arctan2(p05[1], p05[0])
     psi = np.arccos(np.clip(D4 / r, -1.0, 1.0))
@@ -114,19 +116,16 @@ def ik_all(T: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
         c5 = (T[0, 3] * s1 - T[1, 3] * c1 - D4) / D6
         if abs(c5) > 1.0 + 1e-9:
             continue
+        T01i = _rigid_inv(_dh(t1, D1, 0.0, DH_ALPHA[0]))
         for sign5 in (1.0, -1.0):
             t5 = sign5 * np.arccos(np.clip(c5, -1.0, 1.0))
             s5 = np.sin(t5)
-            # J6 from the base x and y axes seen in the flange frame
-            Ti = np.linalg.inv(T)
-            if abs(s5) < 1e-9:
+            if abs(s5) < 1e-9:  # wrist singularity: J6 is free
                 t6 = q6_free - JOINT_OFFSET[5]
-            else:
+            else:  # J6 from the base x and y axes seen in the flange frame
                 t6 = np.arctan2((-Ti[1, 0] * s1 + Ti[1, 1] * c1) / s5, (Ti[0, 0] * s1 - Ti[0, 1] * c1) / s5)
-            T01 = _dh(t1, D1, 0.0, DH_ALPHA[0])
-            T45 = _dh(t5, D5, 0.0, DH_ALPHA[4])
-            T56 = _dh(t6, D6, 0.0, DH_ALPHA[5])
-            T14 = np.linalg.inv(T01) @ T @ np.linalg.inv(T45 @ T56)
+            T46 = _dh(t5, D5, 0.0, DH_ALPHA[4]) @ _dh(t6, D6, 0.0, DH_ALPHA[5])
+            T14 = T01i @ T @ _rigid_inv(T46)
             p13 = T14 @ np.array([0.0, -D4, 0.0, 1.0])
             d2 = p13[0] ** 2 + p13[1] ** 2
             c3 = (d2 - A2**2 - A3**2) / (2 * A2 * A3)
@@ -135,28 +134,38 @@ def ik_all(T: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
             for sign3 in (1.0, -1.0):
                 t3 = sign3 * np.arccos(np.clip(c3, -1.0, 1.0))
                 t2 = -np.arctan2(p13[1], -p13[0]) + np.arcsin(np.clip(A3 * np.sin(t3) / np.sqrt(d2), -1.0, 1.0))
-                T13 = _dh(t2, 0.0, A2, 0.0) @ _dh(t3, 0.0, A3, 0.0)
-                T34 = np.linalg.inv(T13) @ T14
+                T34 = _rigid_inv(_dh(t2, 0.0, A2, 0.0) @ _dh(t3, 0.0, A3, 0.0)) @ T14
                 t4 = np.arctan2(T34[1, 0], T34[0, 0])
                 sols.append(np.array([t1, t2, t3, t4, t5, t6]) - JOINT_OFFSET)
-    if not sols:
+    return sols
+
+
+def ik_all(T: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
+    """All analytic solutions `(k, 6)`, k <= 8, in Dobot angles wrapped to [-pi, pi); empty if out of reach.
+
+    The UR closed form: the shoulder angle from the wrist centre, the wrist angle from the
+    flange's lateral offset, then a planar two-link problem for J2, J3 and J4. At a wrist
+    singularity (J5 = 0) J6 is free and set to `q6_free`. Only exact solutions are kept (the
+    clipped arccos near the workspace edge may give inexact ones).
+    """
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return np.zeros((0, 6))
-    out = _wrap(np.array(sols))
-    # keep only exact solutions (the clipped arccos/arcsin near the workspace edge may not be)
-    good = [q for q in out if np.allclose(fk(q), T, atol=1e-6)]
+    good = [q for q in _wrap(np.array(_ik_candidates(T, q6_free)).reshape(-1, 6)) if np.allclose(fk(q), T, atol=1e-6)]
     return np.array(good) if good else np.zeros((0, 6))
 
 
-def _nearest_within_limits(q: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
-    """`q` with each joint shifted by whole turns to lie nearest `seed` inside the joint limits."""
-    out = np.empty(6)
-    for j in range(6):
-        base = q[j] + _TWO_PI * np.round((seed[j] - q[j]) / _TWO_PI)
-        cands = [c for c in (base - _TWO_PI, base, base + _TWO_PI) if JOINT_LIMITS[j, 0] <= c <= JOINT_LIMITS[j, 1]]
-        if not cands:
-            return None
-        out[j] = min(cands, key=lambda c: abs(c - seed[j]))
-    return out
+def _nearest_within_limits(qs: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`qs (k, 6)` with each joint shifted by whole turns to lie nearest `seed` inside the joint limits,
+    and a `(k,)` mask of the rows for which every joint has such an angle."""
+    base = qs + _TWO_PI * np.round((seed - qs) / _TWO_PI)
+    cands = base[None] + _TWO_PI * np.array([-1.0, 0.0, 1.0])[:, None, None]  # (3, k, 6)
+    inside = (cands >= JOINT_LIMITS[:, 0]) & (cands <= JOINT_LIMITS[:, 1])
+    dist = np.where(inside, np.abs(cands - seed), np.inf)
+    pick = np.argmin(dist, axis=0)  # (k, 6)
+    out = np.take_along_axis(cands, pick[None], axis=0)[0]
+    ok = np.all(np.isfinite(np.take_along_axis(dist, pick[None], axis=0)[0]), axis=1)
+    return out, ok
 
 
 def ik(T: np.ndarray, q_seed: np.ndarray, tol: float = 1e-4, avoid_self_collision: bool = False) -> np.ndarray | None:
@@ -170,17 +179,16 @@ def ik(T: np.ndarray, q_seed: np.ndarray, tol: float = 1e-4, avoid_self_collisio
     seed = np.asarray(q_seed, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)) or seed.shape != (6,) or not np.all(np.isfinite(seed)):
         return None
-    best, best_cost = None, np.inf
-    for q in ik_all(T, q6_free=float(seed[5])):
-        qn = _nearest_within_limits(q, seed)
-        if qn is None or (avoid_self_collision and self_collision(qn)):
+    qs, ok = _nearest_within_limits(_wrap(np.array(_ik_candidates(T, float(seed[5]))).reshape(-1, 6)), seed)
+    qs = qs[ok]
+    for qn in qs[np.argsort(np.sum((qs - seed) ** 2, axis=1), kind="stable")]:
+        F = fk(qn)
+        if not np.allclose(F[:3, :3], T[:3, :3], atol=1e-6) or np.linalg.norm(F[:3, 3] - T[:3, 3]) > tol:
             continue
-        cost = float(np.sum((qn - seed) ** 2))
-        if cost < best_cost:
-            best, best_cost = qn, cost
-    if best is None or np.linalg.norm(fk(best)[:3, 3] - T[:3, 3]) > tol:
-        return None
-    return best
+        if avoid_self_collision and self_collision(qn):
+            continue
+        return qn
+    return None
 
 
 def pose6_to_matrix(pose: np.ndarray) -> np.ndarray:

@@ -427,7 +427,8 @@ class CommandSplitter:
 
     A command ends at the ')' that closes its '(' (braces inside are skipped); whitespace, newlines
     and ';' between commands are dropped. Text that cannot start a command, or a command longer than
-    MAX_COMMAND_CHARS, comes out as it is so the server can answer it with an error rather than wait.
+    MAX_COMMAND_CHARS, comes out as it is so the server can answer it with an error rather than wait;
+    `flush()` hands over an unfinished command after the client has gone quiet.
     """
 
     def __init__(self) -> None:
@@ -453,6 +454,16 @@ class CommandSplitter:
             out.append(self._buf[:end])
             self._buf = self._buf[end:]
         return out
+
+    def flush(self) -> str | None:
+        """Whatever incomplete text is buffered, as one (malformed) command; None if nothing is.
+
+        A server calls this when a client has sent nothing more for a while, so that text without a
+        closing parenthesis or newline still gets its error reply instead of waiting forever.
+        """
+        rest = self._buf.strip(" \t\r\n;")
+        self._buf = ""
+        return rest or None
 
     @staticmethod
     def _command_end(s: str) -> int | None:
