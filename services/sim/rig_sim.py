@@ -1,0 +1,233 @@
+"""The simulated rig: the physics world with its two CR5 controllers bolted to the bag's mounts.
+
+`SimRig(scenario, rig, seed)` builds the world (bagit.services.sim.world.SimWorld), puts each arm
+in the joint configuration that holds its mount where the world starts it (T_world_base @ fk(q) @
+T_flange_mount == the mount's home pose), and from then on the mounts follow the arms' flanges:
+each physics step first advances both controllers, then sets the mount targets from their
+flanges, then steps the world. With `with_servers=True` each arm is also reachable over Dobot's
+TCP/IP protocol V4 on the rig config's ports (or free ports with `ephemeral_ports=True`), so an
+arm driver can talk to it as to a real CR5. `run_realtime(speed)` paces the loop to the wall
+clock (speed 2 = twice real time) for such clients.
+
+The Python API (`arms['left'].servo_p(...)`, `step`, `render_rgbd`, `ground_truth`) serves tests
+and the in-process pipeline; ground truth is for tests and benchmarks only.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from bagit.common import cr5
+from bagit.common.errors import BadScenario
+from bagit.common.geometry import invert_transform
+from bagit.common.messages import RgbdFrame
+from bagit.common.rig import ARMS, RigConfig
+from bagit.common.scenario import Scenario
+from bagit.services.sim.cr5_sim import SimulatedCR5
+from bagit.services.sim.dobot_server import DobotControllerServer
+
+from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S  # noqa: E402  (pure Python, no MuJoCo)
+
+
+class World(Protocol):
+    """What SimRig needs of the physics world (SimWorld provides it)."""
+
+    time: float
+
+    def step(self, dt: float) -> None: ...
+    def mount_home_poses(self) -> dict[str, np.ndarray]: ...
+    def set_mount_targets(self, T_world_mount: dict[str, np.ndarray]) -> None: ...
+    def mount_poses(self) -> dict[str, np.ndarray]: ...
+    def render_rgbd(self, seq: int = 0) -> RgbdFrame: ...
+    def ground_truth(self) -> Any: ...
+    def close(self) -> None: ...
+
+
+def natural_ik(T_base_flange: np.ndarray) -> np.ndarray | None:
+    """The joint angles an operator would pick to hold a flange pose: shoulder facing the target,
+    elbow above the shoulder, no self-collision, then the least-wound of those; None if unreachable.
+    """
+    sols = cr5.ik_all(T_base_flange)
+    if len(sols) == 0:
+        return None
+    p = T_base_flange[:3, 3]
+    facing = np.arctan2(p[1], p[0])
+    best, best_cost = None, np.inf
+    for q in sols:
+        F = cr5.link_frames(q)
+        if cr5.self_collision(q) or not cr5.within_limits(q):
+            continue
+        # the upper arm's direction (shoulder -> elbow) and the target's bearing
+        elbow = F[2][:3, 3]
+        bearing = np.arctan2(elbow[1], elbow[0]) if np.hypot(elbow[0], elbow[1]) > 1e-6 else facing
+        turned = abs(np.angle(np.exp(1j * (bearing - facing)))) > np.pi / 2
+        low_elbow = elbow[2] < cr5.D1
+        cost = 100.0 * turned + 10.0 * low_elbow + float(np.sum(q**2))
+        if cost < best_cost:
+            best, best_cost = q, cost
+    return best
+
+
+@dataclass
+class RealtimeStats:
+    sim_s: float
+    wall_s: float
+    realtime_factor: float
+    frames: int
+
+
+class SimRig:
+    """The world plus two SimulatedCR5s (and, optionally, their TCP servers)."""
+
+    def __init__(
+        self,
+        scenario: Scenario | None = None,
+        rig: RigConfig | None = None,
+        seed: int = 0,
+        camera: bool = True,
+        with_servers: bool = False,
+        ephemeral_ports: bool = False,
+        world: World | None = None,
+    ):
+        self.rig = rig or RigConfig()
+        if world is None:
+            if scenario is None:
+                raise BadScenario("SimRig needs a scenario or a world")
+            from bagit.services.sim.world import SimWorld  # MuJoCo loads only when a real world is wanted
+
+            world = SimWorld(scenario, self.rig, seed, camera=camera)
+        self.world: World = world
+        self.arms: dict[str, SimulatedCR5] = {}
+        homes = self.world.mount_home_poses()
+        for name in ARMS:
+            arm = self.rig.arms[name]
+            T_bf = invert_transform(arm.T_world_base()) @ homes[name] @ invert_transform(arm.T_flange_mount())
+            q = natural_ik(T_bf)
+            if q is None:
+                d = np.linalg.norm(T_bf[:3, 3])
+                self.world.close()
+                raise BadScenario(f"the {name} mount starts {d:.2f} m from its CR5's base, out of the arm's reach; move the base in the rig config")
+            self.arms[name] = SimulatedCR5(arm, q0=q, name=name)
+        self.servers: dict[str, DobotControllerServer] = {}
+        self._loop_lock = threading.Lock()
+        self._synced_q: dict[str, np.ndarray] = {}
+        if with_servers:
+            self.start_servers(ephemeral_ports)
+        self._sync_mounts()
+
+    # -- servers ---------------------------------------------------------------------------------
+
+    def start_servers(self, ephemeral_ports: bool = False) -> dict[str, tuple[int, int]]:
+        """Serve both arms over TCP; returns 'left'/'right' -> (dashboard port, feedback port)."""
+        for name, robot in self.arms.items():
+            if name in self.servers:
+                continue
+            arm = self.rig.arms[name]
+            ports = (0, 0) if ephemeral_ports else (arm.dashboard_port, arm.feedback_port)
+            try:
+                self.servers[name] = DobotControllerServer(robot, arm.host, *ports).start()
+            except OSError:
+                self.stop_servers()
+                raise
+        return self.ports()
+
+    def ports(self) -> dict[str, tuple[int, int]]:
+        return {name: (s.dashboard_port, s.feedback_port) for name, s in self.servers.items()}
+
+    def stop_servers(self) -> None:
+        for s in self.servers.values():
+            s.stop()
+        self.servers.clear()
+
+    # -- simulation ------------------------------------------------------------------------------
+
+    @property
+    def time(self) -> float:
+        return float(self.world.time)
+
+    def _sync_mounts(self) -> None:
+        """Mount targets from the flanges; only the arms whose joints moved are sent (setting one is not free)."""
+        moved = {}
+        for name, robot in self.arms.items():
+            q = robot.q
+            if name not in self._synced_q or not np.array_equal(q, self._synced_q[name]):
+                self._synced_q[name] = q
+                moved[name] = robot.mount_pose_world()
+        if moved:
+            self.world.set_mount_targets(moved)
+
+    def step(self, dt: float) -> None:
+        """Advance `dt` seconds (rounded to whole world steps): controllers, then mounts, then physics."""
+        n = max(1, int(round(dt / WORLD_STEP_S)))
+        with self._loop_lock:
+            for _ in range(n):
+                for robot in self.arms.values():
+                    robot.step(WORLD_STEP_S)
+                self._sync_mounts()
+                self.world.step(WORLD_STEP_S)
+
+    def render_rgbd(self, seq: int = 0) -> RgbdFrame:
+        return self.world.render_rgbd(seq)
+
+    def ground_truth(self) -> Any:
+        """The world's ground truth (tests and benchmarks only)."""
+        return self.world.ground_truth()
+
+    def flange_poses(self) -> dict[str, np.ndarray]:
+        """'left'/'right' -> 4x4 world <- flange."""
+        return {name: robot.flange_pose_world() for name, robot in self.arms.items()}
+
+    def run_realtime(
+        self,
+        speed: float = 1.0,
+        duration: float | None = None,
+        stop: threading.Event | None = None,
+        on_frame: Callable[[RgbdFrame], None] | None = None,
+        on_progress: Callable[[RealtimeStats], None] | None = None,
+        chunk_s: float = 0.02,
+        progress_every_s: float = 1.0,
+    ) -> RealtimeStats:
+        """Step in chunks paced so that simulated time runs `speed` times the wall clock.
+
+        If the machine cannot keep up, the loop runs flat out and the returned realtime factor says
+        so. `on_frame` gets a camera frame at the camera's fps (simulated time); `stop` ends the loop.
+        """
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed}")
+        stop = stop or threading.Event()
+        fps = self.rig.camera.fps
+        t_sim0, t_wall0 = self.time, time.monotonic()
+        next_frame, next_report, frames = self.time, self.time + progress_every_s, 0
+
+        def stats() -> RealtimeStats:
+            sim, wall = self.time - t_sim0, time.monotonic() - t_wall0
+            return RealtimeStats(sim, wall, sim / wall if wall > 0 else 0.0, frames)
+
+        while not stop.is_set() and (duration is None or self.time - t_sim0 < duration - 1e-9):
+            self.step(chunk_s)
+            if on_frame is not None and self.time >= next_frame - 1e-9:
+                on_frame(self.render_rgbd(frames))
+                frames += 1
+                next_frame += 1.0 / fps
+            if on_progress is not None and self.time >= next_report:
+                on_progress(stats())
+                next_report += progress_every_s
+            ahead = (self.time - t_sim0) / speed - (time.monotonic() - t_wall0)
+            if ahead > 0:
+                stop.wait(ahead)
+        return stats()
+
+    def close(self) -> None:
+        self.stop_servers()
+        self.world.close()
+
+    def __enter__(self) -> "SimRig":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
