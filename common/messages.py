@@ -206,6 +206,24 @@ class ArmState(Message):
     estopped: bool = False
 
 
+class ControllerStatus(Message):
+    """One control tick as the controller saw it, for live plots: errors (m RMS, None without a valid SOI) and solve time."""
+
+    KIND: ClassVar[str] = "controller_status"
+    run_id: str | None = None
+    seq: int = 0
+    controller: str = "mpc"
+    mode: str = "servo"
+    stage: str = "pre-bagging"
+    reason: str | None = None
+    subgoal_index: int = 0
+    progress: float = Field(0.0, ge=0.0, le=1.0)
+    error_to_subgoal: float | None = None
+    error_to_goal: float | None = None
+    solve_ms: float = 0.0
+    done: bool = False
+
+
 Stage = Literal["idle", "perceiving", "goal", "planning", "pre-bagging", "bagging", "done", "failed", "aborted"]
 
 
@@ -255,5 +273,5 @@ class EStop(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     m.KIND: m
-    for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ArmState, RunState, RunControl, RunControlReply, EStop)
+    for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ControllerStatus, ArmState, RunState, RunControl, RunControlReply, EStop)
 }

@@ -134,6 +134,7 @@ def _example(kind):
         ),
         "path": dict(nodes=np.stack([arr, arr]), dagger_index=1),
         "cmd": dict(u=np.zeros(12)),
+        "controller_status": dict(mode="servo", error_to_goal=0.01, solve_ms=2.5),
         "arm_state": dict(arm="left", q=np.zeros(6), qd=np.zeros(6), tool_pose=np.zeros(6)),
         "run_state": dict(stage="planning", progress=0.5),
         "run_control": dict(action="start", scenario="exp01"),
