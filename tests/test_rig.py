@@ -1,0 +1,31 @@
+"""The rig config: defaults like the paper's set-up, YAML round trip, camera pose."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bagit.common.errors import BadScenario
+from bagit.common.rig import RigConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_committed_sim_rig_is_the_default():
+    r = RigConfig.from_file(ROOT / "deploy" / "rig-sim.yaml")
+    d = RigConfig()
+    assert r.model_dump() == d.model_dump()
+    # the arms face each other across the object, the camera looks at it from above
+    assert r.arms["left"].base_position[1] < 0 < r.arms["right"].base_position[1]
+    T = r.camera.T_world_camera()
+    assert T[2, 3] > 1.0 and T[:3, 2][2] < -0.5
+    assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3))
+
+
+def test_bad_rig_file(tmp_path):
+    p = tmp_path / "rig.yaml"
+    p.write_text("name: 'two words'\n")
+    with pytest.raises(BadScenario):
+        RigConfig.from_file(p)
+    with pytest.raises(BadScenario):
+        RigConfig.from_file(tmp_path / "missing.yaml")
