@@ -26,6 +26,7 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.goal",
     "bagit.commands.plan",
     "bagit.commands.run",
+    "bagit.commands.sim",
     "bagit.commands.bench",
 ]
 

@@ -191,16 +191,18 @@ class SimRig:
         on_progress: Callable[[RealtimeStats], None] | None = None,
         chunk_s: float = 0.02,
         progress_every_s: float = 1.0,
+        fps: float | None = None,
     ) -> RealtimeStats:
         """Step in chunks paced so that simulated time runs `speed` times the wall clock.
 
         If the machine cannot keep up, the loop runs flat out and the returned realtime factor says
-        so. `on_frame` gets a camera frame at the camera's fps (simulated time); `stop` ends the loop.
+        so. `on_frame` gets a camera frame `fps` times per simulated second (default: the camera's
+        rate); `stop` ends the loop.
         """
         if not speed > 0:
             raise ValueError(f"speed must be > 0, got {speed}")
         stop = stop or threading.Event()
-        fps = self.rig.camera.fps
+        fps = fps or self.rig.camera.fps
         t_sim0, t_wall0 = self.time, time.monotonic()
         next_frame, next_report, frames = self.time, self.time + progress_every_s, 0
 
