@@ -256,12 +256,10 @@ class SimulatedCR5:
 
     def _solve_pose(self, T: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray | None, int | None]:
         """Joint angles for flange pose T near `seed`, or the alarm: no solution / beyond limits / self-collision."""
-        sols = cr5.ik_all(T, q6_free=float(seed[5]))
-        if len(sols) == 0:
-            return None, int(Alarm.IK_NO_SOLUTION)
         q = cr5.ik(T, seed)
         if q is None:
-            return None, int(Alarm.IK_OUT_OF_LIMITS)
+            no_solution = len(cr5.ik_all(T, q6_free=float(seed[5]))) == 0
+            return None, int(Alarm.IK_NO_SOLUTION if no_solution else Alarm.IK_OUT_OF_LIMITS)
         if cr5.self_collision(q, self._tool_offset):
             q2 = cr5.ik(T, seed, avoid_self_collision=True)
             if q2 is None or np.max(np.abs(q2 - seed)) > np.pi / 2:

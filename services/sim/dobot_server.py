@@ -191,8 +191,8 @@ class DobotControllerServer:
             self._dash_sock.close()
             self._dash_sock = None
             raise
-        self._spawn(self._accept_loop, self._dash_sock, self._serve_dashboard, "dashboard")
-        self._spawn(self._accept_loop, self._fb_sock, self._add_feedback_client, "feedback-accept")
+        self._spawn(self._accept_loop, self._dash_sock, self._serve_dashboard, name="dashboard-accept")
+        self._spawn(self._accept_loop, self._fb_sock, self._add_feedback_client, name="feedback-accept")
         self._spawn(self._push_loop, name="feedback-push")
         if self._step_in_background:
             self._spawn(self._step_loop, name="step")
@@ -201,7 +201,8 @@ class DobotControllerServer:
     def _spawn(self, target: Callable, *args: object, name: str = "") -> None:
         t = threading.Thread(target=target, args=args, name=f"{self.robot.name}-{name}", daemon=True)
         t.start()
-        self._threads.append(t)
+        with self._clients_lock:
+            self._threads.append(t)
 
     def stop(self) -> None:
         """Close every socket and join every thread (idempotent)."""
@@ -218,10 +219,12 @@ class DobotControllerServer:
                 c.close()
             self._clients.clear()
             self._feedback_clients.clear()
-        for t in self._threads:
+        with self._clients_lock:
+            threads = list(self._threads)
+            self._threads.clear()
+        for t in threads:
             if t is not threading.current_thread():
                 t.join(timeout=2.0)
-        self._threads.clear()
 
     def __enter__(self) -> "DobotControllerServer":
         return self.start()
@@ -231,7 +234,7 @@ class DobotControllerServer:
 
     # -- sockets ---------------------------------------------------------------------------------
 
-    def _accept_loop(self, listener: socket.socket, on_client: Callable[[socket.socket], None], name: str) -> None:
+    def _accept_loop(self, listener: socket.socket, on_client: Callable[[socket.socket], None]) -> None:
         while not self._stop.is_set():
             try:
                 conn, _ = listener.accept()
@@ -241,7 +244,6 @@ class DobotControllerServer:
                 return
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             on_client(conn)
-        _ = name
 
     def _serve_dashboard(self, conn: socket.socket) -> None:
         with self._clients_lock:
