@@ -39,3 +39,11 @@ class ProtocolError(BagItError, RuntimeError):
 
 class SafetyViolation(BagItError, ValueError):
     """A command that would leave the arms' safe envelope (non-finite, out of limits)."""
+
+
+class BadControlInput(BagItError, ValueError):
+    """A controller set-up that cannot be servoed on: unknown controller, path or poses of the wrong shape."""
+
+
+class BusError(BagItError, RuntimeError):
+    """The Zenoh bus refused: a session that cannot open, a bad bus config, or no answer to a query."""

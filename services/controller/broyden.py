@@ -1,42 +1,60 @@
-"""Online estimate of the deformation Jacobian J (s_t = J u_t) by Broyden's rank-one update, guarded.
+"""Online estimate of the deformation Jacobian J (s_t = J u_t, paper eq. 16) by Broyden's rank-one
+update, guarded, and the short exploration that initialises it.
 
 The paper's update: J <- J + eps (s - J u) u^T / (u^T u). On real data a tiny u divides noise by
 almost zero and a glitch in the SOI can throw J far off, so the update is skipped for tiny or
-non-finite steps and J's norm is bounded.
+non-finite steps and J's Frobenius norm is bounded.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-MIN_STEP_NORM = 1e-4  # skip updates for ||u|| below this (m / rad per tick)
+MIN_STEP_NORM = 1e-4  # skip updates for ||u|| below this (m / rad per update)
 MAX_JACOBIAN_NORM = 50.0  # Frobenius bound on J (SOI metres per input unit)
 
 
 class BroydenJacobian:
     """J: (3 n_x, 12), updated from (u, s) pairs."""
 
-    def __init__(self, J0: np.ndarray, epsilon: float = 0.3, max_norm: float = MAX_JACOBIAN_NORM):
+    def __init__(
+        self,
+        J0: np.ndarray,
+        epsilon: float = 0.3,
+        max_norm: float = MAX_JACOBIAN_NORM,
+        min_step: float = MIN_STEP_NORM,
+    ):
+        J0 = np.array(J0, dtype=float)
+        if J0.ndim != 2 or not np.all(np.isfinite(J0)):
+            raise ValueError(f"J0 must be a finite 2-D matrix, got shape {J0.shape}")
         if not 0.0 < epsilon <= 1.0:
             raise ValueError(f"Broyden rate epsilon must be in (0, 1], got {epsilon}")
-        self.J = np.array(J0, dtype=float)
+        if not max_norm > 0.0:
+            raise ValueError(f"max_norm must be positive, got {max_norm}")
+        n = np.linalg.norm(J0)
+        self.J = J0 * (max_norm / n) if n > max_norm else J0
         self.epsilon = epsilon
         self.max_norm = max_norm
+        self.min_step = min_step
         self.updates = 0
         self.skipped = 0
+        self.clamped = 0
 
     def update(self, u: np.ndarray, s: np.ndarray) -> bool:
         """One Broyden step from input `u (12,)` and the SOI change `s (3 n_x,)` it caused. True if applied."""
         u = np.asarray(u, dtype=float).ravel()
         s = np.asarray(s, dtype=float).ravel()
+        if u.shape[0] != self.J.shape[1] or s.shape[0] != self.J.shape[0]:
+            raise ValueError(f"u {u.shape} and s {s.shape} do not fit J {self.J.shape}")
         uu = float(u @ u)
-        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(s))) or uu < MIN_STEP_NORM**2:
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(s))) or uu < self.min_step**2:
             self.skipped += 1
             return False
         J = self.J + self.epsilon * np.outer(s - self.J @ u, u) / uu
         n = np.linalg.norm(J)
         if n > self.max_norm:
             J *= self.max_norm / n
+            self.clamped += 1
         self.J = J
         self.updates += 1
         return True
@@ -56,5 +74,83 @@ def exploration_inputs(step_m: float = 0.004, step_rad: float = 0.04) -> np.ndar
 def jacobian_from_exploration(inputs: np.ndarray, changes: np.ndarray) -> np.ndarray:
     """Finite-difference J `(3 n_x, 12)` from exploratory inputs `(k, 12)` and the SOI changes `(k, 3 n_x)`
     they caused: the least-squares J with changes ~ inputs @ J^T."""
-    Jt, *_ = np.linalg.lstsq(inputs, changes, rcond=None)
+    Jt, *_ = np.linalg.lstsq(np.asarray(inputs, float), np.asarray(changes, float), rcond=None)
     return Jt.T
+
+
+class Exploration:
+    """The short, bounded exploratory motion that seeds J at the start of a run.
+
+    Each of the 12 input directions is pushed out at its C7 limit for `push_ticks` ticks, held for
+    `settle_ticks`, pushed back the same way and held again: the mounts end where they started and
+    every push moves a gripper at most `push_ticks * u_max` (6.7 mm / 0.04 rad at the defaults). The
+    SOI change over a whole push (not one tick, which is mostly camera noise) gives one finite
+    difference; the 24 of them give J by least squares.
+
+    Use as a state machine: `next_input(x)` with each new SOI `x (3 n_x,)` returns the input to
+    apply this tick, or None once finished; then `jacobian()`.
+    """
+
+    def __init__(self, u_max: np.ndarray, push_ticks: int = 4, settle_ticks: int = 2):
+        u_max = np.asarray(u_max, dtype=float).ravel()
+        if u_max.shape != (12,) or not np.all(u_max > 0) or not np.all(np.isfinite(u_max)):
+            raise ValueError("u_max must be 12 positive finite per-tick limits")
+        if push_ticks < 1 or settle_ticks < 0:
+            raise ValueError("push_ticks must be >= 1 and settle_ticks >= 0")
+        # One segment per push: its per-tick inputs (push then settle).
+        self._segments: list[list[np.ndarray]] = []
+        for i in range(12):
+            e = np.zeros(12)
+            e[i] = u_max[i]
+            for sign in (1.0, -1.0):
+                self._segments.append([sign * e] * push_ticks + [np.zeros(12)] * settle_ticks)
+        self._seg = 0
+        self._tick = 0
+        self._finished = False
+        self._x_start: np.ndarray | None = None
+        self._u_sum = np.zeros(12)
+        self.inputs: list[np.ndarray] = []  # (12,) summed input of each finished push
+        self.changes: list[np.ndarray] = []  # (3 n_x,) SOI change it caused
+
+    @property
+    def total_ticks(self) -> int:
+        """Ticks with an exploratory input (the call that returns None comes one tick later)."""
+        return sum(len(s) for s in self._segments)
+
+    @property
+    def done(self) -> bool:
+        """Every push made and measured: `jacobian()` is ready."""
+        return self._finished
+
+    def progress(self) -> float:
+        return len(self.inputs) / len(self._segments)
+
+    def next_input(self, x: np.ndarray) -> np.ndarray | None:
+        """The exploratory input for this tick given the current SOI `x (3 n_x,)`; None when finished.
+
+        Ticks on which the caller holds (no valid SOI) simply do not call this: the push pauses with
+        the arms still, and its SOI change is still measured between two valid SOIs.
+        """
+        if self._finished:
+            return None
+        x = np.asarray(x, dtype=float).ravel()
+        if self._tick == 0:
+            if self._x_start is not None:  # x is the SOI after the previous push settled: measure it
+                self.inputs.append(self._u_sum.copy())
+                self.changes.append(x - self._x_start)
+            if self._seg == len(self._segments):
+                self._finished = True
+                return None
+            self._x_start, self._u_sum = x.copy(), np.zeros(12)
+        u = self._segments[self._seg][self._tick]
+        self._u_sum += u
+        self._tick += 1
+        if self._tick == len(self._segments[self._seg]):
+            self._seg, self._tick = self._seg + 1, 0
+        return u.copy()
+
+    def jacobian(self) -> np.ndarray:
+        """J `(3 n_x, 12)` by least squares over the measured pushes."""
+        if not self.inputs:
+            raise ValueError("no exploratory push measured yet")
+        return jacobian_from_exploration(np.asarray(self.inputs), np.asarray(self.changes))

@@ -1,15 +1,22 @@
 """MPC shape servoing (paper section VI-B) as a condensed QP solved with PIQP.
 
 Prediction over the horizon T: x̄ = A x_t + B ū with A = 1_{T x 1} ⊗ I_{3 n_x} and B = L_h ⊗ J
-(L_h the lower-triangular matrix of ones). With Q = q I and R = r I the condensed Hessian and
-gradient only need the small factors:
+(L_h the lower-triangular matrix of ones). With Q = q I and R diagonal, eliminating x̄ (C8)
+leaves a QP in ū alone whose Hessian and gradient only need the small factors:
 
-    H = q (L_hᵀ L_h) ⊗ (Jᵀ J) + r I,      g = q (L_hᵀ 1) ⊗ (Jᵀ (x_t - k)),
+    H = Bᵀ Q B + R = q (L_hᵀ L_h) ⊗ (Jᵀ J) + R,      c = Bᵀ Q (A x_t - k̄) = q (L_hᵀ 1) ⊗ (Jᵀ (x_t - g)),
 
-so a tick costs a 12T x 12T dense solve whatever n_x is. Constraints: C7 boxes on every input
-(speed limits x dt), C6 the grippers' separation along their current axis within [d_min, d_max]
-at every step of the horizon (the rim cannot stretch further, the mounts must not collide),
-C8 the model (eliminated by condensing). Only the first input is applied.
+so a tick costs a 12T x 12T dense solve whatever n_x is (`prediction_matrices` builds the
+paper's A and B explicitly, for reference and tests). Constraints: C7 boxes on every input (speed
+limits x dt, translation and rotation separately); C6 the grippers' separation along their
+current axis within [d_min, d_max] at every step of the horizon, as linear rows on the cumulative
+inputs (the fabric rim cannot be pulled further apart than about half its perimeter, the mounts
+must not collide). Only the first input is applied.
+
+PIQP is an interior-point solver and takes no primal start in its Python API (v0.7), so the
+"warm start" it can use is its set-up: the KKT structure and workspace are kept between ticks and
+only the data change through `update()`. (Shifting the origin to last tick's shifted plan was
+measured to leave the iteration count unchanged, ~8 per tick.)
 """
 
 from __future__ import annotations
@@ -19,36 +26,98 @@ from dataclasses import dataclass
 
 import numpy as np
 import piqp
+import scipy.sparse as sp
 
+from bagit.common.params import MethodParams
+from bagit.services.controller.servo import ServoBase
 
-ROTATION_COST_FACTOR = 10.0
+ROTATION_COST_FACTOR = 10.0  # a mount's turn moves the rim little: spend it only where it pays
+POSITION_COLUMNS = (0, 1, 2, 6, 7, 8)  # left and right gripper translation inside u (12,)
 
 
 @dataclass
 class MpcSolution:
-    u: np.ndarray  # (12,) first input
-    u_bar: np.ndarray  # (12 T,)
-    solve_ms: float
+    u: np.ndarray  # (12,) the first input, the one applied
+    u_bar: np.ndarray  # (12 T,) the whole plan
+    solve_ms: float  # QP build + solve, wall time
     status: str
+    iterations: int
+    ok: bool
+
+
+def prediction_matrices(J: np.ndarray, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's A `(3 n_x T, 3 n_x)` = 1_{T x 1} ⊗ I and B `(3 n_x T, 12 T)` = L_h ⊗ J, built explicitly.
+
+    Only for reference and tests: the controller never forms these (B alone is 960 x 120 at n_x = 32)."""
+    n = J.shape[0]
+    A = np.kron(np.ones((horizon, 1)), np.eye(n))
+    B = np.kron(np.tril(np.ones((horizon, horizon))), J)
+    return A, B
+
+
+def rotation_weighted_r(r: float, horizon: int) -> np.ndarray:
+    """Diagonal of R `(12 T,)`: r per unit of translation, ROTATION_COST_FACTOR r per radian."""
+    per_tick = np.array([1.0] * 3 + [ROTATION_COST_FACTOR] * 3 + [1.0] * 3 + [ROTATION_COST_FACTOR] * 3)
+    return r * np.tile(per_tick, horizon)
+
+
+def separation_gradient(axis: np.ndarray) -> np.ndarray:
+    """d(separation)/du `(12,)`: the change of the grippers' distance along the unit `axis (3,)` (left -> right)."""
+    a = np.zeros(12)
+    a[0:3] = -axis
+    a[6:9] = axis
+    return a
 
 
 class MpcSolver:
-    """Holds the PIQP solver between ticks and re-uses its set-up through `update`."""
+    """The condensed MPC QP, solved with PIQP; the solver and its set-up live between ticks.
 
-    def __init__(self, horizon: int, q: float, r: float):
+    backend: 'dense' (piqp.DenseSolver, the default: the condensed QP is small and dense) or
+    'sparse' (piqp.SparseSolver on the same QP, for comparison).
+    """
+
+    def __init__(self, horizon: int, q: float, r: float, backend: str = "dense", eps: float = 1e-7):
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if backend not in ("dense", "sparse"):
+            raise ValueError(f"backend must be 'dense' or 'sparse', got {backend!r}")
         self.T = horizon
         self.q = q
         self.r = r
+        self.backend = backend
+        self.eps = eps
         L = np.tril(np.ones((horizon, horizon)))
+        self._L = L
         self._LtL = L.T @ L
         self._Lt1 = L.T @ np.ones(horizon)
-        self._L = L
-        # Rotations cost ROTATION_COST_FACTOR more per unit: a mount's turn moves the rim little, and an
-        # input that barely shows in the SOI must not be spent on the camera's noise.
-        per_tick = np.array([1.0] * 3 + [ROTATION_COST_FACTOR] * 3 + [1.0] * 3 + [ROTATION_COST_FACTOR] * 3)
-        self._r_diag = r * np.tile(per_tick, horizon)
-        self._solver: piqp.DenseSolver | None = None
-        self._shape: tuple[int, int] | None = None
+        self.r_diag = rotation_weighted_r(r, horizon)
+        self._R = np.diag(self.r_diag)
+        # Fixed sparsity patterns (the sparse solver's update needs the same pattern every tick).
+        n = 12 * horizon
+        self._triu = np.triu_indices(n)
+        order = np.lexsort((self._triu[0], self._triu[1]))  # column-major, as CSC stores them
+        self._triu = (self._triu[0][order], self._triu[1][order])
+        rows, cols = [], []
+        for k in range(horizon):
+            for j in range(k + 1):
+                for c in POSITION_COLUMNS:
+                    rows.append(k)
+                    cols.append(12 * j + c)
+        self._g_rows, self._g_cols = np.asarray(rows), np.asarray(cols)
+        self._g_pos = np.asarray(cols) % 12
+        self._solver: piqp.DenseSolver | piqp.SparseSolver | None = None
+        self._has_g: bool | None = None
+        self.last: MpcSolution | None = None
+
+    def condensed(self, J: np.ndarray, x: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """H `(12T, 12T)` and c `(12T,)` of the condensed cost for `J (3 n_x, 12)`, `x`, `target (3 n_x,)`."""
+        H = self.q * np.kron(self._LtL, J.T @ J) + self._R
+        c = self.q * np.outer(self._Lt1, J.T @ (x - target)).ravel()
+        return H, c
+
+    def separation_rows(self, axis: np.ndarray) -> np.ndarray:
+        """G `(T, 12T)`: row k is the separation change after k+1 inputs (the cumulative sum)."""
+        return np.kron(self._L, separation_gradient(axis)[None, :])
 
     def solve(
         self,
@@ -60,43 +129,150 @@ class MpcSolver:
         sep_now: float = 0.0,
         sep_limits: tuple[float, float] = (0.0, np.inf),
     ) -> MpcSolution:
-        """Inputs for the SOI `x (3 n_x,)` to reach `target (3 n_x,)` under the model J `(3 n_x, 12)`.
+        """Inputs for the SOI `x (3 n_x,)` to reach `target (3 n_x,)` under the model `J (3 n_x, 12)`.
 
         `u_max (12,)`: C7 bound per input per tick. `sep_axis (3,)`: unit vector from the left to the
-        right gripper; the separation along it stays within `sep_limits` over the horizon (C6).
+        right gripper; the separation along it stays within `sep_limits` over the horizon (C6). If the
+        grippers are already outside that band the rows only ask for no worse.
         """
         T = self.T
         t0 = time.perf_counter()
-        JtJ = J.T @ J
-        H = self.q * np.kron(self._LtL, JtJ) + np.diag(self._r_diag)
-        g = self.q * np.kron(self._Lt1, J.T @ (x - target))
-        ub = np.tile(u_max, T)
+        J = np.asarray(J, dtype=float)
+        x = np.asarray(x, dtype=float).ravel()
+        target = np.asarray(target, dtype=float).ravel()
+        zeros = np.zeros(12 * T)
+        if not (np.all(np.isfinite(J)) and np.all(np.isfinite(x)) and np.all(np.isfinite(target))):
+            return self._fail(zeros, t0, "non-finite model or SOI")
+        H, c = self.condensed(J, x, target)
+        ub = np.tile(np.asarray(u_max, dtype=float), T)
         lb = -ub
+        has_g = sep_axis is not None
         G = hl = hu = None
-        if sep_axis is not None:
-            a = np.concatenate([-sep_axis, np.zeros(3), sep_axis, np.zeros(3)])  # d(separation)/du
-            G = np.kron(self._L, a[None, :])  # row k: separation change after k+1 steps
-            hl = np.full(T, sep_limits[0] - sep_now)
-            hu = np.full(T, sep_limits[1] - sep_now)
-            # If the grippers are already outside the band, only ask for no worse.
-            hl = np.minimum(hl, 0.0)
-            hu = np.maximum(hu, 0.0)
-        H = np.asfortranarray(H)
-        G = np.asfortranarray(G) if G is not None else None
-        shape = (12 * T, 0 if G is None else G.shape[0])
-        if self._solver is None or shape != self._shape:
-            self._solver = piqp.DenseSolver()
-            self._solver.settings.verbose = False
-            self._solver.settings.eps_abs = 1e-7
-            self._solver.settings.eps_rel = 1e-7
-            self._solver.setup(H, g, None, None, G, hl, hu, lb, ub)
-            self._shape = shape
+        if has_g:
+            a = separation_gradient(np.asarray(sep_axis, dtype=float))
+            hl = np.minimum(np.full(T, sep_limits[0] - sep_now), 0.0)
+            hu = np.maximum(np.full(T, sep_limits[1] - sep_now), 0.0)
+            G = a[self._g_pos]  # the values on the fixed pattern
+        if self._solver is None or has_g != self._has_g:
+            self._setup(H, c, G, hl, hu, lb, ub)
+            self._has_g = has_g
+        elif self.backend == "dense":
+            Gd = self._dense_g(G) if has_g else None
+            self._solver.update(P=np.asfortranarray(H), c=c, G=Gd, h_l=hl, h_u=hu, x_l=lb, x_u=ub)
         else:
-            self._solver.update(P=H, c=g, G=G, h_l=hl, h_u=hu, x_l=lb, x_u=ub)
+            Gs = self._sparse_g(G) if has_g else None
+            self._solver.update(P=self._sparse_p(H), c=c, G=Gs, h_l=hl, h_u=hu, x_l=lb, x_u=ub)
         status = self._solver.solve()
-        u_bar = np.asarray(self._solver.result.x, dtype=float)
-        ok = str(status).endswith("PIQP_SOLVED") or "SOLVED" in str(status)
-        if not ok or not np.all(np.isfinite(u_bar)):
-            u_bar = np.zeros(12 * T)
+        u_bar = np.asarray(self._solver.result.x, dtype=float).copy()
+        iters = int(self._solver.result.info.iter)
+        if status != piqp.PIQP_SOLVED or not np.all(np.isfinite(u_bar)):
+            return self._fail(zeros, t0, str(status), iters)
         u_bar = np.clip(u_bar, lb, ub)  # solver tolerance must never leak past C7
-        return MpcSolution(u_bar[:12].copy(), u_bar, (time.perf_counter() - t0) * 1e3, str(status))
+        sol = MpcSolution(u_bar[:12].copy(), u_bar, (time.perf_counter() - t0) * 1e3, str(status), iters, True)
+        self.last = sol
+        return sol
+
+    def predicted(self, J: np.ndarray, x: np.ndarray, u_bar: np.ndarray) -> np.ndarray:
+        """x̄ `(T, 3 n_x)` = A x + B ū for a plan `u_bar (12T,)`, without forming A or B."""
+        steps = np.cumsum(np.asarray(u_bar, dtype=float).reshape(self.T, 12), axis=0)
+        return np.asarray(x, dtype=float).ravel()[None, :] + steps @ np.asarray(J, dtype=float).T
+
+    def _fail(self, zeros: np.ndarray, t0: float, status: str, iters: int = 0) -> MpcSolution:
+        sol = MpcSolution(zeros[:12].copy(), zeros, (time.perf_counter() - t0) * 1e3, status, iters, False)
+        self.last = sol
+        return sol
+
+    def _dense_g(self, values: np.ndarray) -> np.ndarray:
+        G = np.zeros((self.T, 12 * self.T), order="F")
+        G[self._g_rows, self._g_cols] = values
+        return G
+
+    def _sparse_g(self, values: np.ndarray) -> sp.csc_matrix:
+        # Explicit zeros kept, so the pattern never changes with the axis.
+        return sp.csc_matrix((values, (self._g_rows, self._g_cols)), shape=(self.T, 12 * self.T))
+
+    def _sparse_p(self, H: np.ndarray) -> sp.csc_matrix:
+        i, j = self._triu
+        n = H.shape[0]
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(j, minlength=n))])
+        return sp.csc_matrix((H[i, j], i, indptr), shape=H.shape)
+
+    def _setup(self, H, c, G, hl, hu, lb, ub) -> None:
+        if self.backend == "dense":
+            s = piqp.DenseSolver()
+            Gm = self._dense_g(G) if G is not None else None
+            Pm = np.asfortranarray(H)
+        else:
+            s = piqp.SparseSolver()
+            Gm = self._sparse_g(G) if G is not None else None
+            Pm = self._sparse_p(H)
+        s.settings.verbose = False
+        s.settings.eps_abs = self.eps
+        s.settings.eps_rel = self.eps
+        s.setup(Pm, c, None, None, Gm, hl, hu, lb, ub)
+        self._solver = s
+
+
+def uncondensed_qp(
+    J: np.ndarray,
+    x: np.ndarray,
+    target: np.ndarray,
+    u_max: np.ndarray,
+    horizon: int,
+    q: float,
+    r_diag: np.ndarray,
+    sep_axis: np.ndarray,
+    sep_now: float,
+    sep_limits: tuple[float, float],
+) -> dict[str, np.ndarray | sp.csc_matrix]:
+    """The same MPC without condensing, for sparse solvers: variables z = [x̄ (3 n_x T), ū (12 T)],
+    C8 as equality rows x_{k+1} = x_k + J u_k. Returns P (upper triangle), c, A, b, G, h_l, h_u, x_l, x_u."""
+    n, T = J.shape[0], horizon
+    x = np.asarray(x, dtype=float).ravel()
+    target = np.asarray(target, dtype=float).ravel()
+    P = sp.diags(np.concatenate([np.full(n * T, q), r_diag])).tocsc()
+    c = np.concatenate([np.tile(-q * target, T), np.zeros(12 * T)])
+    # x_k - x_{k-1} - J u_k = 0 (x_{-1} = x_t): [I - shift] ⊗ I_n on x̄, -I_T ⊗ J on ū. Built from
+    # explicit coordinates so the patterns (zeros in J or the axis included) never change.
+    k, i = np.meshgrid(np.arange(T), np.arange(n), indexing="ij")
+    rows = [(k * n + i).ravel(), (k[1:] * n + i[1:]).ravel()]
+    cols = [(k * n + i).ravel(), ((k[1:] - 1) * n + i[1:]).ravel()]
+    vals = [np.ones(n * T), -np.ones(n * (T - 1))]
+    kk, ii, jj = np.meshgrid(np.arange(T), np.arange(n), np.arange(12), indexing="ij")
+    rows.append((kk * n + ii).ravel())
+    cols.append((n * T + 12 * kk + jj).ravel())
+    vals.append(-np.broadcast_to(J, (T, n, 12)).ravel())
+    A = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n * T, n * T + 12 * T))
+    b = np.concatenate([x, np.zeros(n * (T - 1))])
+    a = separation_gradient(np.asarray(sep_axis, dtype=float))
+    gk, gj = np.nonzero(np.tril(np.ones((T, T))))
+    g_rows = np.repeat(gk, len(POSITION_COLUMNS))
+    g_cols = n * T + (12 * gj[:, None] + np.asarray(POSITION_COLUMNS)[None, :]).ravel()
+    G = sp.csc_matrix((a[g_cols - n * T - 12 * np.repeat(gj, len(POSITION_COLUMNS))], (g_rows, g_cols)), shape=(T, n * T + 12 * T))
+    h_l = np.minimum(np.full(T, sep_limits[0] - sep_now), 0.0)
+    h_u = np.maximum(np.full(T, sep_limits[1] - sep_now), 0.0)
+    ub = np.concatenate([np.full(n * T, np.inf), np.tile(np.asarray(u_max, float), T)])
+    lb = np.concatenate([np.full(n * T, -np.inf), -np.tile(np.asarray(u_max, float), T)])
+    return {"P": P, "c": c, "A": A, "b": b, "G": G, "h_l": h_l, "h_u": h_u, "x_l": lb, "x_u": ub}
+
+
+class MpcController(ServoBase):
+    """The paper's controller: MPC along the planned path towards g_next, C6 on the grippers' separation."""
+
+    name = "mpc"
+
+    def __init__(self, params: MethodParams, n_x: int, backend: str = "dense", **kwargs):
+        super().__init__(params, n_x, **kwargs)
+        self.solver = MpcSolver(params.horizon, params.q_weight, params.r_weight, backend)
+
+    def _on_reset(self) -> None:
+        self.solver = MpcSolver(self.p.horizon, self.p.q_weight, self.p.r_weight, self.solver.backend)
+
+    def _law(self, J, x, target, grippers):
+        pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
+        sep = float(np.linalg.norm(pr - pl))
+        axis = (pr - pl) / max(sep, 1e-9)
+        sol = self.solver.solve(J, x, target, self.u_max, axis, sep, self.sep_limits)
+        if not sol.ok:
+            return np.zeros(12), sol.solve_ms, f"MPC QP not solved ({sol.status})"
+        return sol.u, sol.solve_ms, None

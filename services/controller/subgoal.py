@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bagit.common.errors import BadControlInput
+
 
 def rms_error(x: np.ndarray, g: np.ndarray) -> float:
     """RMS point distance between two SOIs `(n_x, 3)`."""
@@ -16,10 +18,12 @@ class SubgoalTracker:
 
     def __init__(self, path: np.ndarray, dagger_index: int, subgoal_tol: float, goal_tol: float, stall_ticks: int = 45):
         self.path = np.asarray(path, dtype=float)
-        if self.path.ndim != 3 or len(self.path) < 1:
-            raise ValueError("path must have shape (n_nodes, n_x, 3)")
+        if self.path.ndim != 3 or len(self.path) < 1 or self.path.shape[2] != 3:
+            raise BadControlInput(f"path must have shape (n_nodes, n_x, 3), got {self.path.shape}")
+        if not np.all(np.isfinite(self.path)):
+            raise BadControlInput("path has NaN or infinite points")
         if not 0 <= dagger_index < len(self.path):
-            raise ValueError(f"dagger_index {dagger_index} outside the path")
+            raise BadControlInput(f"dagger_index {dagger_index} outside the path of {len(self.path)} nodes")
         self.dagger = dagger_index
         self.subgoal_tol = subgoal_tol
         self.goal_tol = goal_tol
@@ -55,6 +59,7 @@ class SubgoalTracker:
             ahead = self.index + 1 <= limit and self.error(x, self.index + 1) < self.error(x, self.index)
             if (close or ahead) and self.index + 1 <= limit:
                 self.index += 1
+                self._best, self._since_best = np.inf, 0  # a stall on one node says nothing of the next
             else:
                 break
         if self.index == self.dagger and self._reached(x, self.dagger):
@@ -72,6 +77,7 @@ class SubgoalTracker:
         return "bagging" if self.dagger_reached else "pre-bagging"
 
     def progress(self) -> float:
+        """Share of the path behind g_next: index / (n_nodes - 1)."""
         return self.index / max(len(self.path) - 1, 1)
 
     def done(self, x: np.ndarray) -> bool:
@@ -90,15 +96,13 @@ def slide_to(target: np.ndarray, x: np.ndarray, steps: int = 16) -> np.ndarray:
     SOI points have no material identity: between frames they slide along the rim. Comparing x with
     a subgoal after this slide leaves only the rim's shape and pose in the error, not the sliding.
     """
-    n = len(target)
+    target = np.asarray(target, dtype=float)
+    x = np.asarray(x, dtype=float)
     nxt = np.roll(target, -1, axis=0)
     prv = np.roll(target, 1, axis=0)
-    best, best_cost = target, rms_error(x, target)
-    for f in np.linspace(-0.5, 0.5, steps + 1):
-        cand = target + f * (nxt - target) if f >= 0 else target + (-f) * (prv - target)
-        for shift in (-1, 0, 1):
-            c = np.roll(cand, shift, axis=0)
-            cost = rms_error(x, c)
-            if cost < best_cost:
-                best, best_cost = c, cost
-    return best
+    f = np.linspace(-0.5, 0.5, steps + 1)[:, None, None]
+    cand = np.where(f >= 0, target + f * (nxt - target), target - f * (prv - target))  # (steps+1, n_x, 3)
+    cand = np.stack([np.roll(cand, shift, axis=1) for shift in (-1, 0, 1)], axis=1).reshape(-1, *target.shape)
+    cost = np.mean(np.sum((cand - x) ** 2, axis=-1), axis=-1)  # mean square, in (phase, shift) order
+    k = int(np.argmin(cost))
+    return cand[k] if cost[k] < np.mean(np.sum((target - x) ** 2, axis=-1)) else target

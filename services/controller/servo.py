@@ -1,0 +1,264 @@
+"""What every shape-servoing controller does each tick, whatever its control law.
+
+A tick: the guard vets the SOI (missing, stale, implausible -> zero input and the reason); the
+Broyden estimate learns from the inputs and the SOI change they caused; at the start of a run the
+exploration seeds J; the subgoal tracker picks g_next on the path; the law (MPC, IBVS, SSVS)
+gives u (12,), which never leaves C7.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from bagit.common.errors import BadControlInput
+from bagit.common.geometry import closed_polyline_length
+from bagit.common.messages import Command
+from bagit.common.params import MethodParams
+from bagit.services.controller.broyden import BroydenJacobian, Exploration
+from bagit.services.controller.guard import SoiGuard
+from bagit.services.controller.subgoal import SubgoalTracker, slide_to
+
+EXPLORE_PUSH_TICKS = 4  # ticks each exploratory push lasts (at the C7 limit)
+EXPLORE_SETTLE_TICKS = 2  # ticks held after each push before its SOI change is measured
+BROYDEN_WINDOW = 5  # ticks of input and SOI change summed per Broyden update: one tick is mostly noise
+SEPARATION_MARGIN = 0.9  # C6: the grippers stay within this share of the rim's half perimeter apart
+MIN_SEPARATION_M = 0.06  # C6: the two mounts never come closer than this
+GOAL_STALL_TICKS = 45  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
+
+
+@dataclass
+class ControlOutput:
+    """One tick's decision. u: (12,) = [left dx dy dz drx dry drz, right ...] (m, rad) for this tick."""
+
+    u: np.ndarray
+    mode: str  # 'explore' | 'servo' | 'hold' | 'done'
+    reason: str | None  # why the arms are held (mode 'hold'), else None
+    subgoal_index: int
+    stage: str  # 'pre-bagging' before g† is reached, 'bagging' after
+    error_to_subgoal: float  # RMS (m), NaN when there is no valid SOI
+    error_to_goal: float
+    solve_ms: float
+    done: bool
+    progress: float = 0.0  # subgoal_index / (n_nodes - 1)
+
+    def to_command(self, dt: float, seq: int = 0, run_id: str | None = None) -> Command:
+        """The wire command: exploration and servoing are 'servo', holding and done are 'hold'."""
+        servo = self.mode in ("explore", "servo")
+        return Command(u=self.u if servo else np.zeros(12), dt=dt, seq=seq, run_id=run_id,
+                       mode="servo" if servo else "hold", reason=self.reason)
+
+
+def c7_limits(params: MethodParams) -> np.ndarray:
+    """C7: the largest |u| per component per tick `(12,)` from the arms' speed limits."""
+    dt = 1.0 / params.control_rate_hz
+    lin, ang = params.max_linear_speed_mps * dt, params.max_angular_speed_rps * dt
+    return np.array([lin] * 3 + [ang] * 3 + [lin] * 3 + [ang] * 3)
+
+
+def scale_into_box(u: np.ndarray, u_max: np.ndarray) -> np.ndarray:
+    """`u (12,)` shrunk as a whole (direction kept) until every component is within `u_max (12,)`."""
+    over = float(np.max(np.abs(u) / u_max))
+    return u / over if over > 1.0 else u
+
+
+def as_path(path: Any, dagger_index: int | None) -> tuple[np.ndarray, int]:
+    """Nodes `(n_nodes, n_x, 3)` and g†'s index from a `bagit.common.messages.Path` or an array."""
+    if hasattr(path, "nodes") and hasattr(path, "dagger_index"):
+        nodes = np.asarray(path.nodes, dtype=float)
+        dagger = path.dagger_index if dagger_index is None else dagger_index
+    else:
+        if dagger_index is None:
+            raise BadControlInput("a path given as an array needs dagger_index")
+        nodes, dagger = np.asarray(path, dtype=float), dagger_index
+    return nodes, int(dagger)
+
+
+def pose_problem(grippers: Any) -> str | None:
+    """None if `grippers` is {'left': 4x4, 'right': 4x4} finite world poses, else what is wrong."""
+    try:
+        for k in ("left", "right"):
+            T = np.asarray(grippers[k], dtype=float)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                return f"the {k} gripper pose is not a finite 4x4 transform"
+    except (KeyError, TypeError, ValueError):
+        return "gripper poses must be {'left': 4x4, 'right': 4x4}"
+    return None
+
+
+class ServoBase:
+    """One run's controller state; subclasses give the control law `_law`.
+
+    Use: `reset(x0, path, gripper_poses)` once per run, then `step(x_t, now, gripper_poses)` every
+    control tick with the latest SOI (None if none arrived this tick).
+    """
+
+    name = "base"
+    aims_at_goal = False  # True: servo straight at g* (no path), as SSVS does
+
+    def __init__(
+        self,
+        params: MethodParams,
+        n_x: int,
+        *,
+        explore_push_ticks: int = EXPLORE_PUSH_TICKS,
+        explore_settle_ticks: int = EXPLORE_SETTLE_TICKS,
+        broyden_window: int = BROYDEN_WINDOW,
+        separation_margin: float = SEPARATION_MARGIN,
+    ):
+        if n_x < 3:
+            raise BadControlInput(f"n_x must be at least 3, got {n_x}")
+        if broyden_window < 1:
+            raise BadControlInput(f"broyden_window must be >= 1, got {broyden_window}")
+        self.p = params
+        self.n_x = n_x
+        self.dt = 1.0 / params.control_rate_hz
+        self.u_max = c7_limits(params)
+        self.explore_push_ticks = explore_push_ticks
+        self.explore_settle_ticks = explore_settle_ticks
+        self.broyden_window = broyden_window
+        self.separation_margin = separation_margin
+        self.tracker: SubgoalTracker | None = None
+        self.jacobian: BroydenJacobian | None = None
+        self.path = np.zeros((0, n_x, 3))
+
+    # ---- life cycle -------------------------------------------------------------------------
+
+    def reset(
+        self,
+        x0: np.ndarray | None,
+        path: Any,
+        gripper_poses: dict[str, np.ndarray] | None,
+        dagger_index: int | None = None,
+        perimeter: float | None = None,
+    ) -> None:
+        """Start a run on `path` (a Path message, or nodes `(n_nodes, n_x, 3)` with `dagger_index`).
+
+        x0 `(n_x, 3)`: the first SOI (its length is the rim perimeter for C6 unless `perimeter` is
+        given; without either, the path's first node's). gripper_poses: {'left','right'}: 4x4 world.
+        """
+        nodes, dagger = as_path(path, dagger_index)
+        if nodes.ndim != 3 or nodes.shape[1:] != (self.n_x, 3):
+            raise BadControlInput(f"path nodes must have shape (n_nodes, {self.n_x}, 3), got {nodes.shape}")
+        if x0 is not None:
+            x0 = np.asarray(x0, dtype=float)
+            if x0.shape != (self.n_x, 3) or not np.all(np.isfinite(x0)):
+                raise BadControlInput(f"x0 must be a finite ({self.n_x}, 3) SOI, got shape {x0.shape}")
+        if gripper_poses is not None and (why := pose_problem(gripper_poses)):
+            raise BadControlInput(why)
+        self.tracker = SubgoalTracker(nodes, dagger, self.p.subgoal_tol_m, self.p.goal_tol_m, GOAL_STALL_TICKS)
+        self.path = self.tracker.path
+        if perimeter is None:
+            perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
+        if not (np.isfinite(perimeter) and perimeter > 2 * MIN_SEPARATION_M):
+            raise BadControlInput(f"rim perimeter {perimeter:.3f} m is too small to servo")
+        self.perimeter = float(perimeter)
+        self.sep_limits = (MIN_SEPARATION_M, self.separation_margin * perimeter / 2)
+        self.guard = SoiGuard(timeout_s=max(3 * self.dt, 0.2), max_age_s=max(5 * self.dt, 0.3), n_x=self.n_x)
+        self.exploration = Exploration(self.u_max, self.explore_push_ticks, self.explore_settle_ticks)
+        self.jacobian = None
+        self._x_prev: np.ndarray | None = None
+        self._u_prev = np.zeros(12)
+        self._win_u = np.zeros(12)
+        self._win_s = np.zeros(3 * self.n_x)
+        self._win_n = 0
+        self._goal_best = np.inf
+        self._goal_since = 0
+        self.ticks = 0
+        self._on_reset()
+
+    def _on_reset(self) -> None:
+        """Per-run state of the law (e.g. the MPC's solver)."""
+
+    def _law(
+        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, grippers: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, float, str | None]:
+        """u `(12,)`, solve time (ms) and a reason to hold (None to servo) for SOI `x (3 n_x,)` towards
+        `target (3 n_x,)` with the estimate `J (3 n_x, 12)`."""
+        raise NotImplementedError
+
+    # ---- one tick ---------------------------------------------------------------------------
+
+    def step(
+        self,
+        x: np.ndarray | None,
+        now: float,
+        gripper_poses: dict[str, np.ndarray],
+        source_stamp: float | None = None,
+    ) -> ControlOutput:
+        """u for this tick from the SOI `x (n_x, 3)` (None if none arrived) at time `now` (s) and the
+        grippers' poses; `source_stamp`: when the SOI's camera frame was taken (staleness check)."""
+        if self.tracker is None:
+            raise BadControlInput("step() before reset(): the controller has no path")
+        self.ticks += 1
+        reason = self.guard.check(x, now, source_stamp) or pose_problem(gripper_poses)
+        if reason is not None:
+            self._x_prev = None  # never learn across a gap
+            shaped = x is not None and np.shape(x) == (self.n_x, 3)
+            return self._hold(reason, np.asarray(x, dtype=float) if shaped else None)
+        x = np.asarray(x, dtype=float)
+        xf = x.ravel()
+        self._learn(xf)
+        self._x_prev = xf
+        if self.jacobian is None:
+            u = self.exploration.next_input(xf)
+            if u is not None:
+                self._u_prev = u
+                return self._out(u, "explore", None, x)
+            self.jacobian = BroydenJacobian(self.exploration.jacobian(), self.p.epsilon)
+        idx = self.tracker.update(x)
+        if self._finished(x):
+            return self._out(np.zeros(12), "done", None, x, done=True)
+        goal = self.path[-1] if self.aims_at_goal else self.path[idx]
+        target = slide_to(goal, x).ravel()
+        u, solve_ms, why = self._law(self.jacobian.J, xf, target, gripper_poses)
+        u = np.asarray(u, dtype=float).ravel()
+        if why is None and (u.shape != (12,) or not np.all(np.isfinite(u))):
+            why = "the control law gave a non-finite input"
+        if why is not None:
+            out = self._hold(why, x)
+            out.solve_ms = solve_ms
+            return out
+        u = np.clip(u, -self.u_max, self.u_max)  # C7, whatever the law
+        self._u_prev = u
+        out = self._out(u, "servo", None, x)
+        out.solve_ms = solve_ms
+        return out
+
+    def _learn(self, xf: np.ndarray) -> None:
+        """Broyden on windows of `broyden_window` ticks: the summed input and the SOI change it caused."""
+        if self._x_prev is None or self.jacobian is None:
+            return
+        self._win_u += self._u_prev
+        self._win_s += xf - self._x_prev
+        self._win_n += 1
+        if self._win_n >= self.broyden_window:
+            self.jacobian.update(self._win_u, self._win_s)
+            self._win_u[:], self._win_s[:], self._win_n = 0.0, 0.0, 0
+
+    def _finished(self, x: np.ndarray) -> bool:
+        """At g*: within goal_tol, or as close as the bag gets (no progress for GOAL_STALL_TICKS
+        within 2x subgoal_tol; the run is then judged on what the rim really does)."""
+        if not self.aims_at_goal:
+            return self.tracker.done(x)
+        e = self.tracker.error(x, len(self.path) - 1)
+        if e < self._goal_best - 1e-3:
+            self._goal_best, self._goal_since = e, 0
+        else:
+            self._goal_since += 1
+        return e <= self.p.goal_tol_m or (self._goal_since >= GOAL_STALL_TICKS and e <= 2 * self.p.subgoal_tol_m)
+
+    def _hold(self, reason: str, x: np.ndarray | None) -> ControlOutput:
+        self._u_prev = np.zeros(12)
+        return self._out(np.zeros(12), "hold", reason, x)
+
+    def _out(self, u: np.ndarray, mode: str, reason: str | None, x: np.ndarray | None, done: bool = False) -> ControlOutput:
+        tr = self.tracker
+        if done:
+            self._u_prev = np.zeros(12)
+        ok = x is not None and np.all(np.isfinite(x))
+        e_sub = tr.error(x, tr.index) if ok else float("nan")
+        e_goal = tr.error(x, len(self.path) - 1) if ok else float("nan")
+        return ControlOutput(np.asarray(u, dtype=float), mode, reason, tr.index, tr.stage, e_sub, e_goal, 0.0, done, tr.progress())

@@ -1,0 +1,167 @@
+"""The controllers in closed loop on a synthetic deformable rim (its equations unknown to them):
+mpc reaches g* along the path, C7 and C6 hold every tick, and a missing or glitching SOI holds
+the arms with a reason instead of being extrapolated."""
+
+import numpy as np
+import pytest
+
+from bagit.common.errors import BadControlInput
+from bagit.common.messages import Path
+from bagit.common.params import MethodParams
+from bagit.services.controller import ShapeServo, c7_limits, make_controller
+from bagit.services.controller.mpc import separation_gradient
+from bagit.services.controller.synthetic import SyntheticRim, apply_increment
+
+P = MethodParams()
+U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2])
+
+
+def _path(m: SyntheticRim, u_goal=U_GOAL, n_nodes: int = 8) -> np.ndarray:
+    """Nodes `(n_nodes, n_x, 3)` the rim really passes through when the grippers move along u_goal."""
+    return np.stack([m.rim(apply_increment(m.home(), u_goal * s)) for s in np.linspace(0, 1, n_nodes)])
+
+
+def _run(kind, m, path, dagger=5, ticks=900, noise=0.0, seed=0, perimeter=None, check=None):
+    rng = np.random.default_rng(seed)
+    c = make_controller(kind, P, m.n_x)
+    g = m.home()
+    c.reset(m.rim(g), Path(nodes=path, dagger_index=dagger), g, perimeter=perimeter)
+    t, out, outs = 0.0, None, []
+    for _ in range(ticks):
+        x = m.rim(g) + rng.normal(size=(m.n_x, 3)) * noise
+        out = c.step(x, t, g, source_stamp=t)
+        outs.append(out)
+        assert np.all(np.abs(out.u) <= c7_limits(P) + 1e-15)  # C7 in every tick, every controller
+        if check:
+            check(g, out)
+        g = apply_increment(g, out.u)
+        t += c.dt
+        if out.done:
+            break
+    return c, out, outs, g
+
+
+@pytest.mark.parametrize("kind", ["mpc", "ibvs", "ssvs"])
+def test_closed_loop_reaches_the_goal_on_a_synthetic_rim(kind):
+    m = SyntheticRim(32)
+    path = _path(m)
+    c, out, outs, g = _run(kind, m, path)
+    assert out.done, (out.mode, out.error_to_goal)
+    assert out.error_to_goal <= P.goal_tol_m
+    assert np.sqrt(np.mean(np.sum((m.rim(g) - path[-1]) ** 2, axis=1))) < 2 * P.goal_tol_m  # truly there
+    modes = [o.mode for o in outs]
+    assert modes[0] == "explore" and "servo" in modes and "hold" not in modes
+    if kind != "ssvs":
+        idx = [o.subgoal_index for o in outs]
+        assert idx == sorted(idx) and idx[-1] == len(path) - 1  # it walked the path in order
+        first_bagging = next(i for i, o in enumerate(outs) if o.stage == "bagging")
+        assert all(o.subgoal_index <= 5 for o in outs[:first_bagging])  # never past g† before reaching it
+
+
+def test_mpc_reaches_the_goal_with_a_noisy_soi():
+    """1 mm of noise on every SOI point: the windowed, guarded Broyden update stays sane."""
+    m = SyntheticRim(32)
+    c, out, _, _ = _run("mpc", m, _path(m), noise=0.001, seed=7, ticks=1200)
+    assert out.done and out.error_to_goal <= 2 * P.subgoal_tol_m
+    assert np.linalg.norm(c.jacobian.J) <= c.jacobian.max_norm
+
+
+def test_mpc_keeps_the_grippers_within_what_the_rim_allows():
+    """A goal that asks for 6 cm more separation than C6 allows: MPC stops at the limit."""
+    m = SyntheticRim(32)
+    u_goal = np.array([0, -0.04, 0.08, 0, 0, 0, 0, 0.04, 0.08, 0, 0, 0])
+    path = _path(m, u_goal, 5)
+    perimeter = 2 * (m.sep0 + 0.02) / 0.9  # C6: separation <= 0.9 * perimeter / 2 = sep0 + 2 cm
+    seps = []
+
+    def check(g, out):
+        seps.append(np.linalg.norm(g["right"][:3, 3] - g["left"][:3, 3]))
+
+    _run("mpc", m, path, dagger=2, ticks=500, perimeter=perimeter, check=check)
+    assert max(seps) <= m.sep0 + 0.02 + 5e-4
+    assert max(seps) >= m.sep0 + 0.015  # it did go as far as allowed
+    seps.clear()
+    _run("ibvs", m, path, dagger=2, ticks=500, perimeter=perimeter, check=check)
+    assert max(seps) > m.sep0 + 0.03  # the baseline knows no C6
+
+
+def test_controller_holds_with_a_reason_on_missing_stale_or_jumping_soi():
+    m = SyntheticRim(16)
+    path = _path(m, n_nodes=4)
+    c = make_controller("mpc", P, 16)
+    g = m.home()
+    c.reset(None, path, g, dagger_index=2)
+    x = m.rim(g)
+    assert c.step(x, 0.0, g).mode == "explore"
+    out = c.step(None, 0.5, g)
+    assert out.mode == "hold" and np.all(out.u == 0) and "stopped arriving" in out.reason
+    out = c.step(x, 1.0, g, source_stamp=0.2)
+    assert out.mode == "hold" and "stale" in out.reason and np.all(out.u == 0)
+    assert c.step(x, 1.033, g, source_stamp=1.0).mode == "explore"
+    out = c.step(x + [0.3, 0, 0], 1.066, g, source_stamp=1.05)
+    assert out.mode == "hold" and "jumped" in out.reason
+    assert "jumped" in c.step(x, 1.08, g).reason  # and back: a transient glitch holds two ticks
+    assert c.step(x, 1.09, g).mode == "explore"  # consistent again
+    out = c.step(np.full((16, 3), np.nan), 1.1, g)
+    assert out.mode == "hold" and "NaN" in out.reason and np.isnan(out.error_to_goal)
+    out = c.step(np.zeros((15, 3)), 1.13, g)
+    assert out.mode == "hold" and "shape" in out.reason
+    out = c.step(x, 1.16, {"left": g["left"], "right": np.full((4, 4), np.nan)})
+    assert out.mode == "hold" and "right gripper" in out.reason
+    cmd = out.to_command(c.dt, seq=3)
+    assert cmd.mode == "hold" and np.all(cmd.u == 0) and cmd.reason == out.reason
+
+
+def test_a_glitch_mid_run_is_not_learnt_and_the_run_still_finishes():
+    m = SyntheticRim(32)
+    path = _path(m)
+    c = make_controller("mpc", P, 32)
+    g = m.home()
+    c.reset(m.rim(g), path, g, dagger_index=5)
+    t, held, out = 0.0, [], None
+    for k in range(900):
+        x = m.rim(g)
+        if 200 <= k < 206:
+            x = None  # the SOI stops arriving for 0.2 s
+        elif k == 230:
+            x = x + [0.0, 0.0, 0.2]  # a 20 cm glitch
+        out = c.step(x, t, g, source_stamp=t)
+        if out.mode == "hold":
+            held.append(k)
+        g = apply_increment(g, out.u)
+        t += c.dt
+        if out.done:
+            break
+    assert set(range(200, 206)) <= set(held) and 230 in held and len(held) <= 9
+    assert out.done and out.error_to_goal <= P.goal_tol_m
+
+
+def test_bad_setups_raise_the_projects_error():
+    m = SyntheticRim(16)
+    path = _path(m, n_nodes=4)
+    with pytest.raises(BadControlInput):
+        make_controller("pid", P, 16)
+    c = make_controller("ibvs", P, 16)
+    with pytest.raises(BadControlInput):
+        c.step(m.rim(m.home()), 0.0, m.home())  # before reset
+    with pytest.raises(BadControlInput):
+        c.reset(None, path[:, :8], m.home(), dagger_index=2)  # wrong n_x
+    with pytest.raises(BadControlInput):
+        c.reset(None, path, m.home(), dagger_index=7)  # g† outside the path
+    with pytest.raises(BadControlInput):
+        c.reset(None, path, m.home())  # an array path needs dagger_index
+    with pytest.raises(BadControlInput):
+        c.reset(np.zeros((16, 2)), path, m.home(), dagger_index=2)
+    with pytest.raises(BadControlInput):
+        c.reset(None, path, {"left": np.eye(4)}, dagger_index=2)
+    s = ShapeServo("ssvs", P, path, 2, 0.68)  # the one-call form
+    assert s.name == "ssvs" and s.step(m.rim(m.home()), 0.0, m.home()).mode == "explore"
+
+
+def test_separation_gradient_is_the_derivative_of_the_separation():
+    rng = np.random.default_rng(0)
+    pl, pr = rng.normal(size=3), rng.normal(size=3)
+    axis = (pr - pl) / np.linalg.norm(pr - pl)
+    u = rng.normal(size=12) * 1e-6
+    d = np.linalg.norm(pr + u[6:9] - pl - u[0:3]) - np.linalg.norm(pr - pl)
+    assert np.isclose(d, separation_gradient(axis) @ u, rtol=1e-4, atol=1e-12)
