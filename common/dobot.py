@@ -27,6 +27,12 @@ parameter k wrong (k counts from 1 within its group; a named optional is counted
 given). `ErrorId` holds the fixed ones, `param_error(...)` builds the others.
 While in error only ClearError, GetErrorID, EmergencyStop and RobotMode run; with the emergency
 stop pressed, the same (EmergencyStop(0) releases it). A motion command to a disabled arm gets -1.
+A target the arm cannot take (no inverse solution, beyond a joint limit, the flange against the
+arm's body, a servo step faster than a joint can go) is answered -1 and latches the matching alarm:
+RobotMode becomes 9 and the feedback's ErrorStatus 1 until ClearError(). Malformed text is answered
+-10000 like an unknown command. MovJ/MovL reply `{command id}` and run in order; the feedback's
+CurrentCommandId is the one running (or last run), RobotMode 7 while anything moves, 5 when idle.
+ServoJ/ServoP reply `{}`; the target is reached `t` seconds later plus the servo loop's lag.
 
 Alarms (the controller's alarm ids, as GetErrorID lists them; alarmController.json): 17 inverse
 kinematics has no solution, 18 solution outside the joint limits, 48+j joint j overspeed,
