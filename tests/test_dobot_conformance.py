@@ -257,7 +257,7 @@ def test_feedback_packets_layout_and_period(server, client):
     assert len(packets) > 30
     # the push period is 8 ms of wall clock; a loaded CI machine may stretch it a little
     period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
-    assert 0.006 < period < 0.016
+    assert 0.006 < period < 0.02
     p = packets[-1]
     assert int(p["MessageSize"]) == 1440 and int(p["TestValue"]) == 0x0123456789ABCDEF
     assert int(p["RobotMode"]) == 5 and int(p["EnableStatus"]) == 1 and int(p["ErrorStatus"]) == 0
