@@ -15,9 +15,10 @@ from bagit.services.planner import bagging_soi
 P = MethodParams()
 
 
-def f_e(xy, a, b, alpha):
+def f_e(xy, a, b, alpha, centre=(0.0, 0.0)):
     c, s = np.cos(alpha), np.sin(alpha)
-    return ((xy[:, 0] * c + xy[:, 1] * s) / a) ** 2 + ((-xy[:, 0] * s + xy[:, 1] * c) / b) ** 2
+    d = xy - np.asarray(centre)
+    return ((d[:, 0] * c + d[:, 1] * s) / a) ** 2 + ((-d[:, 0] * s + d[:, 1] * c) / b) ** 2
 
 
 def check_goal(g, v, R, n_x=32):
@@ -25,10 +26,13 @@ def check_goal(g, v, R, n_x=32):
     xy = transform_points(invert_transform(g.frame), v)
     assert np.allclose(xy[:, 2], 0, atol=1e-6)  # V lies in F_m's xy-plane
     e = g.ellipse
-    assert f_e(xy[:, :2], e.a, e.b, e.alpha).max() <= P.lambda_1 + 1e-9  # C1
+    assert f_e(xy[:, :2], e.a, e.b, e.alpha, e.center).max() <= P.lambda_1 + 1e-9  # C1
     assert np.hypot(*e.center) <= P.lambda_2  # C2
-    if g.c3_applied:
-        assert g.c3 >= P.lambda_3
+    assert g.c2 == pytest.approx(np.hypot(*e.center))
+    if g.c3_applied:  # the major axis (a >= b) against V's principal axis, computed here from V
+        assert e.a >= e.b
+        d_v = pca(xy[:, :2])[2][0]
+        assert abs(np.dot([np.cos(e.alpha), np.sin(e.alpha)], d_v)) >= P.lambda_3 - 1e-12
     assert g.perimeter == pytest.approx(R, rel=1e-6)
     assert closed_polyline_length(g.g_dagger) == pytest.approx(R, rel=0.02)  # 32-gon on the ellipse
     lift = g.g_star - g.g_dagger
@@ -36,7 +40,7 @@ def check_goal(g, v, R, n_x=32):
     # g† lies on the ellipse in F_m's plane around V
     gd = transform_points(invert_transform(g.frame), g.g_dagger)
     assert np.allclose(gd[:, 2], 0, atol=1e-9)
-    assert np.allclose(f_e(gd[:, :2], e.a, e.b, e.alpha), 1.0, atol=1e-6)
+    assert np.allclose(f_e(gd[:, :2], e.a, e.b, e.alpha, e.center), 1.0, atol=1e-6)
 
 
 @pytest.mark.parametrize("path", list_scenarios(), ids=lambda p: p.stem)
@@ -128,3 +132,45 @@ def test_random_placements_never_break_a_constraint(sx, sy, yaw, roll, pitch, n_
         check_goal(bagging_soi(v, needed + 0.001, 32), v, needed + 0.001)
         return
     check_goal(g, v, 0.68)
+
+
+def _shortest_by_grid(xy, lambda_1, lambda_2, max_angle):
+    """An independent brute-force search: the shortest ellipse holding xy under C1 over a grid of
+    centres within lambda_2, angles within max_angle and aspect ratios."""
+    best = np.inf
+    r = np.linspace(0, lambda_2, 5)
+    phi = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    centres = np.vstack([[0.0, 0.0]] + [[ri * np.cos(p), ri * np.sin(p)] for ri in r[1:] for p in phi])
+    for c in centres:
+        for alpha in np.linspace(-max_angle, max_angle, 9):
+            d = xy - c
+            u = d[:, 0] * np.cos(alpha) + d[:, 1] * np.sin(alpha)
+            w = -d[:, 0] * np.sin(alpha) + d[:, 1] * np.cos(alpha)
+            for q in np.exp(np.linspace(0, np.log(8), 200)):
+                a = np.sqrt(np.max(u**2 + (q * w) ** 2) / lambda_1)
+                b = a / q
+                h = ((a - b) / (a + b)) ** 2
+                best = min(best, np.pi * (a + b) * (1 + 3 * h / (10 + np.sqrt(4 - 3 * h))))
+    return best
+
+
+@pytest.mark.parametrize(
+    "xy",
+    [
+        np.array([[0.2, 0.15], [-0.2, 0.15], [-0.2, -0.15], [0.2, -0.15]]),  # a large box: centred is best
+        np.array([[0, 0], [0.12, 0], [0.12, 0.04], [0.04, 0.04], [0.04, 0.10], [0, 0.10]]) * 1.3,  # an L: moving pays
+    ],
+)
+def test_named_perimeter_is_the_smallest(xy):
+    v = np.column_stack([xy, np.full(len(xy), 0.5)])
+    with pytest.raises(InfeasibleGoal) as e:
+        bagging_soi(v, 0.3, 32)
+    needed = float(str(e.value).split("at least ")[1].split(" m")[0])
+    g = bagging_soi(v, needed, 32)
+    check_goal(g, v, needed)
+    local = transform_points(invert_transform(g.frame), v)[:, :2]
+    max_angle = np.arccos(P.lambda_3) if g.c3_applied else np.pi / 2
+    grid = _shortest_by_grid(local, P.lambda_1, P.lambda_2, max_angle)
+    # rounded up to the millimetre, and no grid ellipse is shorter than what was named (less the rounding)
+    assert grid >= needed - 0.001 - 1e-4
+    assert needed <= grid + 0.001 + 1e-4  # and it is not much worse than the grid's best either

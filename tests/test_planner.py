@@ -108,3 +108,87 @@ def test_plan_message_round_trip():
     res = plan_scenario(s, "cbirrt", 0)
     msg = wire.decode(wire.encode(res.to_message("run-1")), Path)
     assert msg.nodes.shape == res.path.shape and msg.dagger_index == res.dagger_index
+
+
+def _chamfer(a, b):
+    d = np.linalg.norm(a[:, None] - b[None], axis=2)
+    return d.min(1).mean() + d.min(0).mean()
+
+
+def _noisy_ellipse(rng, n=32, noise=0.006, bunched=False):
+    t = np.sort(rng.uniform(0, 2 * np.pi, n)) if bunched else 2 * np.pi * np.arange(n) / n + rng.normal(0, 0.05, n)
+    if bunched:  # most points on one side: the best ellipse's centre is far from their centroid
+        t = np.sort(np.concatenate([rng.uniform(-0.6, 0.6, n - 6), rng.uniform(0, 2 * np.pi, 6)]))
+    u, v = np.linalg.qr(rng.normal(size=(3, 2)))[0].T
+    return np.array([0.1, 0.0, 0.5]) + np.outer(0.12 * np.cos(t), u) + np.outer(0.07 * np.sin(t), v) + rng.normal(0, noise, (n, 3))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_regularize_is_a_planar_ellipse_under_c4_c5(seed):
+    from bagit.services.planner.space import regularize
+
+    rng = np.random.default_rng(seed)
+    x = _noisy_ellipse(rng, bunched=seed % 2 == 1)
+    y = regularize(x, 0.002, 0.021)
+    r_x = np.linalg.norm(np.roll(x, -1, 0) - x, axis=1).sum()
+    r_y = np.linalg.norm(np.roll(y, -1, 0) - y, axis=1).sum()
+    assert abs(r_x / r_y - 1) <= 0.002 + 1e-9  # C4
+    # y = c + A [cos t, sin t] on a uniform t grid: its centre is its mean, and it lies in a plane
+    assert np.linalg.norm(y.mean(0) - x.mean(0)) <= 0.021 + 1e-9  # C5
+    sv = np.linalg.svd(y - y.mean(0), compute_uv=False)
+    assert sv[2] < 1e-9 * sv[0]
+    # and an ellipse: its points fit a conic in their plane exactly
+    _, _, vt = np.linalg.svd(y - y.mean(0))
+    p = (y - y.mean(0)) @ vt[:2].T
+    M = np.column_stack([p[:, 0] ** 2, p[:, 0] * p[:, 1], p[:, 1] ** 2, p[:, 0], p[:, 1], np.ones(len(p))])
+    s = np.linalg.svd(M, compute_uv=False)
+    assert s[-1] < 1e-9 * s[0]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_regularize_is_near_the_chamfer_optimum(seed):
+    """Against a generic optimiser (SLSQP) of the same problem, eq. 13 with C5, written here."""
+    from scipy.optimize import minimize
+
+    from bagit.services.planner.space import FIT_OVERSAMPLE, fit_ellipse
+
+    rng = np.random.default_rng(10 + seed)
+    x = _noisy_ellipse(rng, noise=0.01)
+    m = FIT_OVERSAMPLE * len(x)
+    t = 2 * np.pi * np.arange(m) / m
+
+    def cd(p):
+        return _chamfer(p[:3] + np.column_stack([np.cos(t), np.sin(t)]) @ p[3:].reshape(3, 2).T, x)
+
+    c, A = fit_ellipse(x, 0.021)
+    ours = cd(np.concatenate([c, A.ravel()]))
+    # start SLSQP from PCA axes through the centroid, not from our answer
+    _, _, vt = np.linalg.svd(x - x.mean(0))
+    ext = (x - x.mean(0)) @ vt[:2].T
+    p0 = np.concatenate([x.mean(0), (vt[:2].T * np.abs(ext).max(0)).ravel()])
+    cons = [{"type": "ineq", "fun": lambda p: 0.021 - np.linalg.norm(p[:3] - x.mean(0))}]
+    ref = minimize(cd, p0, method="SLSQP", constraints=cons, options={"maxiter": 400})
+    assert np.linalg.norm(c - x.mean(0)) <= 0.021 + 1e-9
+    assert ours <= 1.03 * ref.fun, (ours, ref.fun)
+
+
+def test_plan_accepts_a_name_and_an_explicit_g0():
+    from bagit.services.planner import plan
+
+    s = Scenario.from_file(find_scenario("exp08"))
+    g0 = np.roll(s.bag.g0(), 5, axis=0)[::-1]  # perception may start the rim anywhere, either way round
+    res = plan("exp08", seed=2, g0=g0)
+    assert res.success and np.allclose(res.path[0], g0)
+    # point i means the same place on the rim in every node: neighbours in the path stay close pointwise
+    assert np.linalg.norm(np.diff(res.path, axis=0), axis=2).max() <= 0.05 + 1e-9
+
+
+@pytest.mark.parametrize(
+    "g0, word", [(np.full((32, 3), np.nan), "NaN"), (np.zeros((3, 3)), "at least 4"), (np.zeros((32, 2)), "shape")]
+)
+def test_bad_g0_is_a_clear_error(g0, word):
+    from bagit.common.errors import BadCloud
+    from bagit.services.planner import plan
+
+    with pytest.raises(BadCloud, match=word):
+        plan("exp01", g0=g0)

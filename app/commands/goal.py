@@ -16,6 +16,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import time
 
+    from bagit.common.errors import BadScenario
     from bagit.common.geometry import closed_polyline_length
     from bagit.common.scenario import Scenario
     from bagit.scenarios import find_scenario
@@ -25,7 +26,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     g0 = s.bag.g0()
     R = s.bag.rim_perimeter or (closed_polyline_length(g0) if g0 is not None else None)
     if R is None:
-        raise ValueError(f"scenario {s.name!r} gives neither bag.rim_perimeter nor bag.initial_rim")
+        raise BadScenario(f"scenario {s.name!r} gives neither bag.rim_perimeter nor bag.initial_rim")
     t0 = time.perf_counter()
     g = bagging_soi(s.object.bottom_vertices(), R, s.bag.n_x, s.params, lambda_d=s.lambda_d(), g0=g0)
     return {

@@ -8,8 +8,10 @@ parallel to V's principal axis, |d_e . d_v| >= lambda_3; dropped when V has no p
 The minimum (L = R exactly) is reached in closed form: the smallest centred, axis-aligned ellipse
 holding V under C1 is found over its aspect ratio (a 1-D search), then scaled up about its centre
 until its Ramanujan perimeter equals R; scaling up only lowers F_e, and the centre and axis stay,
-so C1-C3 hold. If even the smallest ellipse is longer than R, the bag is too small: InfeasibleGoal
-says which rim perimeter would do.
+so C1-C3 hold. Only when that ellipse is already longer than R are the centre (C2) and the angle
+(C3) let move too, to find the true shortest ellipse; if even that is longer than R the bag is too
+small, and InfeasibleGoal names the rim perimeter that would do. The achieved c2 is therefore 0
+whenever the centred ellipse fits, which is the safest choice for C1's margin.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import minimize, minimize_scalar
 
 from bagit.common.errors import BadVertices, InfeasibleGoal
 from bagit.common.geometry import (
@@ -128,6 +130,48 @@ def smallest_ellipse(xy: np.ndarray, lambda_1: float) -> tuple[float, float, flo
     return a, b, float(ramanujan_perimeter(a, b))
 
 
+def smallest_ellipse_moved(
+    xy: np.ndarray, lambda_1: float, lambda_2: float, max_angle: float | None
+) -> tuple[np.ndarray, float, float, float, float]:
+    """(centre, a, b, alpha, L) of the shortest ellipse holding `xy (n, 2)` under C1 whose centre may move
+    within lambda_2 (C2) and whose major axis may turn by up to `max_angle` from x (C3; None: free).
+
+    Only needed when the centred ellipse is too long for the bag: the move can save a few millimetres
+    of perimeter, and InfeasibleGoal must name the true smallest perimeter. Nelder-Mead over
+    (centre, angle, log aspect), each squashed into its bounds by tanh, so every trial is feasible.
+    """
+    span = np.pi / 2 if max_angle is None else max_angle * (1 - 1e-9)
+    radius = lambda_2 * (1 - 1e-9)  # strictly inside the bounds despite rounding
+    log_qmax = np.log(MAX_ASPECT)
+
+    def unpack(z: np.ndarray) -> tuple[np.ndarray, float, float]:
+        r = np.hypot(z[0], z[1])
+        centre = np.zeros(2) if r < 1e-12 else z[:2] * (radius * np.tanh(r) / r)
+        alpha = span * np.tanh(z[2])
+        q = np.exp(0.5 * log_qmax * (1 + np.tanh(z[3])))
+        return centre, float(alpha), float(q)
+
+    def perim(z: np.ndarray) -> float:
+        centre, alpha, q = unpack(z)
+        c, s = np.cos(alpha), np.sin(alpha)
+        d = xy - centre
+        local = np.column_stack([d[:, 0] * c + d[:, 1] * s, -d[:, 0] * s + d[:, 1] * c])
+        return float(ramanujan_perimeter(*_tight(local, q, lambda_1)))
+
+    a0, b0, _ = smallest_ellipse(xy, lambda_1)
+    z_q = np.arctanh(np.clip(2 * np.log(max(a0 / b0, 1.0)) / log_qmax - 1, -0.999, 0.999))
+    best = None
+    for start in ([0.0, 0.0, 0.0, z_q], [0.3, 0.0, 0.0, z_q], [0.0, 0.3, 0.0, z_q], [0.0, 0.0, 0.3, z_q]):
+        res = minimize(perim, np.array(start), method="Nelder-Mead", options={"xatol": 1e-5, "fatol": 1e-7, "maxiter": 800})
+        if best is None or res.fun < best.fun:
+            best = res
+    centre, alpha, q = unpack(best.x)
+    c, s = np.cos(alpha), np.sin(alpha)
+    d = xy - centre
+    a, b = _tight(np.column_stack([d[:, 0] * c + d[:, 1] * s, -d[:, 0] * s + d[:, 1] * c]), q, lambda_1)
+    return centre, a, b, alpha, float(ramanujan_perimeter(a, b))
+
+
 def bagging_soi(
     vertices: np.ndarray,
     rim_perimeter: float,
@@ -153,34 +197,36 @@ def bagging_soi(
     _, var, _ = pca(xy)
     c3_applied = var[0] > ISOTROPY_RATIO * var[1]
 
+    centre = np.zeros(2)
+    alpha = 0.0
     a, b, L_min = smallest_ellipse(xy, p.lambda_1)
+    if L_min > rim_perimeter:  # the centred, parallel ellipse is too long: use C2's and C3's slack
+        max_angle = float(np.arccos(p.lambda_3)) if c3_applied else None
+        centre, a, b, alpha, L_min = smallest_ellipse_moved(xy, p.lambda_1, p.lambda_2, max_angle)
     if L_min > rim_perimeter:
+        needed = np.ceil(L_min * 1000) / 1000
         raise InfeasibleGoal(
             f"the object is too large for the bag: no ellipse of perimeter {rim_perimeter:.3f} m holds its "
-            f"bottom under C1-C3; the rim perimeter would have to be at least {L_min:.3f} m"
+            f"bottom under C1-C3; the rim perimeter would have to be at least {needed:.3f} m"
         )
-    k = rim_perimeter / L_min
+    k = rim_perimeter / L_min  # scaling about the centre only lowers F_e and keeps C2 and C3
     a, b = a * k, b * k
-    # With x along V's principal axis the major axis is parallel to it (alpha = 0) unless the
-    # aspect search preferred the minor direction; then the ellipse is turned by 90 degrees.
-    alpha = 0.0
-    f_aligned = _f_e(xy, np.zeros(2), a, b, 0.0).max()
-    f_turned = _f_e(xy, np.zeros(2), a, b, np.pi / 2).max()
-    if f_turned < f_aligned and not c3_applied:
-        alpha = np.pi / 2
-    c1 = float(_f_e(xy, np.zeros(2), a, b, alpha).max())
+    if alpha == 0.0 and not c3_applied:
+        # no principal axis to follow: turn the ellipse by 90 degrees if that holds V better
+        if _f_e(xy, centre, a, b, np.pi / 2).max() < _f_e(xy, centre, a, b, 0.0).max() - 1e-9:
+            alpha = np.pi / 2
+    c1 = float(_f_e(xy, centre, a, b, alpha).max())
     if c1 > p.lambda_1 + 1e-9:
         raise InfeasibleGoal(f"internal: the bagging ellipse breaks C1 (max F_e {c1:.3f} > {p.lambda_1})")
+    # d_e: the major axis (a >= b); d_v: V's principal axis, F_m's x by construction
+    c3 = float(abs(np.cos(alpha)))  # |d_e . d_v| with d_v = (1, 0)
+    if c3_applied and c3 < p.lambda_3 - 1e-12:
+        raise InfeasibleGoal(f"internal: the bagging ellipse breaks C3 (|d_e . d_v| = {c3:.4f})")
 
     theta = np.linspace(0.0, 2 * np.pi, N_ELLIPSE, endpoint=False)
-    dense = ellipse_points_2d(np.zeros(2), a, b, alpha, theta)
+    dense = ellipse_points_2d(centre, a, b, alpha, theta)
     idx = farthest_point_sampling(dense, n_x)
     ring = dense[np.sort(idx)]  # FPS picks the points; sorting by theta orders them counter-clockwise
-    d_e = pca(dense)[2][0]
-    d_v = pca(xy)[2][0]
-    c3 = float(abs(np.dot(d_e, d_v)))
-    if c3_applied and c3 < p.lambda_3:
-        raise InfeasibleGoal(f"internal: the bagging ellipse breaks C3 (|d_e . d_v| = {c3:.4f})")
 
     g_dagger = transform_points(T, np.column_stack([ring, np.zeros(n_x)]))
     if g0 is not None:
@@ -191,10 +237,10 @@ def bagging_soi(
         g_dagger=g_dagger,
         g_star=g_star,
         frame=T,
-        ellipse=EllipseParams(center=(0.0, 0.0), a=a, b=b, alpha=alpha),
+        ellipse=EllipseParams(center=(float(centre[0]), float(centre[1])), a=a, b=b, alpha=alpha),
         perimeter=float(ramanujan_perimeter(a, b)),
         c1=c1,
-        c2=0.0,
+        c2=float(np.hypot(*centre)),
         c3=c3,
         c3_applied=bool(c3_applied),
         lambda_d=ld,

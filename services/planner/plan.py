@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from os import PathLike
 
 import numpy as np
 
-from bagit.common.geometry import align_cyclic, closed_polyline_length
+from bagit.common.errors import BadCloud, BadScenario
+from bagit.common.geometry import align_cyclic, as_points, closed_polyline_length
 from bagit.common.messages import Path
 from bagit.common.params import MethodParams
 from bagit.common.scenario import Scenario
@@ -85,7 +87,7 @@ def plan_path(
 ) -> PlanResult:
     """Plan g0 -> g† and g† -> g*, trimmed, smoothed and densified; every node aligned to g0."""
     if planner not in PLANNERS:
-        raise ValueError(f"unknown planner {planner!r}; choose from {sorted(PLANNERS)}")
+        raise BadScenario(f"unknown planner {planner!r}; choose from {sorted(PLANNERS)}")
     t0 = time.perf_counter()
     g0 = np.asarray(g0, dtype=float)
     gd = align_cyclic(goal.g_dagger, g0)
@@ -143,11 +145,31 @@ def plan_scenario(
     if g0 is None:
         g0 = scenario.bag.g0()
         if g0 is None:
-            raise ValueError(f"scenario {scenario.name!r} has no bag.initial_rim: perception must give g0")
-    g0 = np.asarray(g0, dtype=float)
+            raise BadScenario(f"scenario {scenario.name!r} has no bag.initial_rim: perception must give g0")
+    g0 = as_points(g0, BadCloud, "g0")
+    if len(g0) < 4:
+        raise BadCloud(f"g0 needs at least 4 rim points, got {len(g0)}")
+    if not np.all(np.isfinite(g0)):
+        raise BadCloud("g0 contains NaN or infinite coordinates")
     perimeter = scenario.bag.rim_perimeter or closed_polyline_length(g0)
     goal = bagging_soi(
         scenario.object.bottom_vertices(), perimeter, len(g0), scenario.params, lambda_d=scenario.lambda_d(), g0=g0
     )
     coll = collision_model(scenario, goal.up, scenario.params.planner_clearance_m, goal.g_dagger)
     return plan_path(g0, goal, coll, perimeter, scenario.params, planner, seed, time_budget_s)
+
+
+def plan(
+    scenario: Scenario | str | PathLike,
+    planner: str = "cbirrt",
+    seed: int = 0,
+    *,
+    g0: np.ndarray | None = None,
+    time_budget_s: float = 10.0,
+) -> PlanResult:
+    """`plan_scenario` for a Scenario, a scenario file or the name of a bundled scenario."""
+    if not isinstance(scenario, Scenario):
+        from bagit.scenarios import find_scenario
+
+        scenario = Scenario.from_file(find_scenario(str(scenario)))
+    return plan_scenario(scenario, planner, seed, g0, time_budget_s)

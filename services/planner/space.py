@@ -16,22 +16,59 @@ EDGE_RESOLUTION_M = 0.01  # collision-check an edge every this much point motion
 MAX_NODE_STEP_M = 0.05  # no rim point moves more than this between consecutive path nodes
 
 
-def fit_ellipse(x: np.ndarray, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Centre `(3,)` and axis matrix `A (3, 2)` of the ellipse c + A [cos t, sin t] nearest `x (n, 3)`.
+FIT_OVERSAMPLE = 3  # n_y = this * n_x ellipse points in the Chamfer fit
+FIT_ROUNDS = 6  # nearest-assignment / reweighting rounds
+FIT_MIN_DIST_M = 1e-4  # IRLS weights 1 / max(d, this)
 
-    Linear least squares with t_i = 2 pi i / n first, then a few rounds re-assigning each t_i to its
-    point's angle in the ellipse's own coordinates: a Chamfer-style fit that stays closed-form.
-    """
+
+def fit_ellipse_pca(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form start: centre `(3,)` and axes `A (3, 2)` of the ellipse c + A [cos t, sin t] through
+    `x (n, 3)` taken in order, t_i = 2 pi i / n (a linear least-squares fit)."""
     n = len(x)
     t = 2 * np.pi * np.arange(n) / n
-    c = x.mean(axis=0)
-    A = np.zeros((3, 2))
-    for _ in range(iterations):
-        M = np.column_stack([np.cos(t), np.sin(t)])
-        A = np.linalg.lstsq(M, x - c, rcond=None)[0].T  # (3, 2)
-        coords = (x - c) @ np.linalg.pinv(A).T  # (n, 2) in the ellipse's frame
-        t = np.unwrap(np.arctan2(coords[:, 1], coords[:, 0]))
-    return c, A
+    B = np.column_stack([np.ones(n), np.cos(t), np.sin(t)])  # (n, 3)
+    W = np.linalg.lstsq(B, x, rcond=None)[0].T  # (3, 3): [c, a_1, a_2]
+    return W[:, 0], W[:, 1:]
+
+
+def fit_ellipse(
+    x: np.ndarray, centre_limit: float | None = None, rounds: int = FIT_ROUNDS, oversample: int = FIT_OVERSAMPLE
+) -> tuple[np.ndarray, np.ndarray]:
+    """Centre `(3,)` and axes `A (3, 2)` of the ellipse Y = {c + A [cos t_j, sin t_j]} (n_y = oversample * n
+    points) minimising the symmetric Chamfer distance CD(Y, x) to `x (n, 3)` (eq. 13), with C5
+    (||c - centroid(x)|| <= centre_limit) as a hard constraint.
+
+    Y is linear in W = [c, A], so with the nearest-neighbour pairs of both Chamfer terms held fixed the
+    weighted squared error is a 3x3 linear solve; weights 1/d (IRLS) make it the Chamfer sum of plain
+    distances. Alternating pairs and solves never raises the objective much and converges in a few
+    rounds; it needs no generic optimiser, which keeps the planner's inner loop fast.
+    """
+    n = len(x)
+    c, A = fit_ellipse_pca(x)
+    cbar = x.mean(axis=0)
+    m = oversample * n
+    t = 2 * np.pi * np.arange(m) / m
+    B = np.column_stack([np.ones(m), np.cos(t), np.sin(t)])  # (m, 3)
+    W = np.column_stack([c, A])
+    for _ in range(rounds):
+        y = B @ W.T  # (m, 3)
+        d2 = ((x[:, None, :] - y[None, :, :]) ** 2).sum(-1)  # (n, m)
+        j_of_x = d2.argmin(axis=1)  # x_i -> nearest y
+        i_of_y = d2.argmin(axis=0)  # y_j -> nearest x
+        w_x = 1.0 / (n * np.maximum(np.sqrt(d2[np.arange(n), j_of_x]), FIT_MIN_DIST_M))
+        w_y = 1.0 / (m * np.maximum(np.sqrt(d2[i_of_y, np.arange(m)]), FIT_MIN_DIST_M))
+        # pairs (target point, basis row, weight) of both Chamfer directions
+        P = np.vstack([x, x[i_of_y]])
+        Bp = np.vstack([B[j_of_x], B])
+        w = np.concatenate([w_x, w_y])[:, None]
+        W = np.linalg.solve((Bp * w).T @ Bp + 1e-12 * np.eye(3), (Bp * w).T @ P).T
+        if centre_limit is not None and np.linalg.norm(W[:, 0] - cbar) > centre_limit:
+            off = W[:, 0] - cbar
+            c = cbar + off * (centre_limit / np.linalg.norm(off))  # C5 active: centre on its bound
+            Ba = Bp[:, 1:]
+            A = np.linalg.solve((Ba * w).T @ Ba + 1e-12 * np.eye(2), (Ba * w).T @ (P - c)).T
+            W = np.column_stack([c, A])
+    return W[:, 0], W[:, 1:]
 
 
 def ellipse_rim(c: np.ndarray, A: np.ndarray, n: int, phase: float = 0.0) -> np.ndarray:
@@ -47,21 +84,20 @@ def scale_to_perimeter(rim: np.ndarray, perimeter: float) -> np.ndarray:
 
 
 def regularize(x_rand: np.ndarray, lambda_4: float, lambda_5: float) -> np.ndarray:
-    """The paper's Regularization: the ellipse `(n, 3)` fitted to `x_rand` under C4 and C5.
+    """The paper's Regularization (eq. 13-15): the ellipse `(n, 3)` nearest `x_rand (n, 3)` in Chamfer
+    distance under C4 (|R_x / R_y - 1| <= lambda_4) and C5 (centre within lambda_5 of x_rand's centroid).
 
-    C4 (|R_x / R_y - 1| <= lambda_4) holds exactly after scaling the fit to R_x; C5 (centre within
-    lambda_5 of x_rand's centroid) by clamping the centre.
+    C5 is kept inside the fit; C4 by scaling the fitted ellipse about its centre, only as far as the
+    nearer bound of C4 (the least change to the Chamfer optimum), so it holds exactly.
     """
     n = len(x_rand)
-    c, A = fit_ellipse(x_rand)
-    centroid = x_rand.mean(axis=0)
-    off = c - centroid
-    if np.linalg.norm(off) > lambda_5:
-        c = centroid + off * (lambda_5 / np.linalg.norm(off))
+    c, A = fit_ellipse(x_rand, lambda_5)
     y = ellipse_rim(c, A, n)
     r_x, r_y = closed_polyline_length(x_rand), closed_polyline_length(y)
-    if abs(r_x / r_y - 1) > lambda_4:
-        y = c + (y - c) * (r_x / r_y)
+    ratio = r_x / r_y
+    if abs(ratio - 1) > lambda_4:
+        target = r_x / (1 + np.clip(ratio - 1, -lambda_4, lambda_4))  # R_y on C4's nearer bound
+        y = c + (y - c) * (target / r_y)
     return y
 
 
