@@ -28,6 +28,7 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.run",
     "bagit.commands.sim",
     "bagit.commands.bench",
+    "bagit.commands.router",
 ]
 
 

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any, Callable, Generic, Literal, TypeVar
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from bagit.common import wire
 from bagit.common.errors import BadMessage, BagItError, BusError
@@ -94,6 +94,9 @@ class BusConfig(BaseModel):
     config_file: Path | None = Field(None, description="a Zenoh json5 config used as the base")
     lease_ms: int = Field(1000, ge=100, le=60_000, description="link lease: a silent peer is declared dead after this")
     adminspace: bool = Field(False, description="answer queries on the @/ admin space (needed by `locators`)")
+    tls_ca: Path | None = Field(None, description="CA certificate (PEM) that signs every identity on the rig")
+    tls_cert: Path | None = Field(None, description="this service's certificate (PEM); its common name is its identity")
+    tls_key: Path | None = Field(None, description="this service's private key (PEM), with tls_cert: mutual TLS")
     scouting_delay_ms: int | None = Field(
         None, ge=0, le=10_000, description="how long a peer's open waits for scouting; None = 0 without multicast, 500 with"
     )
@@ -110,6 +113,12 @@ class BusConfig(BaseModel):
             if not _ENDPOINT_RE.match(e):
                 raise ValueError(f"endpoint {e!r} is not '<proto>/<address>' (e.g. tcp/127.0.0.1:7447)")
         return v
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> "BusConfig":
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together")
+        return self
 
     def listen_endpoints(self, mode: str | None = None) -> list[str]:
         """The listen endpoints this config asks for (loopback unless set) in `mode` (default: self.mode)."""
@@ -130,10 +139,10 @@ class BusConfig(BaseModel):
                 zc = zenoh.Config.from_file(str(self.config_file))
             except (zenoh.ZError, OSError, ValueError) as e:
                 raise BusError(f"zenoh config {self.config_file}: {_one_line(e)}") from None
-            file_listen = _get_json(zc, "listen/endpoints")
+            file_listen = config_value(zc, "listen/endpoints")
             # zenoh's default listen (a dict per mode on [::]) means the file did not say: stay on loopback
             listen_unset = isinstance(file_listen, dict) or file_listen is None
-            mode = self.mode if "mode" in explicit else (_get_json(zc, "mode") or "peer")
+            mode = self.mode if "mode" in explicit else (config_value(zc, "mode") or "peer")
         else:
             zc = zenoh.Config()
             explicit = set(type(self).model_fields)
@@ -153,6 +162,14 @@ class BusConfig(BaseModel):
             if "scouting_delay_ms" in explicit or "multicast_scouting" in explicit:
                 delay = self.scouting_delay_ms if self.scouting_delay_ms is not None else (500 if self.multicast_scouting else 0)
                 zc.insert_json5("scouting/delay", json.dumps(delay))
+            if "tls_ca" in explicit and self.tls_ca is not None:
+                zc.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(self.tls_ca)))
+            if "tls_cert" in explicit and self.tls_cert is not None and self.tls_key is not None:
+                # the same identity whether this end dials or listens; mutual: both ends show a certificate
+                for side in ("connect", "listen"):
+                    zc.insert_json5(f"transport/link/tls/{side}_certificate", json.dumps(str(self.tls_cert)))
+                    zc.insert_json5(f"transport/link/tls/{side}_private_key", json.dumps(str(self.tls_key)))
+                zc.insert_json5("transport/link/tls/enable_mtls", "true")
             if "adminspace" in explicit:
                 zc.insert_json5("adminspace/enabled", json.dumps(self.adminspace))
         except (zenoh.ZError, ValueError) as e:
@@ -160,8 +177,8 @@ class BusConfig(BaseModel):
         return zc
 
 
-def _get_json(zc: zenoh.Config, key: str) -> Any:
-    """A value of a zenoh.Config (its get_json returns JSON text)."""
+def config_value(zc: zenoh.Config, key: str) -> Any:
+    """A value of a zenoh.Config, parsed (zenoh's get_json returns JSON text); None if absent."""
     try:
         return json.loads(zc.get_json(key))
     except (zenoh.ZError, ValueError, TypeError):
@@ -207,22 +224,33 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("-m", "--mode", choices=["peer", "client", "router"], help="zenoh session mode")
     g.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help="endpoint to connect to (repeatable)")
     g.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (repeatable)")
-    g.add_argument("-c", "--zenoh-config", metavar="FILE", help="zenoh json5 config file")
+    g.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config file (base; the flags override it)")
     g.add_argument("--multicast-scouting", action="store_true", default=None, help="discover peers by UDP multicast")
+    g.add_argument("--tls-ca", metavar="PEM", help="CA certificate of the rig (TLS endpoints)")
+    g.add_argument("--tls-cert", metavar="PEM", help="this service's certificate (mutual TLS identity)")
+    g.add_argument("--tls-key", metavar="PEM", help="this service's private key")
 
 
 def bus_config_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> BusConfig:
     """Overlay the flags of `add_bus_arguments` on `base` (e.g. the `bus:` section of a service config)."""
     data = base.model_dump(exclude_unset=True) if base is not None else {}
     for flag, field in (("rig", "rig"), ("mode", "mode"), ("connect", "connect"), ("listen", "listen"),
-                        ("zenoh_config", "config_file"), ("multicast_scouting", "multicast_scouting")):
+                        ("zenoh_config", "config_file"), ("multicast_scouting", "multicast_scouting"),
+                        ("tls_ca", "tls_ca"), ("tls_cert", "tls_cert"), ("tls_key", "tls_key")):
         v = getattr(args, flag, None)
         if v is not None:
             data[field] = v
+    return parse_bus_config(data)
+
+
+def parse_bus_config(data: dict[str, Any]) -> BusConfig:
+    """Validate a bus config mapping; BusError naming the first bad field otherwise."""
     try:
         return BusConfig.model_validate(data)
-    except ValueError as e:
-        raise BusError(f"bus config: {_one_line(e)}") from None
+    except ValidationError as e:
+        first = e.errors()[0]
+        where = ".".join(map(str, first["loc"])) or "bus"
+        raise BusError(f"bus config: {where}: {first['msg'].removeprefix('Value error, ')}") from None
 
 
 # ---------------------------------------------------------------------------------------------

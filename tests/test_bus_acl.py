@@ -1,0 +1,167 @@
+"""The committed secure deployment (deploy/secure/) enforces who may drive the rig.
+
+A router opened from deploy/secure/zenoh-router-secure.json5 (mutual TLS + access_control) with
+throwaway certificates, and clients from deploy/secure/client.json5, all in-process on loopback.
+Identities are certificate common names: a client without a CA-signed certificate cannot connect;
+a CA-signed identity can only send what the rules give its name. No puts of the wrong identity
+ever arrive, while the right identity's do.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from bus_support import wait_until
+
+from bagit.common.bus import (
+    BusConfig,
+    Keys,
+    LivelinessWatcher,
+    Publisher,
+    Subscriber,
+    declare_alive,
+    locators,
+    open_session,
+    request_run_control,
+    serve_run_control,
+)
+from bagit.common.errors import BusError
+from bagit.common.messages import Command, EStop, RunControl, RunControlReply, SoiState
+from bagit.deploy.certs import write_lab_pki
+
+ROOT = Path(__file__).resolve().parents[1]
+ROUTER_CFG = ROOT / "deploy" / "secure" / "zenoh-router-secure.json5"
+CLIENT_CFG = ROOT / "deploy" / "secure" / "client.json5"
+RIG = "secure"
+IDENTITIES = ["router", "controller", "arm-driver", "perception", "planner", "dashboard", "cli", "intruder"]
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    """The secured router plus a client per identity ("intruder" is CA-signed but not in the rules)."""
+    pki = write_lab_pki(tmp_path_factory.mktemp("pki"), IDENTITIES, ["localhost", "127.0.0.1"])
+    router = open_session(
+        BusConfig(
+            mode="router", config_file=ROUTER_CFG, listen=["tls/127.0.0.1:0"], adminspace=True,
+            tls_ca=pki["ca"], tls_cert=pki["router"], tls_key=pki["router.key"],
+        )
+    )
+    port = locators(router)[0].rsplit(":", 1)[1]
+    endpoint = f"tls/localhost:{port}"
+    clients: dict[str, zenoh.Session] = {}
+    try:
+        for name in IDENTITIES[1:]:
+            clients[name] = open_session(
+                BusConfig(rig=RIG, config_file=CLIENT_CFG, connect=[endpoint],
+                          tls_ca=pki["ca"], tls_cert=pki[name], tls_key=pki[f"{name}.key"])
+            )
+        yield {"router": router, "clients": clients, "pki": pki, "endpoint": endpoint, "port": port}
+    finally:
+        for c in clients.values():
+            c.close()
+        router.close()
+
+
+def _cmd(seq: int) -> Command:
+    return Command(seq=seq, u=np.full(12, 1e-4))
+
+
+def test_committed_configs_are_the_ones_under_test():
+    zc = zenoh.Config.from_file(str(ROUTER_CFG))
+    assert json.loads(zc.get_json("access_control/enabled")) is True
+    assert json.loads(zc.get_json("access_control/default_permission")) == "deny"
+    assert json.loads(zc.get_json("transport/link/tls/enable_mtls")) is True
+    assert all(e.startswith("tls/") for e in json.loads(zc.get_json("listen/endpoints")))
+    client = zenoh.Config.from_file(str(CLIENT_CFG))
+    assert json.loads(client.get_json("mode")) == "client"
+    assert all(e.startswith("tls/") for e in json.loads(client.get_json("connect/endpoints")))
+
+
+def test_only_the_controller_can_drive_the_arms(rig):
+    c = rig["clients"]
+    keys = Keys(RIG)
+    got: list[Command] = []
+    sub = Subscriber(c["arm-driver"], keys.controller_cmd, Command, got.append)
+    ctl = Publisher(c["controller"], keys.controller_cmd, Command)
+    assert wait_until(lambda: ctl.matched, 5.0)
+    impostors = {name: Publisher(c[name], keys.controller_cmd, Command) for name in ("intruder", "perception", "dashboard", "cli")}
+    time.sleep(0.2)  # give every impostor the same chance the controller had
+    for i, pub in enumerate(impostors.values()):
+        for _ in range(5):
+            pub.put(_cmd(100 + i))
+    for seq in range(3):
+        ctl.put(_cmd(seq))
+    assert wait_until(lambda: len(got) >= 3, 5.0)
+    time.sleep(0.3)  # anything else in flight would have landed by now
+    assert [m.seq for m in got] == [0, 1, 2]
+    assert sub.dropped == 0
+    # the controller's identity gives it nothing else: it cannot pose as perception
+    soi: list[SoiState] = []
+    Subscriber(c["arm-driver"], keys.perception_soi, SoiState, soi.append)
+    fake = Publisher(c["controller"], keys.perception_soi, SoiState)
+    real = Publisher(c["perception"], keys.perception_soi, SoiState)
+    assert wait_until(lambda: real.matched, 5.0)
+    fake.put(SoiState(seq=666, rim=np.zeros((4, 3))))
+    real.put(SoiState(seq=1, rim=np.zeros((4, 3))))
+    assert wait_until(lambda: len(soi) >= 1, 5.0)
+    time.sleep(0.3)
+    assert [m.seq for m in soi] == [1]
+
+
+def test_estop_only_from_the_dashboard_and_the_cli(rig):
+    c = rig["clients"]
+    keys = Keys(RIG)
+    got: list[EStop] = []
+    Subscriber(c["arm-driver"], keys.estop, EStop, got.append)
+    pubs = {n: Publisher(c[n], keys.estop, EStop) for n in ("controller", "intruder", "planner", "dashboard", "cli")}
+    assert wait_until(lambda: pubs["dashboard"].matched and pubs["cli"].matched, 5.0)
+    time.sleep(0.2)
+    for n, p in pubs.items():
+        p.put(EStop(source=n))
+    assert wait_until(lambda: len(got) >= 2, 5.0)
+    time.sleep(0.3)
+    assert sorted(m.source for m in got) == ["cli", "dashboard"]
+
+
+def test_run_control_only_from_the_dashboard_and_the_cli(rig):
+    c = rig["clients"]
+    keys = Keys(RIG)
+    served: list[RunControl] = []
+    serve_run_control(c["planner"], keys, lambda r: served.append(r) or RunControlReply(accepted=True, run_id="r1"))
+    assert request_run_control(c["cli"], keys, RunControl(action="start", scenario="exp01"), timeout=5.0).accepted
+    assert request_run_control(c["dashboard"], keys, RunControl(action="stop"), timeout=5.0).accepted
+    for n in ("controller", "intruder"):
+        with pytest.raises(BusError, match="no answer"):
+            request_run_control(c[n], keys, RunControl(action="reset"), timeout=0.7)
+    assert [r.action for r in served] == ["start", "stop"]
+
+
+def test_a_service_can_only_announce_itself(rig):
+    c = rig["clients"]
+    keys = Keys(RIG)
+    w = LivelinessWatcher(c["dashboard"], keys)
+    own = declare_alive(c["perception"], keys, "perception")  # noqa: F841 - held
+    forged = declare_alive(c["intruder"], keys, "controller")  # noqa: F841 - held
+    forged2 = declare_alive(c["perception"], keys, "arm-driver")  # noqa: F841 - held
+    assert w.wait_for("perception", True, 3.0)
+    time.sleep(0.3)
+    assert w.alive() == {"perception"}
+
+
+def test_no_certificate_no_connection(rig):
+    pki = rig["pki"]
+    # TLS that trusts the CA but shows no client certificate: refused at the handshake
+    zc = BusConfig(rig=RIG, config_file=CLIENT_CFG, connect=[rig["endpoint"]], tls_ca=pki["ca"]).to_zenoh()
+    zc.insert_json5("connect/timeout_ms", "1500")
+    zc.insert_json5("connect/exit_on_failure", "true")
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(zc).close()
+    # plain TCP to the TLS port: no session either
+    with pytest.raises(BusError):
+        s = open_session(BusConfig(rig=RIG, mode="client", connect=[f"tcp/127.0.0.1:{rig['port']}"]))
+        s.close()
