@@ -225,3 +225,20 @@ def test_publisher_refuses_the_wrong_type_and_the_wrong_key(pair):
     pub = Publisher(a, keys.perception_soi, SoiState)
     with pytest.raises(BagItError):
         pub.put(ArmState(arm="left", q=np.zeros(6), qd=np.zeros(6), tool_pose=np.zeros(6)))  # type: ignore[arg-type]
+
+
+def test_full_size_rgbd_frame_arrives_bit_exact(pair):
+    a, b = pair
+    keys = Keys("frame")
+    rng = np.random.default_rng(3)
+    frame = type(example_message("rgbd"))(
+        seq=7, color=rng.integers(0, 255, (480, 640, 3), dtype=np.uint8), depth=rng.integers(0, 65535, (480, 640), dtype=np.uint16)
+    )
+    got: list = []
+    Subscriber(b, keys.camera_rgbd, type(frame), got.append)
+    pub = Publisher(a, keys.camera_rgbd, type(frame))
+    assert wait_until(lambda: pub.matched)
+    size = pub.put(frame)
+    assert size < 480 * 640 * 5 + 4096  # raw bytes plus a small header, never JSON numbers
+    assert wait_until(lambda: len(got) == 1, 5.0)
+    assert_same_message(frame, got[0])
