@@ -191,7 +191,11 @@ def _one_line(e: BaseException) -> str:
 
 
 def open_session(cfg: BusConfig) -> zenoh.Session:
-    """Open a Zenoh session for `cfg`. Raises BusError when Zenoh refuses (port taken, router absent...)."""
+    """Open a Zenoh session for `cfg`. Raises BusError when Zenoh refuses (port taken, router absent...).
+
+    A client whose config says `connect.timeout_ms: -1` (the deploy/ host configs) waits here
+    until the router answers, which is what a service started at boot wants.
+    """
     zenoh.try_init_log_from_env()
     zc = cfg.to_zenoh()
     try:

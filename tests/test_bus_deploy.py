@@ -1,5 +1,10 @@
 """deploy/: `bagit router` as a process, the committed per-host configs carrying traffic through
-it, Procfiles and systemd units that name real commands."""
+it, Procfiles and systemd units that name real commands.
+
+zenoh.Config.from_file parses with the same zenoh-config crate as zenohd and rejects unknown
+fields and values, so loading the committed files here checks them for a stock zenohd of the
+same version too.
+"""
 
 from __future__ import annotations
 
