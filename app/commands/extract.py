@@ -1,4 +1,8 @@
-"""`bagit extract CLOUD --n-x N`: the SOI of a rim cloud file (.ply, .pcd, .npy)."""
+"""`bagit extract CLOUD --n-x N`: the SOI of a rim cloud file (.ply, .pcd, .npy) and the time it took.
+
+The SOI runs counter-clockwise seen from above, starting at the smallest angle from +x (see
+`bagit.services.perception.extract_soi`). Result: soi (n_x x 3 list, metres), n_x, n_points, time_ms.
+"""
 
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     soi = extract_soi(points, args.n_x)
     ms = (time.perf_counter() - t0) * 1e3
-    return {"soi": soi, "n_x": args.n_x, "n_points": int(len(points)), "time_ms": ms}
+    return {"soi": soi.tolist(), "n_x": args.n_x, "n_points": int(len(points)), "time_ms": ms}
 
 
 def human(result: dict[str, Any]) -> str:

@@ -1,73 +1,131 @@
-"""Cloud clean-up before EM: validation, voxel down-sampling and sparse-outlier removal (open3d)."""
+"""Cloud clean-up before EM: validation, thinning of huge clouds, sparse-outlier removal, voxel down-sampling.
+
+Measured on a 12,000-point rim cloud with 20 % outliers (2 busy cores): open3d's radius outlier
+removal costs 4-13 ms on the voxelised cloud (and 0.4 s on the raw one), while counting points per
+1 cm grid cell with one `np.unique` costs 0.7 ms and removes the same scattered outliers, which
+almost never share a cell with two others. open3d's voxel down-sampling (0.5 ms) then evens out the
+rim's density, so a stretch seen five times more densely does not pull the mixture towards it.
+"""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import open3d as o3d
-from scipy.spatial import cKDTree
 
 from bagit.common.errors import BadCloud
 from bagit.common.geometry import as_points
 
-MAX_POINTS = 2_000_000  # refuse clouds beyond this (a 640x480 frame has 307,200 pixels)
-VOXEL_M = 0.004  # voxel size for down-sampling: well under the rim band's width and the 2 mm accuracy goal
-MIN_NEIGHBOURS = 3  # a point needs this many others within OUTLIER_RADIUS_M to be kept
-OUTLIER_RADIUS_M = 0.012
-SUBSAMPLE_POINTS = 40_000
-GATE_M = 0.04  # warm start: keep points within this of the previous rim
+MAX_COORDINATE_M = 1e4  # beyond 10 km a coordinate is not metres from a depth camera
+SUBSAMPLE_POINTS = 20_000  # larger clouds are thinned at random first: bounded time and memory
+VOXEL_M = 0.004  # down-sampling voxel: under the rim band's width and the 2 mm accuracy goal
+CELL_M = 0.01  # grid cell of the sparse-outlier count
+MIN_CELL_POINTS = 3  # a point is kept when its cell holds at least this many points (or more, see dense_cells)
+MIN_KEPT_FRACTION = 0.25  # a count filter that would keep less than this is not trusted
+GATE_M = 0.04  # warm start: points farther than this from the previous rim are ignored
 
 
-def validate_cloud(points: object, n_x: int) -> np.ndarray:
-    """`points` as a finite float64 `(n, 3)` array, or BadCloud saying what is wrong."""
-    if not isinstance(n_x, (int, np.integer)) or isinstance(n_x, bool) or n_x < 4:
+def validate_cloud(points: object, n_x: object) -> np.ndarray:
+    """`points` as a finite float64 `(n, 3)` array with at least n_x points, or BadCloud saying why."""
+    if not isinstance(n_x, (int, np.integer)) or isinstance(n_x, (bool, np.bool_)) or n_x < 4:
         raise BadCloud(f"n_x must be an integer >= 4, got {n_x!r}")
     a = as_points(points, BadCloud, "cloud")
     if len(a) == 0:
         raise BadCloud("cloud is empty")
-    if len(a) > MAX_POINTS:
-        raise BadCloud(f"cloud has {len(a)} points, more than the {MAX_POINTS} accepted")
-    if not np.all(np.isfinite(a)):
-        bad = int((~np.isfinite(a)).any(axis=1).sum())
-        raise BadCloud(f"cloud has {bad} points with NaN or infinite coordinates")
-    if np.abs(a).max() > 1e4:
-        raise BadCloud("cloud coordinates beyond 10 km: not metres from a depth camera")
+    finite = np.isfinite(a).all(axis=1)
+    if not finite.all():
+        raise BadCloud(f"cloud has {int((~finite).sum())} points with NaN or infinite coordinates")
+    if np.abs(a).max() > MAX_COORDINATE_M:
+        raise BadCloud(f"cloud has coordinates beyond {MAX_COORDINATE_M:.0f} m: not metres from a depth camera")
     if len(a) < n_x:
         raise BadCloud(f"cloud has {len(a)} points, fewer than n_x = {n_x}")
     return a
 
 
-def gate_near(points: np.ndarray, rim: np.ndarray, radius: float = GATE_M) -> np.ndarray:
-    """Points `(m, 3)` of `points (n, 3)` within `radius` of the previous rim `(n_x, 3)` (warm start).
+def subsample(points: np.ndarray, max_points: int = SUBSAMPLE_POINTS) -> np.ndarray:
+    """At most `max_points` of `points (n, 3)`, drawn at random (seeded, so results repeat).
 
-    Measured to the rim's points, so the radius must exceed half the rim spacing plus the motion
-    expected between two frames.
+    Random rather than strided: a camera cloud is in pixel order and a stride would alias with rows.
+    Thinning keeps scattered outliers as sparse, relative to the rim, as they were.
     """
-    d, _ = cKDTree(rim).query(points, distance_upper_bound=radius)
-    return points[np.isfinite(d)]
+    if len(points) <= max_points:
+        return points
+    keep = np.random.default_rng(0).choice(len(points), max_points, replace=False)
+    return points[np.sort(keep)]
+
+
+def dense_cells(points: np.ndarray, cell: float = CELL_M, min_points: int | None = None) -> np.ndarray:
+    """Boolean `(n,)`: the points of `points (n, 3)` whose grid cell holds at least `min_points` points.
+
+    The rim band puts many points in each cell it crosses; outliers spread through the scene are
+    mostly alone in theirs. By default the threshold adapts to the outliers' density (estimated
+    from the lone points): the smallest count (>= MIN_CELL_POINTS) that fewer than one cell of
+    the bounding grid would reach by chance, so a 50,000-point cloud with 30 % outliers does not
+    keep clumps of three.
+    """
+    k = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
+    k = np.minimum(k, (1 << 20) - 1)  # 21 bits per axis; a cloud wider than 10 km is refused earlier
+    key = (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    if min_points is None:
+        n_cells = float(np.prod(k.max(axis=0) + 1.0))
+        min_points = _chance_count(float(np.sum(counts == 1)) / n_cells, n_cells)
+    return counts[inverse.ravel()] >= min_points
+
+
+def _chance_count(lam: float, n_cells: float, most: int = 12) -> int:
+    """The smallest count c >= MIN_CELL_POINTS with n_cells * P(Poisson(lam) >= c) < 0.5."""
+    term = math.exp(-lam)  # P(X = 0)
+    below = term
+    for c in range(1, most + 1):
+        if c >= MIN_CELL_POINTS and n_cells * max(1.0 - below, 0.0) < 0.5:
+            return c
+        term *= lam / c
+        below += term
+    return most
 
 
 def voxel_down(points: np.ndarray, voxel: float = VOXEL_M) -> np.ndarray:
-    """`points (n, 3)` thinned to one per voxel (open3d), so dense stretches don't dominate the fit.
-
-    Clouds above SUBSAMPLE_POINTS are first thinned at random (seeded): it bounds the time, and it
-    keeps scattered outliers as sparse as in a normal frame so the radius test still removes them.
-    """
-    if len(points) > SUBSAMPLE_POINTS:
-        keep = np.random.default_rng(0).choice(len(points), SUBSAMPLE_POINTS, replace=False)
-        points = points[np.sort(keep)]
-    if len(points) <= 2000:
-        return points
+    """`points (n, 3)` -> `(m, 3)`: one point (the mean) per occupied voxel, with open3d."""
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     return np.asarray(pc.voxel_down_sample(voxel).points)
 
 
-def clean_cloud(points: np.ndarray, voxel: float = VOXEL_M) -> np.ndarray:
-    """Down-sample on a voxel grid and drop isolated points. `points (n, 3)` -> `(m, 3)`.
+def clean_cloud(points: np.ndarray, min_points: int = 16) -> np.ndarray:
+    """Thin, drop scattered outliers and voxel down-sample: `points (n, 3)` -> `(m, 3)`.
 
-    Outliers spread through the scene are sparse, the rim band is dense: a radius count
-    separates them cheaply. If cleaning would leave too little, the down-sampled cloud is kept.
+    If the outlier count would leave too little (a sparse cloud, where rim points are alone in
+    their cells too), it is skipped and EM's uniform term alone deals with the outliers.
     """
-    down = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(voxel_down(points, voxel)))
-    kept, _ = down.remove_radius_outlier(nb_points=MIN_NEIGHBOURS, radius=OUTLIER_RADIUS_M)
-    out = np.asarray(kept.points)
-    return out if len(out) >= 0.05 * len(down.points) and len(out) >= 16 else np.asarray(down.points)
+    pts = subsample(points)
+    keep = dense_cells(pts)
+    if keep.sum() >= max(MIN_KEPT_FRACTION * len(pts), min_points):
+        pts = pts[keep]
+    return voxel_down(pts)
+
+
+def crop_near(points: np.ndarray, rim: np.ndarray, radius: float = GATE_M) -> np.ndarray:
+    """Points `(m, 3)` of `points (n, 3)` inside the bounding box of `rim (k, 3)` grown by `radius`:
+    a cheap first cut on a raw cloud before anything costlier runs on it."""
+    lo, hi = rim.min(axis=0) - radius, rim.max(axis=0) + radius
+    return points[np.all((points >= lo) & (points <= hi), axis=1)]
+
+
+def gate_near(points: np.ndarray, rim: np.ndarray, radius: float = GATE_M) -> np.ndarray:
+    """Points `(m, 3)` of `points (n, 3)` within about `radius` of the closed curve through `rim (k, 3)`.
+
+    The warm start's outlier filter: everything far from the last rim goes. Distances are taken to
+    the rim's vertices with the radius grown by half their spacing, so the whole curve between
+    them is covered: one (k, n) distance matrix, computed in place, beats a k-d tree for a few
+    dozen vertices.
+    """
+    pts = crop_near(points, rim, radius)
+    half = 0.5 * float(np.linalg.norm(np.roll(rim, -1, axis=0) - rim, axis=1).max())
+    c = rim.mean(axis=0)
+    p, r = pts - c, rim - c
+    d2 = r @ p.T  # (k, m)
+    d2 *= -2.0
+    d2 += np.einsum("ij,ij->i", r, r)[:, None]
+    d2 += np.einsum("ij,ij->i", p, p)[None]
+    return pts[d2.min(axis=0) <= radius**2 + half**2]

@@ -1,12 +1,12 @@
 """From an RGB-D frame to the rim cloud: segment the rim band, back-project it, move it to the world.
 
-Segmentation is a hook: any callable `frame -> (H, W) bool mask` can replace the red-rim colour
-threshold (for a solid-colour bag, a learned segmenter, ...).
+Segmentation is a hook: any `Segmenter` (a callable `frame -> (H, W) bool mask`) can replace the
+red-rim colour threshold -- a solid-colour bag's top band, a learned segmenter, ...
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Protocol, Sequence
 
 import cv2
 import numpy as np
@@ -15,28 +15,58 @@ from bagit.common.errors import BadCloud
 from bagit.common.geometry import transform_points
 from bagit.common.messages import CameraInfo, RgbdFrame
 
-Segmenter = Callable[[RgbdFrame], np.ndarray]
-
 # Red wraps round hue 0 in OpenCV's 0-179 hue scale: two bands.
-RED_HUE_BANDS = ((0, 10), (170, 179))
+RED_HUE_BANDS: tuple[tuple[int, int], ...] = ((0, 10), (170, 179))
 MIN_SATURATION = 110
 MIN_VALUE = 50
 
 
+class Segmenter(Protocol):
+    """Picks the rim band's pixels: `(H, W)` boolean mask (anything numpy reads as one) of a frame."""
+
+    def __call__(self, frame: RgbdFrame) -> np.ndarray: ...
+
+
+def hsv_segmenter(
+    hue_bands: Sequence[tuple[int, int]], min_saturation: int = MIN_SATURATION, min_value: int = MIN_VALUE
+) -> Segmenter:
+    """A segmenter keeping pixels whose OpenCV hue (0-179) lies in any of `hue_bands` (inclusive),
+    with at least the given saturation and value (0-255)."""
+    bands = [(int(lo), int(hi)) for lo, hi in hue_bands]
+    for lo, hi in bands:
+        if not 0 <= lo <= hi <= 179:
+            raise BadCloud(f"hue band ({lo}, {hi}) is not within 0..179 with lo <= hi")
+
+    def mask(frame: RgbdFrame) -> np.ndarray:
+        hsv = cv2.cvtColor(np.ascontiguousarray(frame.color), cv2.COLOR_RGB2HSV)
+        out = np.zeros(hsv.shape[:2], dtype=np.uint8)
+        for lo, hi in bands:
+            out |= cv2.inRange(hsv, (lo, min_saturation, min_value), (hi, 255, 255))
+        return out.astype(bool)
+
+    return mask
+
+
+_red = hsv_segmenter(RED_HUE_BANDS)
+
+
 def red_rim_mask(frame: RgbdFrame) -> np.ndarray:
-    """(H, W) bool: pixels of the bag's red edge (HSV threshold on the RGB image)."""
-    hsv = cv2.cvtColor(frame.color, cv2.COLOR_RGB2HSV)
-    mask = np.zeros(hsv.shape[:2], dtype=np.uint8)
-    for lo, hi in RED_HUE_BANDS:
-        mask |= cv2.inRange(hsv, (lo, MIN_SATURATION, MIN_VALUE), (hi, 255, 255))
-    # No morphological opening: at 1 m a rim band is only 2-4 pixels wide and would be erased;
-    # isolated red specks are left to EM's outlier term.
-    return mask.astype(bool)
+    """(H, W) bool: pixels of the bag's red edge (HSV threshold on the RGB image; red wraps hue 0/180).
+
+    No morphological opening: at 1 m a rim band is only 2-4 pixels wide and would be erased;
+    isolated red specks are left to the SOI extractor's outlier handling.
+    """
+    return _red(frame)
 
 
 def back_project(depth_m: np.ndarray, camera: CameraInfo, mask: np.ndarray | None = None) -> np.ndarray:
-    """Camera-frame points `(n, 3)` of the pixels with valid depth (and in `mask`). depth_m: (H, W) metres."""
-    valid = depth_m > 0
+    """Camera-frame points `(n, 3)` of the pixels with valid depth (and in `mask`). depth_m: (H, W) metres.
+
+    Pinhole model: x = (u - cx) z / fx, y = (v - cy) z / fy (OpenCV/RealSense axes: x right, y down,
+    z forward); zero, negative or non-finite depth means no measurement.
+    """
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth_m) & (depth_m > 0)
     if mask is not None:
         valid &= mask
     v, u = np.nonzero(valid)
@@ -51,17 +81,31 @@ def rim_cloud(
     segmenter: Segmenter = red_rim_mask,
     depth_range: tuple[float, float] = (0.2, 3.0),
 ) -> np.ndarray:
-    """World-frame points `(n, 3)` of the rim band seen in `frame`."""
+    """World-frame points `(n, 3)` of the rim band seen in `frame` (empty `(0, 3)` if none).
+
+    Pixels the segmenter picks, with a depth inside `depth_range` (metres; the D455 is unreliable
+    nearer than 0.2 m and noisy beyond 3 m), back-projected with the frame's intrinsics and moved
+    to the world with its extrinsics (world <- camera).
+    """
     h, w = frame.depth.shape
-    if frame.color.shape[:2] != (h, w):
-        raise BadCloud(f"colour {frame.color.shape[:2]} and depth {(h, w)} images differ in size")
+    if frame.color.ndim != 3 or frame.color.shape[:2] != (h, w) or frame.color.shape[2] != 3:
+        raise BadCloud(f"colour image {frame.color.shape} does not match the depth image {(h, w)} (need (H, W, 3))")
+    if (frame.camera.height, frame.camera.width) != (h, w):
+        raise BadCloud(
+            f"images are {w}x{h} but the camera info says {frame.camera.width}x{frame.camera.height}"
+        )
+    lo, hi = (float(v) for v in depth_range)
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 <= lo < hi):
+        raise BadCloud(f"depth_range must be finite with 0 <= near < far, got {depth_range}")
+    T = frame.camera.extrinsics()
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise BadCloud("camera extrinsics are not a finite 4x4 transform")
     depth_m = frame.depth.astype(np.float64) * frame.camera.depth_scale
-    in_range = (depth_m >= depth_range[0]) & (depth_m <= depth_range[1])
-    mask = segmenter(frame)
+    mask = np.asarray(segmenter(frame))
     if mask.shape != (h, w):
         raise BadCloud(f"segmenter returned a mask of shape {mask.shape}, expected {(h, w)}")
-    pts_cam = back_project(depth_m, frame.camera, mask & in_range)
-    return transform_points(frame.camera.extrinsics(), pts_cam)
+    pts_cam = back_project(depth_m, frame.camera, mask.astype(bool) & (depth_m >= lo) & (depth_m <= hi))
+    return transform_points(T, pts_cam)
 
 
 def solid_rim_segmenter(color_rgb: tuple[float, float, float], band_m: float = 0.015, hue_tol: int = 12) -> Segmenter:
@@ -71,7 +115,7 @@ def solid_rim_segmenter(color_rgb: tuple[float, float, float], band_m: float = 0
     hue = int(cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)[0, 0, 0])
 
     def mask(frame: RgbdFrame) -> np.ndarray:
-        hsv = cv2.cvtColor(frame.color, cv2.COLOR_RGB2HSV)
+        hsv = cv2.cvtColor(np.ascontiguousarray(frame.color), cv2.COLOR_RGB2HSV)
         h = hsv[..., 0].astype(int)
         dh = np.minimum(np.abs(h - hue), 180 - np.abs(h - hue))
         bag = (dh <= hue_tol) & (hsv[..., 1] >= 60) & (hsv[..., 2] >= 30) & (frame.depth > 0)
