@@ -1,0 +1,626 @@
+"""The arm driver: both CR5s from one process, streaming smoothed, safe when anything else fails.
+
+    drv = ArmDriver(rig, DriverConfig(), on_state=publish)    # on_state: each feedback packet as ArmState
+    drv.start()                     # connect, ClearError, EnableRobot(payload), SpeedFactor; loop running
+    drv.submit(command)             # the controller's 12-D increment (bagit.common.messages.Command)
+    drv.estop("operator")           # EmergencyStop(1) to both controllers at once; latched
+    drv.reset_estop()               # only this clears it
+    drv.close()                     # smooth stop, hold, DisableRobot, disconnect
+
+Every servo period (`SafetyLimits.servo_period_s`, 30 ms by default: Dobot recommends ServoP no
+faster) the loop thread takes one step of the motion pipeline (targets -> 12-DoF Ruckig ->
+`check_and_clip`) and sends ServoP (or ServoJ through bagit.common.cr5.ik) to both arms with
+`t` equal to the period, so each target is reached as the next one arrives. Replies are checked
+one period later, so a slow controller never stalls the other arm.
+
+What stops the arms, and how:
+- watchdog: no command for `watchdog_s` (200 ms). The stop is issued at the last tick before the
+  deadline, Ruckig brakes to rest (velocity target zero), then the arms hold. A later command
+  starts a new stream from the pose the arms are at.
+- a controller in error or collision, an arm disabled behind the driver's back, a ServoP refused,
+  or too many requests without a good reply: a fault. Both arms brake (the arm in error is stopped
+  by its controller); the fault stays until `clear_fault()`.
+- a connection dropped, or an arm's feedback silent for `feedback_timeout_s`: both arms brake; the
+  client reconnects with back-off; after it is back the pipeline restarts from the measured poses
+  and waits for a new command (increments sent meanwhile are refused, never replayed).
+- e-stop (`estop()` or an `EStop` message): the latch is set first (nothing more is streamed), then
+  EmergencyStop(1) goes to both controllers back to back without waiting for either reply. A
+  controller that could not be reached gets it as soon as it reconnects. `reset_estop()` releases
+  the controllers, clears their alarms, re-enables them and restarts from the measured poses.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, deque
+from typing import Callable
+
+import numpy as np
+
+from bagit.common import cr5
+from bagit.common.dobot import RobotMode
+from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
+from bagit.common.messages import ArmState, Command, EStop
+from bagit.common.rig import ARMS, RigConfig
+from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
+from bagit.services.arm_driver.config import DriverConfig
+from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
+from bagit.services.arm_driver.pipeline import MotionPipeline
+from bagit.services.arm_driver.safety import Envelope, Violation
+
+_RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
+_MAX_EVENTS = 200
+SETTLE_TIMEOUT_S = 1.0  # a restart waits at most this long for the arms to report idle
+SETTLED_MM_S = 1.0
+
+
+class ArmDriver:
+    """Both arms of the rig (see the module docstring)."""
+
+    def __init__(
+        self,
+        rig: RigConfig | None = None,
+        config: DriverConfig | None = None,
+        on_state: Callable[[ArmState], None] | None = None,
+    ):
+        self.rig = rig or RigConfig()
+        self.cfg = config or DriverConfig()
+        self.limits = self.rig.safety
+        self.period = float(self.limits.servo_period_s)
+        self.servo_t = self.period * self.cfg.servo_t_factor
+        self.env = Envelope.from_rig(self.rig)
+        self.frames = {a: ArmFrames.from_config(self.rig.arms[a]) for a in ARMS}
+        self.on_state = on_state
+        self.pipe = MotionPipeline(self.env, self.period, self.cfg.max_target_lead_m, self.cfg.max_target_lead_rad)
+        self.clients = {
+            a: DobotClient(
+                a,
+                self.rig.arms[a].host,
+                self.rig.arms[a].dashboard_port,
+                self.rig.arms[a].feedback_port,
+                reply_timeout_s=self.cfg.reply_timeout_s,
+                connect_timeout_s=self.cfg.connect_timeout_s,
+                reconnect_initial_s=self.cfg.reconnect_initial_s,
+                reconnect_max_s=self.cfg.reconnect_max_s,
+                on_feedback=self._feedback_callback(a),
+            )
+            for a in ARMS
+        }
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.started = False
+        self._closing = False
+        self._estop = False
+        self._estop_reason: str | None = None
+        self._estop_unconfirmed: set[str] = set()
+        self._fault: str | None = None
+        self._links_down: dict[str, str] = {}
+        self._seen_epoch = {a: 0 for a in ARMS}
+        self._needs_reset = False
+        self._stale: set[str] = set()  # arms not to command until the pipeline restarts from the measured poses
+        self._reset_asked = -np.inf  # when the restart was first possible (it waits for the arms to settle)
+        self._last_cmd_t = -np.inf
+        self._last_seq: int | None = None
+        self._in_flight: dict[str, PendingReply] = {}
+        self._failed_requests = {a: 0 for a in ARMS}
+        self._q_seed: dict[str, np.ndarray] = {}
+        self.counters: Counter[str] = Counter()
+        self.violation_counts: Counter[str] = Counter()
+        self.rejections: Counter[str] = Counter()
+        self.events: deque[tuple[float, str, str]] = deque(maxlen=_MAX_EVENTS)
+        self.last_violations: list[str] = []
+        self.cycle_ms: deque[float] = deque(maxlen=1000)  # compute time of each cycle
+        self.cycle_starts: deque[float] = deque(maxlen=1000)  # monotonic start of each cycle
+
+    # -- life cycle ------------------------------------------------------------------------------
+
+    def start(self) -> "ArmDriver":
+        """Connect to both controllers, bring them up as on the real rig, and start streaming.
+
+        Raises ProtocolError (unreachable controller, refused command, arm that never reports
+        enabled, a tool or user frame other than 0 selected); both arms are disabled again then.
+        """
+        if self.started:
+            return self
+        try:
+            for a in ARMS:
+                self.clients[a].connect()
+            for a in ARMS:
+                self._seen_epoch[a] = self.clients[a].epoch
+                if not self.clients[a].wait_feedback(max(self.cfg.feedback_timeout_s * 5, 1.0)):
+                    raise ProtocolError(f"{a}: no feedback packet on port {self.clients[a].feedback_port}")
+            for a in ARMS:
+                self._bring_up(a)
+            self._wait_enabled(ARMS)
+            for a in ARMS:
+                rec, _ = self.clients[a].latest()
+                assert rec is not None
+                if int(rec["Tool"]) != 0 or int(rec["User"]) != 0:
+                    raise ProtocolError(
+                        f"{a}: tool frame {int(rec['Tool'])} / user frame {int(rec['User'])} selected; "
+                        "the driver commands the flange in the base frame (tool 0, user 0)"
+                    )
+        except BaseException:
+            for a in ARMS:
+                if self.clients[a].connected:
+                    try:
+                        self.clients[a].disable()
+                    except ProtocolError:
+                        pass
+                self.clients[a].close()
+            raise
+        with self._lock:
+            self._restart_from_measured()
+            self._event("started", "both arms enabled")
+        self.started = True
+        self._stop.clear()
+        for target, name in ((self._loop, "servo-loop"), (self._supervise, "supervisor")):
+            t = threading.Thread(target=target, name=f"arm-driver-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def _bring_up(self, arm: str) -> None:
+        c, conf = self.clients[arm], self.rig.arms[arm]
+        c.clear_error()
+        c.enable(conf.payload_kg, tuple(1000.0 * x for x in conf.mount_offset))
+        c.speed_factor(conf.speed_factor)
+
+    def _wait_enabled(self, arms: tuple[str, ...] | list[str]) -> None:
+        deadline = time.monotonic() + self.cfg.enable_timeout_s
+        while True:
+            waiting = []
+            for a in arms:
+                rec, _ = self.clients[a].latest()
+                if rec is None or not int(rec["EnableStatus"]) or int(rec["RobotMode"]) not in _RUNNING_MODES:
+                    waiting.append(a)
+            if not waiting:
+                return
+            if time.monotonic() > deadline:
+                rec = self.clients[waiting[0]].latest()[0]
+                mode = int(rec["RobotMode"]) if rec is not None else "unknown"
+                raise ProtocolError(f"{waiting[0]}: not enabled {self.cfg.enable_timeout_s:.1f} s after EnableRobot (robot mode {mode})")
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        """Stop smoothly, hold, disable both arms and disconnect (idempotent)."""
+        if not self.started:
+            for c in self.clients.values():
+                c.close()
+            return
+        with self._lock:
+            self._closing = True
+            self.pipe.stop()
+        deadline = time.monotonic() + self.cfg.stop_timeout_s
+        while self.pipe.moving and time.monotonic() < deadline and self._threads[0].is_alive():
+            time.sleep(self.period / 3)
+        time.sleep(2 * self.period)  # the last ServoP's `t` runs out and its reply comes back
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._threads.clear()
+        for a in ARMS:
+            c = self.clients[a]
+            if c.connected and not self._estop:
+                try:
+                    c.disable()
+                except ProtocolError as e:
+                    self._event("shutdown", f"{a}: DisableRobot failed: {e}")
+            c.close()
+        self.started = False
+        self._event("closed", "both arms disabled" if not self._estop else "closed with the e-stop latched")
+
+    def __enter__(self) -> "ArmDriver":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- input -----------------------------------------------------------------------------------
+
+    def submit(self, cmd: Command) -> bool:
+        """Take one controller command; False (and counted with its reason) if it was refused.
+
+        `mode='hold'` brakes both arms to rest; a later servo command starts a new stream.
+        """
+        if cmd.mode == "hold":
+            with self._lock:
+                self.counters["commands"] += 1
+                self._last_cmd_t = time.monotonic()
+                self.pipe.stop()
+                self._event("hold", cmd.reason or "controller asked to hold")
+            return True
+        return self.submit_increment(np.asarray(cmd.u), float(cmd.dt), seq=cmd.seq)
+
+    def submit_increment(self, u: np.ndarray, dt: float, seq: int | None = None) -> bool:
+        """Increment `u (12,)` (world, m and rad; left then right) over `dt` seconds."""
+        now = time.monotonic()
+        with self._lock:
+            self.counters["commands"] += 1
+            why = self._refusal()
+            if why is not None:
+                self.rejections[why] += 1
+                self.counters["rejected"] += 1
+                return False
+            if seq is not None and self._last_seq is not None and seq <= self._last_seq:
+                self.counters["out_of_order"] += 1
+            self._last_seq = seq if seq is not None else self._last_seq
+            found = self.pipe.submit(u, dt, now)
+            self._record(found)
+            if any(v.kind == "non_finite" for v in found):
+                self.rejections["non_finite"] += 1
+                self.counters["rejected"] += 1
+                return False
+            if found:
+                self.counters["clipped"] += 1
+            self._last_cmd_t = now
+            self.counters["accepted"] += 1
+            return True
+
+    def _refusal(self) -> str | None:
+        if not self.started or self._closing:
+            return "not_running"
+        if self._estop:
+            return "estopped"
+        if self._fault is not None:
+            return "fault"
+        if self._links_down:
+            return "link_down"
+        if self._needs_reset:
+            return "restarting"
+        return None
+
+    def handle_estop(self, msg: EStop) -> None:
+        """An `EStop` message: engage latches the e-stop, `engage=False` resets it."""
+        if msg.engage:
+            self.estop(f"{msg.source}: {msg.reason or 'e-stop'}")
+        else:
+            self.reset_estop()
+
+    # -- e-stop ----------------------------------------------------------------------------------
+
+    def estop(self, reason: str = "e-stop") -> dict[str, bool]:
+        """Latch the e-stop and send EmergencyStop(1) to both controllers at once.
+
+        Returns, per arm, whether its controller confirmed. The latch holds whatever the answer.
+        """
+        with self._lock:
+            self._estop = True
+            self._estop_reason = reason
+            self.pipe.halt()  # the controllers stop the arms; nothing more is streamed
+            self.counters["estops"] += 1
+            self._event("estop", reason)
+        text = self.clients[ARMS[0]].emergency_stop_text(True)
+        pending: dict[str, PendingReply] = {}
+        reached = {a: False for a in ARMS}
+        for a in ARMS:  # both first, then wait: neither controller waits for the other's reply
+            try:
+                pending[a] = self.clients[a].send(text)
+            except ProtocolError as e:
+                self._event("estop", f"{a}: not sent: {e}")
+        for a, p in pending.items():
+            try:
+                self.clients[a].check(self.clients[a].wait(p))
+                reached[a] = True
+            except ProtocolError as e:
+                self._event("estop", f"{a}: not confirmed: {e}")
+        with self._lock:
+            self._estop_unconfirmed = {a for a in ARMS if not reached[a]}
+        return reached
+
+    def reset_estop(self) -> None:
+        """Release the e-stop: EmergencyStop(0), ClearError, EnableRobot, SpeedFactor on both arms.
+
+        Motion resumes only with a new command stream, from the measured poses. Raises
+        ProtocolError (and stays latched) if a controller refuses or cannot be reached.
+        """
+        with self._lock:
+            if not self._estop:
+                return
+        for a in ARMS:
+            c = self.clients[a]
+            if not c.connected:
+                raise ProtocolError(f"{a}: cannot reset the e-stop: not connected ({c.last_error})")
+            c.check(c.request(c.emergency_stop_text(False)))
+        for a in ARMS:
+            self._bring_up(a)
+        self._wait_enabled(ARMS)
+        with self._lock:
+            self._estop = False
+            self._estop_reason = None
+            self._estop_unconfirmed.clear()
+            self._fault = None
+            self._needs_reset = True
+            self._event("estop_reset", "controllers released and enabled")
+
+    def clear_fault(self) -> None:
+        """Clear a latched fault: ClearError and re-enable the arms that need it, restart from the measured poses."""
+        with self._lock:
+            if self._estop:
+                raise SafetyViolation("the e-stop is latched: reset_estop() first")
+            if self._fault is None:
+                return
+        for a in ARMS:
+            rec, _ = self.clients[a].latest()
+            if rec is None:
+                raise ProtocolError(f"{a}: no feedback; cannot clear the fault")
+            if int(rec["ErrorStatus"]) or int(rec["RobotMode"]) not in _RUNNING_MODES or not int(rec["EnableStatus"]):
+                self._bring_up(a)
+        self._wait_enabled(ARMS)
+        with self._lock:
+            self._fault = None
+            self._needs_reset = True
+            self._failed_requests = {a: 0 for a in ARMS}
+            self._event("fault_cleared", "arms enabled")
+
+    # -- state -----------------------------------------------------------------------------------
+
+    def _feedback_callback(self, arm: str) -> Callable[[np.ndarray, float], None]:
+        def on_packet(rec: np.ndarray, t: float) -> None:
+            cb = self.on_state
+            if cb is not None:
+                cb(feedback_state(arm, rec, self.frames[arm], estopped=self._estop, stamp=time.time()))
+
+        return on_packet
+
+    def states(self) -> dict[str, ArmState]:
+        """The latest state of each arm that has reported since (re)connecting."""
+        out = {}
+        for a in ARMS:
+            rec, _ = self.clients[a].latest()
+            if rec is not None:
+                out[a] = feedback_state(a, rec, self.frames[a], estopped=self._estop)
+        return out
+
+    def measured_poses(self) -> Poses | None:
+        """4x4 world <- mount of both arms from the latest feedback, or None if one has not reported."""
+        out = {}
+        for a in ARMS:
+            rec, _ = self.clients[a].latest()
+            if rec is None:
+                return None
+            out[a] = self.frames[a].mount_from_pose6(rec["ToolVectorActual"])
+        return out
+
+    @property
+    def mode(self) -> str:
+        """off | estopped | fault | link_down | restarting | streaming | stopping | holding."""
+        with self._lock:
+            if not self.started:
+                return "off"
+            if self._estop:
+                return "estopped"
+            if self._fault is not None:
+                return "fault"
+            if self._links_down:
+                return "link_down"
+            if self._needs_reset:
+                return "restarting"
+            return {"position": "streaming", "stopping": "stopping"}.get(self.pipe.mode, "holding")
+
+    def status(self) -> dict:
+        """Mode, latches, counters (commands, clipped, rejected and why, violations by kind), links."""
+        with self._lock:
+            cycle = np.array(self.cycle_ms) if self.cycle_ms else np.zeros(1)
+            starts = np.array(self.cycle_starts)
+            period = np.diff(starts) * 1000.0 if len(starts) > 1 else np.zeros(1)
+            return {
+                "mode": self.mode,
+                "estop": {"latched": self._estop, "reason": self._estop_reason, "unconfirmed": sorted(self._estop_unconfirmed)},
+                "fault": self._fault,
+                "links_down": dict(self._links_down),
+                "counters": dict(self.counters),
+                "rejections": dict(self.rejections),
+                "violations": dict(self.violation_counts),
+                "last_violations": list(self.last_violations),
+                "cycle_ms": {"median": float(np.median(cycle)), "max": float(cycle.max())},
+                "period_ms": {"median": float(np.median(period)), "max": float(period.max())},
+                "arms": {a: {**self.clients[a].stats(), "feedback_age_s": self.clients[a].feedback_age()} for a in ARMS},
+                "events": [f"{t:.3f} {k}: {d}" for t, k, d in list(self.events)[-20:]],
+            }
+
+    def _event(self, kind: str, detail: str) -> None:
+        self.events.append((time.monotonic(), kind, detail))
+
+    def _record(self, found: list[Violation]) -> None:
+        if found:
+            for v in found:
+                self.violation_counts[v.kind] += 1
+            self.last_violations = [str(v) for v in found]
+
+    def _set_fault(self, why: str) -> None:
+        if self._fault is None:
+            self._fault = why
+            self.counters["faults"] += 1
+            self._event("fault", why)
+        self.pipe.stop()
+
+    def _restart_from_measured(self) -> bool:
+        """Reset the pipeline at rest at the measured poses; a start outside the envelope is a fault."""
+        poses = self.measured_poses()
+        if poses is None:
+            return False
+        found = self.pipe.reset(poses)
+        for a in ARMS:
+            rec, _ = self.clients[a].latest()
+            self._q_seed[a] = np.radians(np.asarray(rec["QActual"], dtype=float))
+        self._needs_reset = False
+        self._reset_asked = -np.inf
+        self._stale.clear()
+        self._last_cmd_t = -np.inf
+        if found:
+            self._record(found)
+            self._set_fault("the arms are outside the safety envelope: " + "; ".join(str(v) for v in found))
+        return True
+
+    # -- the loop --------------------------------------------------------------------------------
+
+    def _loop(self) -> None:
+        next_t = time.monotonic()
+        last_send = -np.inf
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            self.cycle_starts.append(t0)
+            try:
+                if self._cycle(t0):
+                    last_send = time.monotonic()
+            except BagItError as e:  # never let the loop die: what went wrong becomes a fault
+                with self._lock:
+                    self._set_fault(f"servo loop: {e}")
+            self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
+            if t0 - next_t > 0.2 * self.period:
+                self.counters["late_cycles"] += 1
+            # Never catch up after a late cycle or a slow send: two ServoPs closer than a period would
+            # make the controller cover a step in less than its `t` (Dobot: no faster than every
+            # 30 ms). A late cycle shifts the schedule; the trajectory runs slightly slower, never faster.
+            next_t = max(next_t + self.period, t0 + 0.5 * self.period, last_send + 0.95 * self.period)
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+
+    def _cycle(self, now: float) -> bool:
+        """One servo period; True if motion commands went out."""
+        self._check_replies(now)
+        sends: dict[str, str] = {}
+        with self._lock:
+            self.counters["cycles"] += 1
+            self._watch(now)
+            if self._estop:
+                return False
+            if self._needs_reset and not self._links_down and self._fault is None and not self.pipe.moving:
+                if self._reset_asked == -np.inf:
+                    self._reset_asked = now
+                if self._settled() or now - self._reset_asked > SETTLE_TIMEOUT_S:
+                    self._restart_from_measured()
+            tick = self.pipe.tick(now)  # a stop in progress carries on whatever else is wrong
+            self._record(tick.violations)
+            if tick.command is None:
+                return False
+            for a in ARMS:
+                if a in self._links_down or a in self._stale or self._arm_in_error(a):
+                    continue
+                text = self._servo_text(a, tick.command[a])
+                if text is not None:
+                    sends[a] = text
+        for a, text in sends.items():
+            try:
+                self._in_flight[a] = self.clients[a].send(text)
+                self.counters["servo_sent"] += 1
+            except ProtocolError as e:
+                with self._lock:
+                    self._link_lost(a, str(e))
+        return bool(sends)
+
+    def _servo_text(self, arm: str, T_world_mount: np.ndarray) -> str | None:
+        cfg = self.cfg
+        if cfg.servo_command == "servop":
+            return DobotClient.servo_text("ServoP", self.frames[arm].servo_pose6(T_world_mount), self.servo_t, cfg.aheadtime, cfg.gain)
+        seed = self._q_seed[arm]
+        q = cr5.ik(self.frames[arm].flange_in_base(T_world_mount), seed)
+        if q is None or np.max(np.abs(q - seed)) > cr5.JOINT_SPEED_LIMIT * self.period * 0.9:
+            self._set_fault(f"{arm}: no inverse kinematics near the current joints for the next target")
+            return None
+        self._q_seed[arm] = q
+        return DobotClient.servo_text("ServoJ", np.degrees(q), self.servo_t, cfg.aheadtime, cfg.gain)
+
+    def _check_replies(self, now: float) -> None:
+        """The previous period's ServoP replies: a refusal is a fault; missing replies add up to one."""
+        for a, p in list(self._in_flight.items()):
+            if not p.done and now - p.sent_at < self.cfg.reply_timeout_s:
+                continue
+            del self._in_flight[a]
+            c = self.clients[a]
+            try:
+                c.check(c.wait(p, timeout=0.0))
+                self._failed_requests[a] = 0
+            except CommandRejected as e:
+                with self._lock:
+                    if not self._estop:  # a ServoP that crossed the e-stop on the wire is refused: expected
+                        self._set_fault(str(e))
+            except ConnectionLost as e:
+                with self._lock:
+                    self._link_lost(a, str(e))
+            except ProtocolError as e:
+                self._failed_requests[a] += 1
+                self.counters["servo_failed"] += 1
+                self._event("servo", str(e))
+                if self._failed_requests[a] >= self.cfg.max_failed_requests:
+                    with self._lock:
+                        self._set_fault(f"{a}: {self._failed_requests[a]} motion requests in a row without a good reply ({e})")
+
+    def _settled(self) -> bool:
+        """Both controllers report the arm idle and still, so the measured pose is where it will stay."""
+        for a in ARMS:
+            rec, _ = self.clients[a].latest()
+            if rec is None or int(rec["RobotMode"]) != int(RobotMode.ENABLE):
+                return False
+            if np.linalg.norm(rec["TCPSpeedActual"][:3]) > SETTLED_MM_S:
+                return False
+        return True
+
+    def _arm_in_error(self, arm: str) -> bool:
+        rec, _ = self.clients[arm].latest()
+        return rec is None or controller_fault(rec) is not None
+
+    def _watch(self, now: float) -> None:
+        """Links, controller errors, the watchdog (called with the lock held)."""
+        for a in ARMS:
+            c = self.clients[a]
+            if not c.connected:
+                self._link_lost(a, c.last_error or "disconnected")
+                continue
+            if c.silent_for(now) > self.cfg.feedback_timeout_s:
+                c.drop(f"no feedback for {c.silent_for(now) * 1000:.0f} ms")
+                self._link_lost(a, "feedback lost")
+                continue
+            if c.epoch != self._seen_epoch[a]:
+                if c.latest()[0] is None:
+                    continue  # reconnected; wait for its first packet
+                self._link_back(a)
+            rec, _ = c.latest()
+            if rec is None or self._estop or self._closing:
+                continue
+            why = controller_fault(rec)
+            if why is not None:
+                self._set_fault(f"{a}: {why}")
+            elif not int(rec["EnableStatus"]):
+                self._set_fault(f"{a}: disabled (robot mode {int(rec['RobotMode'])})")
+        if self.pipe.mode == "position" and now + self.period - self._last_cmd_t > self.limits.watchdog_s:
+            self.pipe.stop()
+            self.counters["watchdog_stops"] += 1
+            self._event("watchdog", f"no command for {(now - self._last_cmd_t) * 1000:.0f} ms: stopping")
+
+    def _link_lost(self, arm: str, why: str) -> None:
+        self._stale.add(arm)
+        self._needs_reset = True
+        if arm not in self._links_down:
+            self._links_down[arm] = why
+            self.counters["links_lost"] += 1
+            self._event("link_lost", f"{arm}: {why}")
+            self._in_flight.pop(arm, None)
+        self.pipe.stop()
+
+    def _link_back(self, arm: str) -> None:
+        """A reconnected controller: re-assert a latched e-stop, or restart from the measured pose."""
+        self._seen_epoch[arm] = self.clients[arm].epoch
+        self._links_down.pop(arm, None)
+        self.counters["reconnects"] += 1
+        self._event("reconnected", arm)
+        if self._estop and arm in self._estop_unconfirmed:
+            try:
+                c = self.clients[arm]
+                c.send(c.emergency_stop_text(True))
+                self._estop_unconfirmed.discard(arm)
+                self._event("estop", f"{arm}: re-sent after reconnecting")
+            except ProtocolError as e:
+                self._event("estop", f"{arm}: still not sent: {e}")
+
+    def _supervise(self) -> None:
+        """Reconnect dropped controllers with back-off, off the servo loop (a connect may block)."""
+        while not self._stop.wait(0.02):
+            for a in ARMS:
+                c = self.clients[a]
+                if not c.connected and not self._closing:
+                    c.reconnect_if_due()
