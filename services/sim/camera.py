@@ -1,37 +1,158 @@
-"""A depth-camera noise model like a D455's: noise growing with distance, holes at grazing angles
-and depth edges, and a few flying pixels between foreground and background."""
+"""The simulated eye-to-hand RGB-D camera: colour and depth from one offscreen OpenGL render of the
+MuJoCo scene (flexes included, which MuJoCo's ray casting ignores), and a D455-like depth noise model.
+
+The MJCF camera carries the rig's pinhole intrinsics exactly (focal lengths and principal point in
+pixels, OpenCV convention: pixel centres at integer coordinates), so a depth pixel (u, v, z)
+back-projects with `CameraInfo.K()` onto the rendered geometry. Depth is z along the optical axis,
+metric, 0 where there is no return.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
 
-import numpy as np
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import sys  # noqa: E402
+import weakref  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bagit.common.rig import CameraConfig  # noqa: E402
+from bagit.services.sim.scene import CAMERA_NAME  # noqa: E402
 
 
 @dataclass
 class DepthNoise:
-    sigma_at_1m: float = 0.001  # std of depth noise at 1 m (m); grows with z^2 as for stereo
-    max_range_m: float = 4.0
-    edge_jump_m: float = 0.05  # a neighbour this much nearer or farther marks a depth edge
-    edge_dropout: float = 0.5  # share of edge pixels that come back empty
-    grazing_slope: float = 4.0  # depth change per pixel / (z / f) above this: too grazing, empty
-    flying_fraction: float = 0.1  # share of the remaining edge pixels that float between the surfaces
+    """How a D455-like stereo depth camera degrades the true depth."""
+
+    sigma_at_1m: float = 0.0015  # depth noise std at 1 m (m); grows with z^2, as stereo error does
+    min_range_m: float = 0.4  # nearer than this: no return (the D455's minimum depth)
+    max_range_m: float = 6.0
+    edge_jump: float = 0.04  # a neighbour this much nearer or farther (relative to z) marks a depth edge
+    edge_dropout: float = 0.5  # share of depth-edge pixels that come back empty
+    flying_fraction: float = 0.25  # share of the other edge pixels that float between the two surfaces
+    grazing_start_deg: float = 72.0  # incidence angles beyond this start to lose their returns ...
+    grazing_full_deg: float = 84.0  # ... and beyond this all of them
+    speckle_dropout: float = 0.002  # isolated holes anywhere (matching failures)
 
 
-def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generator, f_px: float = 390.7) -> np.ndarray:
-    """Noisy metric depth `(H, W)` from true metric depth `(H, W)` (0 = no return)."""
-    z = depth.copy()
-    z[(z <= 0) | (z > noise.max_range_m)] = 0.0
-    gy, gx = np.gradient(z)
-    dz = np.maximum(np.abs(gx), np.abs(gy))
-    valid = z > 0
-    edge = valid & (dz > noise.edge_jump_m)
-    grazing = valid & ~edge & (dz / np.maximum(z / f_px, 1e-9) > noise.grazing_slope * 10)
-    out = z + rng.normal(0.0, 1.0, z.shape) * noise.sigma_at_1m * z**2
-    u = rng.random(z.shape)
-    out[edge & (u < noise.edge_dropout)] = 0.0
-    fly = edge & (u >= noise.edge_dropout) & (u < noise.edge_dropout + noise.flying_fraction * (1 - noise.edge_dropout))
-    out[fly] = z[fly] + rng.uniform(-1.0, 1.0, int(fly.sum())) * dz[fly]
-    out[grazing] = 0.0
-    out[~valid] = 0.0
+class _PixelRays:
+    """Per-pixel normalised image coordinates for a camera (cached: they never change)."""
+
+    def __init__(self, cam: CameraConfig):
+        info = cam.info()
+        u = (np.arange(info.width, dtype=np.float32) - info.cx) / info.fx
+        v = (np.arange(info.height, dtype=np.float32) - info.cy) / info.fy
+        self.x, self.y = np.meshgrid(u, v)  # (H, W) each
+        self.norm = np.sqrt(self.x**2 + self.y**2 + 1.0)
+        self.fx, self.fy = np.float32(info.fx), np.float32(info.fy)
+
+
+def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generator, rays: _PixelRays) -> np.ndarray:
+    """Noisy metric depth `(H, W)` float32 from true metric depth `(H, W)` (0 = no return).
+
+    Noise std sigma_at_1m * z^2; holes at depth edges, at grazing incidence (from the true surface's
+    normal, estimated from the depth gradient) and a few anywhere; flying pixels at edges.
+    """
+    z = np.asarray(depth, dtype=np.float32)
+    valid = (z >= noise.min_range_m) & (z <= noise.max_range_m)
+    z = np.where(valid, z, np.float32(0.0))
+    zv, zu = np.gradient(z)  # per pixel, central differences
+    # A step between two pixels shows as half the step in each one's central difference.
+    jump = 2.0 * np.maximum(np.abs(zu), np.abs(zv))
+    edge = valid & (jump > noise.edge_jump * z)
+    # Surface normal from the gradient (n ~ (-fx z_u, -fy z_v, fx z_u x + fy z_v y + z)): cos of incidence.
+    a = rays.fx * zu
+    b = rays.fy * zv
+    nz = a * rays.x + b * rays.y + z
+    cos_inc = z / (np.sqrt(a * a + b * b + nz * nz) * rays.norm + np.float32(1e-12))
+    cos_start = np.cos(np.radians(noise.grazing_start_deg))
+    cos_full = np.cos(np.radians(noise.grazing_full_deg))
+    p_graze = np.clip((cos_start - cos_inc) / (cos_start - cos_full), 0.0, 1.0)
+    u = rng.random(z.shape, dtype=np.float32)
+    out = z + rng.standard_normal(z.shape, dtype=np.float32) * np.float32(noise.sigma_at_1m) * z * z
+    drop = (edge & (u < noise.edge_dropout)) | (~edge & (u < p_graze)) | (u > 1.0 - noise.speckle_dropout)
+    fly = edge & (u >= noise.edge_dropout) & (u < noise.edge_dropout + noise.flying_fraction * (1.0 - noise.edge_dropout))
+    r, c = np.nonzero(fly)
+    if len(r):
+        # somewhere between the nearest and the farthest surface around the pixel
+        h, wd = z.shape
+        nb = np.stack([z[r, c], z[np.maximum(r - 1, 0), c], z[np.minimum(r + 1, h - 1), c], z[r, np.maximum(c - 1, 0)], z[r, np.minimum(c + 1, wd - 1)]])
+        nb = np.where(nb > 0, nb, z[r, c])
+        w = (u[r, c] - noise.edge_dropout) / (noise.flying_fraction * (1.0 - noise.edge_dropout))  # uniform in [0, 1)
+        lo, hi = nb.min(axis=0), nb.max(axis=0)
+        out[r, c] = lo + w * (hi - lo)
+    out[drop | ~valid] = 0.0
     return out
+
+
+def _gl_context(width: int, height: int):
+    """An offscreen OpenGL context: MuJoCo's choice (MUJOCO_GL), or OSMesa on a Linux box without a
+    display when MuJoCo was imported before MUJOCO_GL could default to it."""
+    cls = mujoco.GLContext
+    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and "glfw" in getattr(cls, "__module__", ""):
+        from mujoco.osmesa import GLContext as cls  # noqa: N813
+    return cls(width, height)
+
+
+def _free(gl, ctx) -> None:
+    """Release an MjrContext and its GL context (in that order, with the context current)."""
+    try:
+        gl.make_current()
+        ctx.free()
+        gl.free()
+    except Exception:  # noqa: BLE001 - at interpreter exit the GL bindings may already be gone
+        pass
+
+
+class RgbdRenderer:
+    """Offscreen colour + depth of one MJCF camera; both read back from a single render pass."""
+
+    def __init__(self, model: mujoco.MjModel, cam: CameraConfig, camera_name: str = CAMERA_NAME, max_geom: int = 2000):
+        self.width, self.height = cam.width, cam.height
+        self._model = model
+        self._cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera_name)
+        if self._cam_id < 0:
+            raise ValueError(f"the model has no camera named {camera_name!r}")
+        self._gl = _gl_context(self.width, self.height)
+        self._gl.make_current()
+        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        # freed on close(), on garbage collection, or at exit before the GL bindings unload
+        self._finalizer = weakref.finalize(self, _free, self._gl, self._ctx)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+        self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._scene = mujoco.MjvScene(model, maxgeom=max_geom)
+        self._option = mujoco.MjvOption()
+        self._mjcam = mujoco.MjvCamera()
+        self._mjcam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._mjcam.fixedcamid = self._cam_id
+        self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
+        self._rgb = np.empty((self.height, self.width, 3), dtype=np.uint8)
+        self._depth = np.empty((self.height, self.width), dtype=np.float32)
+        extent = model.stat.extent
+        self._near = float(np.float32(model.vis.map.znear * extent))
+        self._far = float(np.float32(model.vis.map.zfar * extent))
+        self.rays = _PixelRays(cam)
+
+    def render(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """(colour (H, W, 3) uint8 RGB, metric z-depth (H, W) float32, 0 = nothing within the far plane)."""
+        if self._ctx is None:
+            raise RuntimeError("the renderer is closed")
+        mujoco.mjv_updateScene(self._model, data, self._option, None, self._mjcam, mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        self._gl.make_current()
+        mujoco.mjr_render(self._rect, self._scene, self._ctx)
+        mujoco.mjr_readPixels(self._rgb, self._depth, self._rect, self._ctx)
+        color = np.flipud(self._rgb).copy()
+        buf = np.flipud(self._depth).astype(np.float64)
+        # reversed-z buffer (1 at the near plane, 0 at the far one) -> metric depth
+        n, f = self._near, self._far
+        z = (f * n) / (buf * (f - n) + n)
+        z[buf <= 0.0] = 0.0
+        return color, z.astype(np.float32)
+
+    def close(self) -> None:
+        self._finalizer()
+        self._ctx = None

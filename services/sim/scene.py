@@ -1,183 +1,154 @@
-"""The MJCF of the rig's world, built from a scenario: the fabric bag (a MuJoCo flex), its two
-mounts, the object, the obstacles, the table and the camera.
+"""The MJCF of the rig's world, built from a scenario and a rig config: the fabric bag (a MuJoCo
+flex), its two mounts, the object, the obstacles, the table and the camera.
 
-The bag is an open-top shell: `n_around` vertices per ring, `n_rings` rings from the rim down, and a
-closed bottom. Its membrane elasticity (flex <elasticity>, stretch only: a fabric does not resist
-bending) holds its shape; its rim vertices near each handle are welded to a mocap mount, so the
-arms shape the rim only through the mounts. A red tube (a dim-1 flex through the rim vertices, no
-contacts) marks the rim for the camera.
+The bag is a dim-2 flex shell (services/sim/bag.py) with membrane elasticity only (a fabric resists
+stretching, hardly bending), light and damped, colliding with the object, the obstacles and the
+table, and with itself so that its walls do not pass through each other; contacts are
+penetration-free (MuJoCo's IPC contact mode) and frictionless. Its rim vertices near
+each handle are clamped to a mocap body, the mount: a rigid arc like the paper's 3D-printed
+connector, bolted to the arm's tool flange, so the arms shape the rim only through the mounts.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from bagit.common.geometry import matrix_to_rpy, ramanujan_perimeter
-from bagit.common.rig import RigConfig
+from bagit.common.rig import CameraConfig, RigConfig
 from bagit.common.scenario import Scenario
-from bagit.common.shapes import Box, Bundle, Cylinder, Prism, Sphere
+from bagit.services.sim.bag import BagLayout
+from bagit.services.sim.objects import object_mjcf
 
-N_AROUND = 24
-N_RINGS = 5
-HANDLE_HALF_ANGLE = 0.8  # rad: each mount clamps the rim within this of its side (about a quarter of the rim each)
-TIMESTEP = 0.004
-BAG_MASS_KG = 0.08
-YOUNG_PA = 8e6  # with 1 mm thickness: a light fabric that stretches little
-RIM_RGBA = "0.85 0.05 0.05 1"
-RED_RIM_RADIUS = 0.006
-
-
-@dataclass
-class BagLayout:
-    """Where the bag starts and which of its vertices are what."""
-
-    vertices: np.ndarray  # (n, 3) world, at rest
-    elements: np.ndarray  # (m, 3) triangles
-    rim: np.ndarray  # (N_AROUND,) vertex ids of the rim, counter-clockwise from above
-    handles: dict[str, np.ndarray]  # 'left'/'right' -> rim vertex ids clamped by that mount
-    mount_home: dict[str, np.ndarray]  # 'left'/'right' -> (4, 4) world <- mount
-
-
-def bag_layout(perimeter: float, depth: float, rim_center: np.ndarray, aspect: float = 1.3) -> BagLayout:
-    """An open-top bag whose rim is an ellipse (long axis along y, the handles) of the given perimeter."""
-    b = perimeter / ramanujan_perimeter(aspect, 1.0)  # semi-axis along x
-    a = aspect * b  # along y
-    verts = []
-    for r in range(N_RINGS):
-        f = r / (N_RINGS - 1)
-        shrink = 1.0 - 0.15 * f**2
-        z = -depth * 0.9 * f
-        t = 2 * np.pi * np.arange(N_AROUND) / N_AROUND
-        verts.append(np.stack([b * shrink * np.cos(t), a * shrink * np.sin(t), np.full(N_AROUND, z)], 1))
-    verts.append(np.array([[0.0, 0.0, -depth]]))
-    v = np.vstack(verts) + rim_center
-    tris = []
-    for r in range(N_RINGS - 1):
-        for k in range(N_AROUND):
-            i, j = r * N_AROUND + k, r * N_AROUND + (k + 1) % N_AROUND
-            p, q = i + N_AROUND, j + N_AROUND
-            tris += [[i, p, j], [j, p, q]]
-    c = len(v) - 1
-    last = (N_RINGS - 1) * N_AROUND
-    tris += [[last + k, c, last + (k + 1) % N_AROUND] for k in range(N_AROUND)]
-    rim = np.arange(N_AROUND)
-    t = 2 * np.pi * rim / N_AROUND
-    handles, home = {}, {}
-    for name, side in (("left", -np.pi / 2), ("right", np.pi / 2)):
-        ids = rim[np.abs(np.angle(np.exp(1j * (t - side)))) <= HANDLE_HALF_ANGLE]
-        handles[name] = ids
-        T = np.eye(4)
-        T[:3, 3] = v[ids].mean(axis=0)
-        home[name] = T
-    return BagLayout(v, np.asarray(tris), rim, handles, home)
-
-
-def _pose_attrs(position, rpy) -> str:
-    return f'pos="{_v(position)}" euler="{_v(rpy)}"'
+CAMERA_NAME = "rgbd"
+TIMESTEP = 0.004  # s, the physics step (discrete integrator, as flex elasticity requires)
+BAG_MASS_KG = 0.08  # a light woven bag
+YOUNG_PA = 8e6  # with 1 mm thickness: a membrane stiffness of 8 kN/m, a fabric that stretches little
+POISSON = 0.3
+THICKNESS_M = 0.001
+FABRIC_DAMPING_S = 0.002  # Rayleigh damping of the membrane (time units)
+FLEX_RADIUS_M = 0.003  # collision and rendering half-thickness of the fabric
+FABRIC_FRICTION = 0.5
+# Fabric contact uses MuJoCo's IPC mode (penetration-free, verified by continuous collision detection,
+# frictionless): soft constraint contacts let a taut, light fabric be cut by an object's edge between
+# its vertices. IPC resolves flex contacts with planes, spheres, capsules, boxes and meshes, so round
+# objects go in as fine convex meshes. The soft-contact parameters below apply only with IPC off.
+IPC = True
+CONTACT_SOLREF = "0.008 1"  # as stiff as the 4 ms step allows
+CONTACT_SOLIMP = "0.95 0.99 0.002"
+CLAMP_SOLREF = "0.008 1"
+CLAMP_SOLIMP = "0.9999 0.9999 0.001"  # near-hard: a clamped vertex gives < 1 mm under the arms' pull
+RIM_RGBA = (0.85, 0.05, 0.05, 1.0)  # the red edge
+RIM_TUBE_RADIUS_M = 0.006  # the binding's radius (drawn, and its bending section)
+# The red binding along the opening is a hem, a rod (dim-1 flex through the rim vertices, no contacts)
+# with a little bending stiffness: EI = E pi r^4 / 4 = 1e-4 N m^2, a doubled fabric strip's. It keeps
+# the opening rounded under its own weight; compressed, it buckles and sags.
+RIM_YOUNG_PA = 1e5
+MOUNT_RGBA = "0.2 0.2 0.22 1"
+MOUNT_ARC_DROP_M = 0.014  # the connector arc runs this far under the rim
+FLANGE_RGBA = "0.75 0.75 0.78 1"
+OBSTACLE_RGBA = "0.15 0.15 0.15 1"
+TABLE_RGBA = "0.55 0.55 0.52 1"
 
 
 def _v(x) -> str:
-    return " ".join(f"{float(c):.6g}" for c in np.ravel(x))
+    return " ".join(f"{float(c):.9g}" for c in np.ravel(x))
 
 
-def _shape_geoms(shape, name: str, rgba: str) -> tuple[str, list[str]]:
-    """Geoms (XML) of a scenario shape in its parent frame, and mesh assets it needs."""
-    common = f'rgba="{rgba}" condim="3" friction="0.6"'
-    if isinstance(shape, Box):
-        return f'<geom name="{name}" type="box" size="{_v(np.asarray(shape.size) / 2)}" {_pose_attrs(shape.position, shape.rpy)} {common}/>', []
-    if isinstance(shape, Cylinder):
-        return f'<geom name="{name}" type="cylinder" size="{shape.radius} {shape.height / 2}" {_pose_attrs(shape.position, shape.rpy)} {common}/>', []
-    if isinstance(shape, Sphere):
-        return f'<geom name="{name}" type="sphere" size="{shape.radius}" {_pose_attrs(shape.position, shape.rpy)} {common}/>', []
-    if isinstance(shape, Prism):
-        pts = shape.local_hull_points()
-        asset = f'<mesh name="{name}_mesh" vertex="{_v(pts)}"/>'
-        return f'<geom name="{name}" type="mesh" mesh="{name}_mesh" {_pose_attrs(shape.position, shape.rpy)} {common}/>', [asset]
-    if isinstance(shape, Bundle):
-        parts, assets = [], []
-        for k, p in enumerate(shape.parts):
-            g, a = _shape_geoms(p, f"{name}_{k}", rgba)
-            parts.append(g)
-            assets += a
-        return f'<body name="{name}_bundle" {_pose_attrs(shape.position, shape.rpy)}>{"".join(parts)}</body>', assets
-    raise ValueError(f"unknown shape {type(shape).__name__}")
+def _quat(R: np.ndarray) -> np.ndarray:
+    """MuJoCo quaternion (w, x, y, z) of a rotation matrix."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
 
 
-def _object_xml(scenario: Scenario) -> tuple[str, list[str]]:
-    obj = scenario.object
-    rgba = "0.85 0.65 0.25 1"
-    if obj.shape is not None:
-        geoms, assets = _shape_geoms(obj.shape, "object", rgba)
-        top = obj.shape.hull_points()
-    else:  # only V known: V extruded upward as a convex mesh
-        v = obj.bottom_vertices()
-        n = np.cross(v[1] - v[0], v[2] - v[0])
-        up = n / np.linalg.norm(n) * (1 if n[2] >= 0 else -1)
-        pts = np.vstack([v, v + obj.effective_height() * up])
-        assets = [f'<mesh name="object_mesh" vertex="{_v(pts)}"/>']
-        geoms = f'<geom name="object" type="mesh" mesh="object_mesh" rgba="{rgba}"/>'
-        top = pts
-    # The object hangs still from a thin rod above it, as in the experiments (no contacts).
-    c = top.mean(axis=0)
-    z0 = top[:, 2].max()
-    rod = f'<geom name="rod" type="cylinder" fromto="{_v([c[0], c[1], z0])} {_v([c[0], c[1], z0 + 0.6])}" size="0.003" contype="0" conaffinity="0" rgba="0.6 0.6 0.6 1"/>'
-    return f'<body name="object_body">{geoms}{rod}</body>', assets
+def camera_mjcf(cam: CameraConfig, T_world_camera: np.ndarray) -> str:
+    """The MJCF <camera> with the rig camera's pose and exact pinhole intrinsics."""
+    info = cam.info()
+    # MuJoCo cameras look along their -z with y up; ours (OpenCV) along +z with y down.
+    xaxis, yaxis = T_world_camera[:3, 0], -T_world_camera[:3, 1]
+    # principalpixel is the offset of the image centre from the principal point (checked by test).
+    ppx = (info.width - 1) / 2 - info.cx
+    ppy = (info.height - 1) / 2 - info.cy
+    return (
+        f'<camera name="{CAMERA_NAME}" pos="{_v(T_world_camera[:3, 3])}" xyaxes="{_v(xaxis)} {_v(yaxis)}" '
+        f'resolution="{info.width} {info.height}" focalpixel="{_v([info.fx, info.fy])}" principalpixel="{_v([ppx, ppy])}" '
+        f'sensorsize="{_v([info.width * 1e-5, info.height * 1e-5])}"/>'
+    )
+
+
+def _mount_body(name: str, T_home: np.ndarray, rim_local: np.ndarray, T_flange_mount: np.ndarray) -> str:
+    """A mocap body at the mount's home pose: the connector arc through its clamped rim vertices
+    (`rim_local (k, 3)` in the mount frame), a stem to the tool flange, the flange and the wrist."""
+    # The arc runs just under the clamped fabric (mount y points down the rim normal), so the red
+    # edge above it stays in view, as the bag's edge does over the paper's connectors.
+    arc_pts = rim_local + [0.0, MOUNT_ARC_DROP_M, 0.0]
+    arc = "".join(
+        f'<geom type="capsule" fromto="{_v(a)} {_v(b)}" size="0.005" contype="0" conaffinity="0" rgba="{MOUNT_RGBA}"/>'
+        for a, b in zip(arc_pts[:-1], arc_pts[1:])
+    )
+    mid = arc_pts[len(arc_pts) // 2]
+    T_mount_flange = np.linalg.inv(T_flange_mount)
+    flange = T_mount_flange[:3, 3]
+    axis = T_mount_flange[:3, 2]  # the tool axis, pointing from the flange to the mount
+    stem = f'<geom type="capsule" fromto="{_v(mid)} {_v(flange)}" size="0.006" contype="0" conaffinity="0" rgba="{MOUNT_RGBA}"/>'
+    disc = f'<geom type="cylinder" fromto="{_v(flange - 0.008 * axis)} {_v(flange)}" size="0.032" contype="0" conaffinity="0" rgba="{FLANGE_RGBA}"/>'
+    wrist = f'<geom type="cylinder" fromto="{_v(flange - 0.09 * axis)} {_v(flange - 0.008 * axis)}" size="0.045" contype="0" conaffinity="0" rgba="{FLANGE_RGBA}"/>'
+    return f'<body name="mount_{name}" mocap="true" pos="{_v(T_home[:3, 3])}" quat="{_v(_quat(T_home[:3, :3]))}">{arc}{stem}{disc}{wrist}</body>'
 
 
 def build_mjcf(scenario: Scenario, rig: RigConfig, layout: BagLayout) -> str:
     """The whole world as an MJCF string."""
     cam = rig.camera
-    Tc = cam.T_world_camera()
-    # MuJoCo cameras look along their -z with y up; ours (OpenCV) along +z with y down.
-    xaxis, yaxis = Tc[:3, 0], -Tc[:3, 1]
-    fovy = np.degrees(2 * np.arctan(cam.height / 2 / cam.fy))
-    obj_xml, assets = _object_xml(scenario)
+    obj_xml, assets, _ = object_mjcf(scenario.object, round_as_mesh=IPC)
     obstacles = "".join(
-        f'<geom name="obstacle_{k}" type="box" size="{_v(np.asarray(o.size) / 2)}" pos="{_v(o.center)}" euler="0 0 {o.yaw}" rgba="0.15 0.15 0.15 1"/>'
+        f'<geom name="obstacle_{k}" type="box" size="{_v(np.asarray(o.size) / 2)}" pos="{_v(o.center)}" '
+        f'quat="{_v([np.cos(o.yaw / 2), 0, 0, np.sin(o.yaw / 2)])}" rgba="{OBSTACLE_RGBA}"/>'
         for k, o in enumerate(scenario.obstacles)
     )
     mounts = ""
     for name, T in layout.mount_home.items():
-        sign = -1 if name == "left" else 1
-        arc = "".join(
-            f'<geom type="capsule" fromto="{_v([0.03 * np.cos(a0), sign * 0.012 * np.cos(a0) - sign * 0.012, 0])} '
-            f'{_v([0.03 * np.cos(a1), sign * 0.012 * np.cos(a1) - sign * 0.012, 0])}" size="0.008" contype="0" conaffinity="0" rgba="0.25 0.25 0.28 1"/>'
-            for a0, a1 in ((-1.2, 0.0), (0.0, 1.2))
-        )
-        mounts += f'<body name="mount_{name}" mocap="true" pos="{_v(T[:3, 3])}" euler="{_v(matrix_to_rpy(T[:3, :3]))}">{arc}</body>'
-    bag = scenario.bag
-    body_rgba = _v(bag.color) + " 1"
-    rim_rgba = RIM_RGBA if bag.kind == "red-edged" else body_rgba
-    welds = "".join(
-        f'<weld body1="bag_{i}" body2="mount_{name}" solref="0.004 1"/>' for name, ids in layout.handles.items() for i in ids
-    )
-    rim_bodies = " ".join(f"bag_{i}" for i in layout.rim)
-    rim_edges = " ".join(f"{k} {(k + 1) % len(layout.rim)}" for k in range(len(layout.rim)))
+        rim_local = (layout.vertices[layout.handles[name]] - T[:3, 3]) @ T[:3, :3]
+        mounts += _mount_body(name, T, rim_local, rig.arms[name].T_flange_mount())
+    # Each clamped vertex is held at a fixed point of its mount (a ball-joint "connect": body1 is the
+    # mount, so the point turns with it; a weld to a vertex body would not, as vertices have no rotation).
+    clamps = ""
+    for name, ids in layout.handles.items():
+        T = layout.mount_home[name]
+        for i in ids:
+            anchor = (layout.vertices[i] - T[:3, 3]) @ T[:3, :3]
+            clamps += f'<connect body1="mount_{name}" body2="bag_{i}" anchor="{_v(anchor)}" solref="{CLAMP_SOLREF}" solimp="{CLAMP_SOLIMP}"/>'
+
+    body_rgba = _v(scenario.bag.color) + " 1"
+    rim_rgba = RIM_RGBA if scenario.bag.kind == "red-edged" else (*scenario.bag.color, 1.0)
     return f"""<mujoco model="bagit-rig">
   <compiler angle="radian"/>
-  <option timestep="{TIMESTEP}" integrator="discrete" gravity="0 0 -9.81"/>
-  <visual><global offwidth="{max(cam.width, 640)}" offheight="{max(cam.height, 480)}"/><quality shadowsize="0"/></visual>
+  <option timestep="{TIMESTEP}" integrator="discrete" gravity="0 0 -9.81">{'<flag ipc="enable"/>' if IPC else ''}</option>
+  <statistic extent="2" center="0 0 0.4"/>
+  <visual>
+    <global offwidth="{max(cam.width, 640)}" offheight="{max(cam.height, 480)}"/>
+    <map znear="0.01" zfar="5"/>
+    <quality shadowsize="0" offsamples="0"/>  <!-- no multisampling: the software-rendered camera stays fast -->
+  </visual>
   <asset>{"".join(assets)}</asset>
   <worldbody>
     <light pos="0 0 2.5" dir="0 0 -1" diffuse="0.8 0.8 0.8"/>
     <light pos="1 1 2" dir="-0.5 -0.5 -1" diffuse="0.4 0.4 0.4"/>
-    <geom name="table" type="plane" size="1.5 1.5 0.05" pos="0 0 {rig.table_height}" rgba="0.55 0.55 0.52 1"/>
-    <camera name="rgbd" pos="{_v(Tc[:3, 3])}" xyaxes="{_v(xaxis)} {_v(yaxis)}" fovy="{fovy:.6g}"/>
+    <geom name="table" type="plane" size="3 3 0.05" pos="0 0 {rig.table_height}" rgba="{TABLE_RGBA}"/>
+    {camera_mjcf(cam, cam.T_world_camera())}
     {obj_xml}
     {obstacles}
     {mounts}
-    <flexcomp name="bag" type="direct" dim="2" radius="0.003" mass="{BAG_MASS_KG}" rgba="{body_rgba}"
-      point="{_v(layout.vertices)}" element="{_v(layout.elements)}">
-      <elasticity young="{YOUNG_PA}" poisson="0.3" thickness="0.001" damping="0.002" elastic2d="stretch"/>
-      <contact selfcollide="none" condim="3" solref="0.005 1" friction="0.5"/>
+    <flexcomp name="bag" type="direct" dim="2" radius="{FLEX_RADIUS_M}" mass="{BAG_MASS_KG}" rgba="{body_rgba}"
+      point="{_v(layout.vertices)}" element="{" ".join(str(int(i)) for i in layout.elements.ravel())}">
+      <elasticity young="{YOUNG_PA}" poisson="{POISSON}" thickness="{THICKNESS_M}" damping="{FABRIC_DAMPING_S}" elastic2d="stretch"/>
+      <contact selfcollide="auto" condim="3" solref="{CONTACT_SOLREF}" solimp="{CONTACT_SOLIMP}" friction="{FABRIC_FRICTION}"/>
     </flexcomp>
   </worldbody>
   <deformable>
-    <flex name="rim_band" dim="1" radius="{RED_RIM_RADIUS}" rgba="{rim_rgba}" body="{rim_bodies}" vertex="{' '.join(['0 0 0'] * len(layout.rim))}" element="{rim_edges}">
+    <flex name="rim" dim="1" radius="{RIM_TUBE_RADIUS_M}" rgba="{_v(rim_rgba)}" body="{" ".join(f"bag_{i}" for i in layout.rim)}"
+      element="{" ".join(f"{k} {(k + 1) % len(layout.rim)}" for k in range(len(layout.rim)))}">
+      <elasticity young="{RIM_YOUNG_PA}" poisson="0.3"/>
       <contact contype="0" conaffinity="0"/>
     </flex>
   </deformable>
-  <equality>{welds}</equality>
+  <equality>{clamps}</equality>
 </mujoco>"""

@@ -1,5 +1,10 @@
-"""The simulated world: physics of the bag, the mounts, the object and the obstacles, plus the
-camera and the ground truth that only tests and benchmarks may read.
+"""The simulated world: physics of the fabric bag, its two mounts, the object and the obstacles, the
+RGB-D camera, and the ground truth that only tests and benchmarks may read.
+
+The arms (services/sim/rig_sim.py, or any caller) move the mounts with `set_mount_targets`; within
+each `step(dt)` a mount travels to its target at a steady pace (as an arm tracks a servo setpoint
+over a control period), never faster than MAX_MOUNT_SPEED_MPS / MAX_MOUNT_SPEED_RPS, so no command
+can make the fabric explode. Same scenario, rig, seed and calls: the same run, frames included.
 """
 
 from __future__ import annotations
@@ -12,57 +17,100 @@ from dataclasses import dataclass  # noqa: E402
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.spatial import ConvexHull  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
+from bagit.common.errors import BadControlInput, SafetyViolation  # noqa: E402
 from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed  # noqa: E402
 from bagit.common.messages import RgbdFrame  # noqa: E402
-from bagit.common.rig import RigConfig  # noqa: E402
+from bagit.common.rig import ARMS, RigConfig  # noqa: E402
 from bagit.common.scenario import Scenario  # noqa: E402
-from bagit.services.sim.camera import DepthNoise, add_depth_noise  # noqa: E402
-from bagit.services.sim.scene import TIMESTEP, BagLayout, bag_layout, build_mjcf  # noqa: E402
+from bagit.services.sim.bag import BagLayout, bag_layout, rim_frame  # noqa: E402
+from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise  # noqa: E402
+from bagit.services.sim.objects import object_mesh, object_parts, object_pose  # noqa: E402
+from bagit.services.sim.scene import TIMESTEP, build_mjcf  # noqa: E402
+from bagit.services.sim.truth import GroundTruth, PenetrationMonitor  # noqa: E402
 
-PENETRATION_TOL_M = 0.008  # a fabric vertex deeper than this inside the object: the fabric went through (flex radius 3 mm + soft-contact give)
-RIM_BELOW_OBJECT_M = 0.12  # default start: the rim this far below the object's lowest point
+DEFAULT_PERIMETER_M = 0.68  # the paper's bag
+RIM_BELOW_OBJECT_M = 0.12  # default start: the rim this far below the object's lowest point ...
+RIM_BESIDE_OBJECT_M = 0.15  # ... and this far beside it (towards +x, the camera's side)
+MAX_MOUNT_SPEED_MPS = 1.5  # an arm's flange cannot move faster than this ...
+MAX_MOUNT_SPEED_RPS = 3.0  # ... nor turn faster
 
 
-@dataclass
-class GroundTruth:
-    """What really happened (tests and benchmarks only). rim: (N_AROUND, 3) in order; object_pose: (4, 4)."""
+def _quat_of(R: np.ndarray) -> np.ndarray:
+    q = np.empty(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=float).ravel())
+    return q
 
-    time: float
-    rim: np.ndarray
-    rim_centroid: np.ndarray
-    rim_perimeter: float
-    object_pose: np.ndarray
-    passed_through: bool
-    max_penetration_m: float
+
+def _mat_of(q: np.ndarray) -> np.ndarray:
+    R = np.empty(9)
+    mujoco.mju_quat2Mat(R, q)
+    return R.reshape(3, 3)
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
+    d = float(q0 @ q1)
+    if d < 0:
+        q1, d = -q1, -d
+    if d > 1.0 - 1e-12:
+        q = q0 + f * (q1 - q0)
+    else:
+        th = np.arccos(min(d, 1.0))
+        q = (np.sin((1 - f) * th) * q0 + np.sin(f * th) * q1) / np.sin(th)
+    return q / np.linalg.norm(q)
+
+
+def _quat_angle(q0: np.ndarray, q1: np.ndarray) -> float:
+    return 2.0 * float(np.arccos(min(abs(float(q0 @ q1)), 1.0)))
+
+
+@dataclass(frozen=True)
+class WorldState:
+    """A snapshot of a SimWorld (physics state, mount targets, penetration record)."""
+
+    data: mujoco.MjData
+    target_pos: dict[str, np.ndarray]
+    target_quat: dict[str, np.ndarray]
+    max_depth: float
+    passed: bool
 
 
 class SimWorld:
-    """MuJoCo world built from a scenario and a rig. Deterministic for a given scenario and seed."""
+    """MuJoCo world built from a scenario and a rig. Deterministic for a given scenario and seed.
+
+    `model` and `data` are the MuJoCo objects (for the rig simulation and viewers); `layout` says
+    which bag vertices are the rim and the handles.
+    """
 
     def __init__(self, scenario: Scenario, rig: RigConfig | None = None, seed: int = 0, camera: bool = True):
         self.scenario = scenario
         self.rig = rig or RigConfig()
-        self.seed = seed
-        R = scenario.bag.rim_perimeter or 0.68
+        self.seed = int(seed)
+        R = scenario.bag.rim_perimeter or DEFAULT_PERIMETER_M
         g0 = scenario.bag.g0()
         if g0 is not None:
-            center = g0.mean(axis=0)
+            # At g0's centroid, level: the bag hangs from mounts at one height (perception's solid-bag
+            # segmenter expects a level rim; rim_frame_from_points(g0) would give g0's own tilt).
+            frame = rim_frame(g0.mean(axis=0))
         else:
-            lowest = self._object_points()[:, 2].min()
-            center = np.append(self._object_points()[:, :2].mean(axis=0) + [0.15, 0.0], lowest - RIM_BELOW_OBJECT_M)
-        self.layout: BagLayout = bag_layout(R, scenario.bag.depth, center)
+            pts = np.vstack([p.points for p in object_parts(scenario.object)])
+            c = pts[:, :2].mean(axis=0) + [RIM_BESIDE_OBJECT_M, 0.0]
+            frame = rim_frame(np.append(c, pts[:, 2].min() - RIM_BELOW_OBJECT_M))
+        self.layout: BagLayout = bag_layout(R, scenario.bag.depth, frame)
         self.model = mujoco.MjModel.from_xml_string(build_mjcf(scenario, self.rig, self.layout))
         self.data = mujoco.MjData(self.model)
-        self._mocap = {name: self.model.body(f"mount_{name}").mocapid[0] for name in ("left", "right")}
-        self._flex_adr = self.model.flex_vertadr[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_FLEX, "bag")]
-        self._hull = self._object_halfspaces()
-        self._passed = False
-        self._max_pen = 0.0
-        self._renderer: mujoco.Renderer | None = None
+        self._mocap = {name: int(self.model.body(f"mount_{name}").mocapid[0]) for name in ARMS}
+        self._target_pos = {n: self.data.mocap_pos[i].copy() for n, i in self._mocap.items()}
+        self._target_quat = {n: self.data.mocap_quat[i].copy() for n, i in self._mocap.items()}
+        flex_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_FLEX, "bag")
+        self._vert_adr = int(self.model.flex_vertadr[flex_id])
+        self._nvert = int(self.model.flex_vertnum[flex_id])
+        self._monitor = PenetrationMonitor(object_parts(scenario.object), self.layout.elements)
+        # which clamp (connect constraint) belongs to which mount, for mount_forces()
+        mount_body = {int(self.model.body(f"mount_{n}").id): n for n in ARMS}
+        self._eq_mount = np.array([mount_body.get(int(b), "") for b in self.model.eq_obj1id])
         self._camera_enabled = camera
+        self._renderer: RgbdRenderer | None = None
         self.noise = DepthNoise()
         mujoco.mj_forward(self.model, self.data)
 
@@ -70,48 +118,103 @@ class SimWorld:
 
     @property
     def time(self) -> float:
+        """Simulated seconds since the start."""
         return float(self.data.time)
 
     def step(self, dt: float) -> None:
-        """Advance by `dt` seconds of simulated time (whole internal steps of TIMESTEP)."""
-        n = max(int(round(dt / TIMESTEP)), 1)
-        for _ in range(n):
+        """Advance `dt` seconds of simulated time, in whole physics steps of TIMESTEP (at least one for dt > 0)."""
+        if not np.isfinite(dt) or dt < 0 or dt > 3600:
+            raise BadControlInput(f"step needs a finite dt in [0, 3600] s, got {dt}")
+        n = int(round(dt / TIMESTEP))
+        if n == 0 and dt > 0:
+            n = 1
+        bad = int(self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
+        for k in range(n):
+            self._advance_mounts(n - k)
             mujoco.mj_step(self.model, self.data)
-        self._check_penetration()
+            self._monitor.update(self.data.flexvert_xpos[self._vert_adr : self._vert_adr + self._nvert])
+        if int(self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number) != bad:
+            raise SafetyViolation(f"the simulated fabric diverged at t = {self.time:.3f} s (torn by the mounts?)")
+
+    def _advance_mounts(self, remaining: int) -> None:
+        """Move each mount 1/remaining of the way to its target, within the speed limits."""
+        for name, i in self._mocap.items():
+            pos, quat = self.data.mocap_pos[i], self.data.mocap_quat[i]
+            dp = self._target_pos[name] - pos
+            dist = float(np.linalg.norm(dp))
+            if dist > 0:
+                step = min(dist / remaining, MAX_MOUNT_SPEED_MPS * TIMESTEP)
+                self.data.mocap_pos[i] = self._target_pos[name] if step >= dist else pos + dp * (step / dist)
+            ang = _quat_angle(quat, self._target_quat[name])
+            if ang > 0:
+                turn = min(ang / remaining, MAX_MOUNT_SPEED_RPS * TIMESTEP)
+                self.data.mocap_quat[i] = self._target_quat[name] if turn >= ang else _slerp(quat.copy(), self._target_quat[name], turn / ang)
+
+    def save_state(self) -> "WorldState":
+        """A snapshot to branch from (e.g. to try several mount moves from one bag state)."""
+        data = mujoco.MjData(self.model)
+        mujoco.mj_copyData(data, self.model, self.data)
+        return WorldState(
+            data,
+            {k: v.copy() for k, v in self._target_pos.items()},
+            {k: v.copy() for k, v in self._target_quat.items()},
+            self._monitor.max_depth,
+            self._monitor.passed,
+        )
+
+    def restore_state(self, state: "WorldState") -> None:
+        """Go back to a snapshot from `save_state` of this world; stepping on replays exactly."""
+        mujoco.mj_copyData(self.data, self.model, state.data)
+        self._target_pos = {k: v.copy() for k, v in state.target_pos.items()}
+        self._target_quat = {k: v.copy() for k, v in state.target_quat.items()}
+        self._monitor.max_depth, self._monitor.passed = state.max_depth, state.passed
 
     def mount_home_poses(self) -> dict[str, np.ndarray]:
-        """Where the mounts start: 'left'/'right' -> (4, 4) world <- mount."""
+        """Where the mounts start: 'left'/'right' -> (4, 4) world <- mount (tool axis z into the bag)."""
         return {k: v.copy() for k, v in self.layout.mount_home.items()}
 
     def set_mount_targets(self, T_world_mount: dict[str, np.ndarray]) -> None:
-        """The mounts follow these poses from the next step on (they are bolted to the arms' flanges)."""
+        """The mounts go to these poses ('left'/'right' -> (4, 4) world <- mount) over the next step."""
+        checked = {}
         for name, T in T_world_mount.items():
-            T = np.asarray(T, dtype=float)
             if name not in self._mocap:
-                raise ValueError(f"no mount named {name!r}")
+                raise BadControlInput(f"no mount named {name!r} (have {', '.join(self._mocap)})")
+            T = np.asarray(T, dtype=float)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                raise ValueError(f"mount target for {name} must be a finite 4x4 transform")
-            i = self._mocap[name]
-            self.data.mocap_pos[i] = T[:3, 3]
-            q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x y z w
-            self.data.mocap_quat[i] = [q[3], q[0], q[1], q[2]]
+                raise BadControlInput(f"mount target for {name} must be a finite 4x4 transform")
+            R = T[:3, :3]
+            if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0 or np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
+                raise BadControlInput(f"mount target for {name} is not a rigid transform")
+            checked[name] = T
+        for name, T in checked.items():
+            self._target_pos[name] = T[:3, 3].copy()
+            self._target_quat[name] = _quat_of(T[:3, :3])
 
     def mount_poses(self) -> dict[str, np.ndarray]:
+        """Where the mounts are now: 'left'/'right' -> (4, 4) world <- mount."""
+        return {n: make_transform(_mat_of(self.data.mocap_quat[i]), self.data.mocap_pos[i].copy()) for n, i in self._mocap.items()}
+
+    def mount_forces(self) -> dict[str, np.ndarray]:
+        """'left'/'right' -> (3,) the force (N, world) the bag pulls on each mount with, through its
+        clamps: what an arm's joint torques would feel (about the bag's weight at rest; far more once
+        the arms stretch the rim taut)."""
+        d = self.data
+        rows = np.nonzero(np.asarray(d.efc_type) == mujoco.mjtConstraint.mjCNSTR_EQUALITY)[0]
         out = {}
-        for name, i in self._mocap.items():
-            w, x, y, z = self.data.mocap_quat[i]
-            out[name] = make_transform(Rotation.from_quat([x, y, z, w]).as_matrix(), self.data.mocap_pos[i].copy())
+        for name in ARMS:
+            mine = rows[self._eq_mount[np.asarray(d.efc_id)[rows]] == name]
+            out[name] = np.asarray(d.efc_force)[mine].reshape(-1, 3).sum(axis=0) if len(mine) else np.zeros(3)
         return out
 
     def bag_vertices(self) -> np.ndarray:
-        """All bag vertices `(n, 3)` (world)."""
-        n = len(self.layout.vertices)
-        return self.data.flexvert_xpos[self._flex_adr : self._flex_adr + n].copy()
+        """All bag vertices `(n, 3)`, world frame."""
+        return self.data.flexvert_xpos[self._vert_adr : self._vert_adr + self._nvert].copy()
 
-    # -- ground truth ------------------------------------------------------------------------
+    # -- ground truth (tests and benchmarks only) --------------------------------------------
 
     def true_rim(self, n_x: int | None = None) -> np.ndarray:
-        rim = self.bag_vertices()[self.layout.rim]
+        """The true rim `(N_AROUND, 3)` (its vertices in order), or resampled to `(n_x, 3)` by arc length."""
+        rim = self.data.flexvert_xpos[self._vert_adr + self.layout.rim].copy()
         return rim if n_x is None else resample_closed(rim, n_x)
 
     def ground_truth(self) -> GroundTruth:
@@ -121,56 +224,41 @@ class SimWorld:
             rim=rim,
             rim_centroid=rim.mean(axis=0),
             rim_perimeter=closed_polyline_length(rim),
-            object_pose=self._object_pose(),
-            passed_through=self._passed,
-            max_penetration_m=self._max_pen,
+            object_pose=object_pose(self.scenario.object),
+            object_vertices=self.scenario.object.bottom_vertices(),
+            passed_through=self._monitor.passed,
+            max_penetration_m=max(self._monitor.max_depth, 0.0),
+            mount_poses=self.mount_poses(),
         )
 
-    def _object_points(self) -> np.ndarray:
-        obj = self.scenario.object
-        if obj.shape is not None:
-            return obj.shape.hull_points()
-        v = obj.bottom_vertices()
-        return np.vstack([v, v + [0.0, 0.0, obj.effective_height()]])
-
-    def _object_pose(self) -> np.ndarray:
-        s = self.scenario.object.shape
-        return s.pose() if s is not None else make_transform(None, self.scenario.object.bottom_vertices().mean(axis=0))
-
-    def _object_halfspaces(self) -> np.ndarray:
-        return ConvexHull(self._object_points()).equations  # (m, 4): n.p + d <= 0 inside
-
-    def _check_penetration(self) -> None:
-        v = self.bag_vertices()
-        depth = -(v @ self._hull[:, :3].T + self._hull[:, 3]).max(axis=1)  # > 0 inside, = distance to the nearest face
-        pen = float(depth.max())
-        self._max_pen = max(self._max_pen, pen)
-        if pen > PENETRATION_TOL_M:
-            self._passed = True
+    def object_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """The object for display: vertices `(n, 3)` (world) and triangles `(m, 3)`."""
+        return object_mesh(self.scenario.object)
 
     # -- camera ------------------------------------------------------------------------------
 
     def render_rgbd(self, seq: int = 0) -> RgbdFrame:
-        """A noisy RGB-D frame from the rig's camera (colour RGB uint8, depth uint16 in depth_scale units)."""
+        """A noisy RGB-D frame from the rig's camera (colour RGB uint8, depth uint16 in depth_scale units,
+        0 = no return), stamped with the simulated time; the noise is seeded by (world seed, seq)."""
         if not self._camera_enabled:
-            raise RuntimeError("this world was built without a camera")
-        cam = self.rig.camera
+            raise RuntimeError("this world was built without a camera (camera=False)")
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, cam.height, cam.width)
-        r = self._renderer
-        r.update_scene(self.data, camera="rgbd")
-        r.disable_depth_rendering()
-        color = r.render().copy()
-        r.enable_depth_rendering()
-        depth = r.render().astype(np.float64)
-        r.disable_depth_rendering()
-        rng = np.random.default_rng([self.seed, seq])
-        depth = add_depth_noise(depth, self.noise, rng)
-        info = cam.info()
-        d = np.clip(np.round(depth / info.depth_scale), 0, 65535).astype(np.uint16)
-        return RgbdFrame(seq=seq, camera=info, color=color, depth=d, stamp=self.time)
+            self._renderer = RgbdRenderer(self.model, self.rig.camera)
+        color, z = self._renderer.render(self.data)
+        rng = np.random.default_rng([self.seed, int(seq)])
+        z = add_depth_noise(z, self.noise, rng, self._renderer.rays)
+        info = self.rig.camera.info()
+        units = np.round(z / np.float32(info.depth_scale))
+        depth = np.where(units <= 65535, units, 0).astype(np.uint16)
+        return RgbdFrame(seq=int(seq), camera=info, color=color, depth=depth, stamp=self.time)
 
     def close(self) -> None:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+    def __enter__(self) -> "SimWorld":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,107 @@
+"""The fabric bag's rest mesh: an open-top sack whose rim is an ellipse of the scenario's perimeter.
+
+The mesh has `N_AROUND` vertices per ring and `N_RINGS` rings from the rim down, closed by a
+bottom vertex. Ring 0 is the rim (vertex ids 0..N_AROUND-1, counter-clockwise seen from above the
+rim plane, id 0 on the +e_x side). Each mount clamps the rim vertices within `HANDLE_HALF_ANGLE`
+(ellipse parameter) of its side: the left mount the -e_y side, the right mount the +e_y side, e_y
+being world y laid into the rim plane. The mounts are rigid, so the arms shape the rim only
+through those two stretches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bagit.common.geometry import fit_plane, ramanujan_perimeter
+
+N_AROUND = 24
+N_RINGS = 5
+HANDLE_HALF_ANGLE = 0.8  # rad of ellipse parameter: 7 of the 24 rim vertices each, about a quarter of the rim
+RIM_ASPECT = 1.3  # rest rim: semi-axis along the handles / semi-axis across
+BOTTOM_TAPER = 0.15  # the lowest ring is this much narrower than the rim
+
+
+@dataclass
+class BagLayout:
+    """Where the bag starts and which of its vertices are what (all world frame)."""
+
+    vertices: np.ndarray  # (n, 3) at rest
+    elements: np.ndarray  # (m, 3) triangles, counter-clockwise seen from outside
+    rim: np.ndarray  # (N_AROUND,) vertex ids of the rim, in order
+    handles: dict[str, np.ndarray]  # 'left'/'right' -> rim vertex ids clamped by that mount
+    mount_home: dict[str, np.ndarray]  # 'left'/'right' -> (4, 4) world <- mount
+    frame: np.ndarray  # (4, 4) world <- rim frame: x across the bag, y along the handles, z the rim normal (up)
+
+
+def rim_frame(center: np.ndarray, normal: np.ndarray | None = None) -> np.ndarray:
+    """(4, 4) world <- rim frame: origin `center (3,)`, z `normal` (turned upward), y world y laid into the plane."""
+    n = np.array([0.0, 0.0, 1.0]) if normal is None else np.asarray(normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    if n[2] < 0:
+        n = -n
+    ey = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    if np.linalg.norm(ey) < 1e-6:  # rim plane across world y: any in-plane direction will do
+        ey = np.cross(n, [1.0, 0.0, 0.0])
+    ey /= np.linalg.norm(ey)
+    ex = np.cross(ey, n)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([ex, ey, n])
+    T[:3, 3] = center
+    return T
+
+
+def rim_frame_from_points(rim: np.ndarray) -> np.ndarray:
+    """The rim frame of a given rim polyline `(m, 3)` (e.g. the scenario's g0): its centroid and plane."""
+    c, n, _ = fit_plane(np.asarray(rim, dtype=float))
+    return rim_frame(c, n)
+
+
+def mount_rotation(frame: np.ndarray, side: str) -> np.ndarray:
+    """(3, 3) world <- mount of the mount on `side`: z points from the handle into the bag (the tool axis,
+    so the flange sits outside the rim), y points down the rim normal, x completes the frame."""
+    ex, ey, n = frame[:3, 0], frame[:3, 1], frame[:3, 2]
+    s = -1.0 if side == "left" else 1.0
+    z = -s * ey  # left handle is on -e_y: its tool points +e_y, into the bag
+    x = -s * ex
+    y = np.cross(z, x)  # == -n for both sides
+    assert np.allclose(y, -n)
+    return np.column_stack([x, y, z])
+
+
+def bag_layout(perimeter: float, depth: float, frame: np.ndarray, aspect: float = RIM_ASPECT) -> BagLayout:
+    """The rest mesh of a bag whose rim (perimeter `perimeter`, m) lies in the plane of `frame (4, 4)`
+    as an ellipse with its long axis along the handles, hanging `depth` (m) below it."""
+    if not (np.isfinite(perimeter) and perimeter > 0 and np.isfinite(depth) and depth > 0):
+        raise ValueError(f"bag needs a positive perimeter and depth, got {perimeter}, {depth}")
+    b = perimeter / ramanujan_perimeter(aspect, 1.0)  # semi-axis across (rim-frame x)
+    a = aspect * b  # along the handles (rim-frame y)
+    t = 2 * np.pi * np.arange(N_AROUND) / N_AROUND
+    local = []
+    for r in range(N_RINGS):
+        f = r / (N_RINGS - 1)
+        shrink = 1.0 - BOTTOM_TAPER * f**2
+        local.append(np.stack([b * shrink * np.cos(t), a * shrink * np.sin(t), np.full(N_AROUND, -depth * 0.9 * f)], 1))
+    local.append(np.array([[0.0, 0.0, -depth]]))
+    local = np.vstack(local)
+    verts = local @ frame[:3, :3].T + frame[:3, 3]
+    tris = []
+    for r in range(N_RINGS - 1):
+        for k in range(N_AROUND):
+            i, j = r * N_AROUND + k, r * N_AROUND + (k + 1) % N_AROUND
+            p, q = i + N_AROUND, j + N_AROUND
+            tris += [[i, p, j], [j, p, q]]
+    c = len(verts) - 1
+    last = (N_RINGS - 1) * N_AROUND
+    tris += [[last + k, c, last + (k + 1) % N_AROUND] for k in range(N_AROUND)]
+    rim = np.arange(N_AROUND)
+    handles, home = {}, {}
+    for name, side in (("left", -np.pi / 2), ("right", np.pi / 2)):
+        ids = rim[np.abs(np.angle(np.exp(1j * (t - side)))) <= HANDLE_HALF_ANGLE + 1e-9]
+        handles[name] = ids
+        T = np.eye(4)
+        T[:3, :3] = mount_rotation(frame, name)
+        T[:3, 3] = verts[ids].mean(axis=0)
+        home[name] = T
+    return BagLayout(verts, np.asarray(tris, dtype=int), rim, handles, home, frame.copy())

@@ -1,0 +1,199 @@
+"""The object to bag as rigid geometry: MJCF geoms from the scenario's shape, and the convex parts
+the ground truth measures penetration against.
+
+A shape's geoms sit in one static body (the object is held still, as in the experiments, by a thin
+rod from above that takes no contacts). With only V in the scenario, V is extruded along its
+upward normal by `ObjectSpec.effective_height()` into a convex mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from bagit.common.geometry import make_transform
+from bagit.common.scenario import ObjectSpec
+from bagit.common.shapes import Box, Bundle, Cylinder, Prism, Sphere
+
+OBJECT_RGBA = "0.85 0.65 0.25 1"
+ROD_LENGTH_M = 0.6
+ROD_RADIUS_M = 0.003
+
+
+@dataclass
+class ConvexPart:
+    """One convex piece of the object, world frame, with an exact inside-depth for its kind.
+
+    points: (k, 3) on its boundary (the hull, for display); faces: (f, 3) triangles into points;
+    halfspaces: (f', 4) rows [n, d], n.p + d <= 0 inside (unit outward n). A sphere or cylinder also
+    keeps its centre, axis, radius and half-height, so its depth is exact rather than a polygon's.
+    """
+
+    points: np.ndarray
+    halfspaces: np.ndarray
+    faces: np.ndarray
+    kind: str = "polytope"  # or "sphere", "cylinder"
+    center: np.ndarray | None = None
+    axis: np.ndarray | None = None
+    radius: float = 0.0
+    half_height: float = 0.0
+
+    @classmethod
+    def from_points(cls, points: np.ndarray, **round_shape) -> "ConvexPart":
+        hull = ConvexHull(points)
+        return cls(points[hull.vertices], hull.equations, _reindex(hull.simplices, hull.vertices), **round_shape)
+
+    def depth(self, p: np.ndarray) -> np.ndarray:
+        """(n,) how deep each of `p (n, 3)` lies inside (> 0); <= 0 outside (minus a distance bound)."""
+        if self.kind == "sphere":
+            return self.radius - np.linalg.norm(p - self.center, axis=1)
+        if self.kind == "cylinder":
+            rel = p - self.center
+            along = rel @ self.axis
+            radial = np.linalg.norm(rel - along[:, None] * self.axis, axis=1)
+            return np.minimum(self.radius - radial, self.half_height - np.abs(along))
+        return -(p @ self.halfspaces[:, :3].T + self.halfspaces[:, 3]).max(axis=1)
+
+
+def _reindex(simplices: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    lut = np.full(kept.max() + 1, -1)
+    lut[kept] = np.arange(len(kept))
+    return lut[simplices]
+
+
+def _v(x) -> str:
+    return " ".join(f"{float(c):.6g}" for c in np.ravel(x))
+
+
+def _pose_attrs(position, rpy) -> str:
+    # A quaternion, not MJCF's euler (intrinsic by default) for the scenario's extrinsic roll-pitch-yaw.
+    return f'pos="{_v(position)}" quat="{_v(_quat(rpy))}"'
+
+
+def _quat(rpy) -> np.ndarray:
+    """MuJoCo quaternion (w, x, y, z) of roll-pitch-yaw (extrinsic x, y, z, as in URDF and common.geometry)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)).as_quat()
+    return np.array([w, x, y, z])
+
+
+def _shape_geoms(shape, name: str, contact: str, cylinder_as_mesh: bool = False) -> tuple[str, list[str]]:
+    """Geoms (XML) of a scenario shape in its parent frame, and the mesh assets they need."""
+    attrs = f'rgba="{OBJECT_RGBA}" {contact}'
+    pose = _pose_attrs(shape.position, shape.rpy)
+    if isinstance(shape, Cylinder) and cylinder_as_mesh:
+        pts = np.vstack([_ring(shape.radius, -shape.height / 2, 48), _ring(shape.radius, shape.height / 2, 48)])
+        return f'<geom name="{name}" type="mesh" mesh="{name}_mesh" {pose} {attrs}/>', [f'<mesh name="{name}_mesh" vertex="{_v(pts)}"/>']
+    if isinstance(shape, Box):
+        return f'<geom name="{name}" type="box" size="{_v(np.asarray(shape.size) / 2)}" {pose} {attrs}/>', []
+    if isinstance(shape, Cylinder):
+        return f'<geom name="{name}" type="cylinder" size="{shape.radius:.6g} {shape.height / 2:.6g}" {pose} {attrs}/>', []
+    if isinstance(shape, Sphere):
+        return f'<geom name="{name}" type="sphere" size="{shape.radius:.6g}" {pose} {attrs}/>', []
+    if isinstance(shape, Prism):
+        asset = f'<mesh name="{name}_mesh" vertex="{_v(shape.local_hull_points())}"/>'
+        return f'<geom name="{name}" type="mesh" mesh="{name}_mesh" {pose} {attrs}/>', [asset]
+    if isinstance(shape, Bundle):
+        parts, assets = [], []
+        for k, p in enumerate(shape.parts):
+            g, a = _shape_geoms(p, f"{name}_{k}", contact, cylinder_as_mesh)
+            parts.append(g)
+            assets += a
+        return f'<body name="{name}_bundle" {pose}>{"".join(parts)}</body>', assets
+    raise ValueError(f"unknown shape {type(shape).__name__}")
+
+
+def _extruded_points(obj: ObjectSpec) -> np.ndarray:
+    """V `(n_v, 3)` and V moved up by the object's height along V's upward normal: `(2 n_v, 3)`."""
+    v = obj.bottom_vertices()
+    c = v.mean(axis=0)
+    _, _, vt = np.linalg.svd(v - c)
+    up = vt[2] * (1.0 if vt[2][2] >= 0 else -1.0)
+    return np.vstack([v, v + obj.effective_height() * up])
+
+
+def _parts(shape, T_parent: np.ndarray) -> list[ConvexPart]:
+    T = T_parent @ shape.pose()
+    if isinstance(shape, Bundle):
+        return [part for p in shape.parts for part in _parts(p, T)]
+    world = lambda local: local @ T[:3, :3].T + T[:3, 3]  # noqa: E731
+    if isinstance(shape, Sphere):
+        r = shape.radius
+        rings = [_ring(r * np.cos(a), r * np.sin(a), 32) for a in np.linspace(-np.pi / 2, np.pi / 2, 13)]
+        return [ConvexPart.from_points(world(np.vstack(rings)), kind="sphere", center=T[:3, 3].copy(), radius=r)]
+    if isinstance(shape, Cylinder):
+        local = np.vstack([_ring(shape.radius, -shape.height / 2, 48), _ring(shape.radius, shape.height / 2, 48)])
+        return [
+            ConvexPart.from_points(
+                world(local), kind="cylinder", center=T[:3, 3].copy(), axis=T[:3, 2].copy(), radius=shape.radius, half_height=shape.height / 2
+            )
+        ]
+    return [ConvexPart.from_points(world(shape.local_hull_points()))]
+
+
+def _ring(radius: float, z: float, n: int) -> np.ndarray:
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    return np.stack([radius * np.cos(t), radius * np.sin(t), np.full(n, z)], 1)
+
+
+def object_parts(obj: ObjectSpec) -> list[ConvexPart]:
+    """The object's convex pieces in the world frame (one per primitive; a bundle's parts apart)."""
+    if obj.shape is None:
+        return [ConvexPart.from_points(_extruded_points(obj))]
+    return _parts(obj.shape, np.eye(4))
+
+
+def object_pose(obj: ObjectSpec) -> np.ndarray:
+    """(4, 4) world <- object: the shape's pose, or V's centroid (axes of the world) when only V is known."""
+    if obj.shape is not None:
+        return obj.shape.pose()
+    return make_transform(None, obj.bottom_vertices().mean(axis=0))
+
+
+def object_mjcf(obj: ObjectSpec, contact: str = 'condim="3" friction="0.6"', round_as_mesh: bool = False) -> tuple[str, list[str], list[str]]:
+    """(body XML, mesh assets, names of the geoms that make up the object) for a static, rod-held object.
+    `round_as_mesh`: cylinders as fine convex meshes (for contact modes that take meshes, not cylinders)."""
+    if obj.shape is not None:
+        geoms, assets = _shape_geoms(obj.shape, "object", contact, round_as_mesh)
+        names = _geom_names(obj.shape, "object")
+    else:
+        pts = _extruded_points(obj)
+        assets = [f'<mesh name="object_mesh" vertex="{_v(pts)}"/>']
+        geoms = f'<geom name="object" type="mesh" mesh="object_mesh" rgba="{OBJECT_RGBA}" {contact}/>'
+        names = ["object"]
+    base = _rod_foot(object_parts(obj))
+    # The rod comes straight down onto the top of the object's highest part, above that part's centre.
+    rod = (
+        f'<geom name="object_rod" type="cylinder" fromto="{_v(base - [0, 0, 0.01])} {_v(base + [0, 0, ROD_LENGTH_M])}" '
+        f'size="{ROD_RADIUS_M}" contype="0" conaffinity="0" rgba="0.6 0.6 0.62 1"/>'
+    )
+    return f'<body name="object_body">{geoms}{rod}</body>', assets, names
+
+
+def _rod_foot(parts: list[ConvexPart]) -> np.ndarray:
+    """(3,) where a vertical line through the highest part's centroid leaves that part's top."""
+    part = max(parts, key=lambda p: p.points[:, 2].max())
+    c = part.points.mean(axis=0)
+    h = part.halfspaces
+    upper = h[h[:, 2] > 1e-9]
+    z = np.min(-(upper[:, 3] + upper[:, 0] * c[0] + upper[:, 1] * c[1]) / upper[:, 2])
+    return np.array([c[0], c[1], z])
+
+
+def _geom_names(shape, name: str) -> list[str]:
+    if isinstance(shape, Bundle):
+        return [n for k, p in enumerate(shape.parts) for n in _geom_names(p, f"{name}_{k}")]
+    return [name]
+
+
+def object_mesh(obj: ObjectSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices `(n, 3)` (world) and triangles `(m, 3)` of the object's convex parts, for display."""
+    verts, faces, off = [], [], 0
+    for p in object_parts(obj):
+        verts.append(p.points)
+        faces.append(p.faces + off)
+        off += len(p.points)
+    return np.vstack(verts), np.vstack(faces)
