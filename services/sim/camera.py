@@ -37,6 +37,7 @@ class DepthNoise:
     grazing_start_deg: float = 72.0  # incidence angles beyond this start to lose their returns ...
     grazing_full_deg: float = 84.0  # ... and beyond this all of them
     speckle_dropout: float = 0.002  # isolated holes anywhere (matching failures)
+    enabled: bool = True  # False: the true depth, only cut to the sensor's range (for tests and ground truth)
 
 
 class _PixelRays:
@@ -51,20 +52,38 @@ class _PixelRays:
         self.fx, self.fy = np.float32(info.fx), np.float32(info.fy)
 
 
+def _slope(z: np.ndarray, axis: int, rel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Along `axis` of `z (H, W)`: the pixel's own slope (smaller one-sided difference, per pixel),
+    and whether a step (a difference over `rel` * z on one side, over three times the other) is next to it."""
+    d = np.diff(z, axis=axis)
+    pad = [(0, 0), (0, 0)]
+    pad[axis] = (1, 0)
+    before = np.pad(d, pad, mode="edge")  # z[i] - z[i-1]
+    pad[axis] = (0, 1)
+    after = np.pad(d, pad, mode="edge")  # z[i+1] - z[i]
+    ab, aa = np.abs(before), np.abs(after)
+    own = np.where(ab < aa, before, after)
+    big, small = np.maximum(ab, aa), np.minimum(ab, aa)
+    return own, (big > rel * z) & (big > 3.0 * small)
+
+
 def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generator, rays: _PixelRays) -> np.ndarray:
     """Noisy metric depth `(H, W)` float32 from true metric depth `(H, W)` (0 = no return).
 
     Noise std sigma_at_1m * z^2; holes at depth edges, at grazing incidence (from the true surface's
-    normal, estimated from the depth gradient) and a few anywhere; flying pixels at edges.
+    normal, estimated from the depth slope) and a few anywhere; flying pixels at edges.
     """
     z = np.asarray(depth, dtype=np.float32)
     valid = (z >= noise.min_range_m) & (z <= noise.max_range_m)
     z = np.where(valid, z, np.float32(0.0))
-    zv, zu = np.gradient(z)  # per pixel, central differences
-    # A step between two pixels shows as half the step in each one's central difference.
-    jump = 2.0 * np.maximum(np.abs(zu), np.abs(zv))
-    edge = valid & (jump > noise.edge_jump * z)
-    # Surface normal from the gradient (n ~ (-fx z_u, -fy z_v, fx z_u x + fy z_v y + z)): cos of incidence.
+    if not noise.enabled:
+        return z
+    # One-sided differences to each neighbour: a surface's slope is the smaller of the two (a pixel
+    # belongs to one side of a step); a step is a big difference on one side only.
+    zu, edge_u = _slope(z, axis=1, rel=noise.edge_jump)
+    zv, edge_v = _slope(z, axis=0, rel=noise.edge_jump)
+    edge = valid & (edge_u | edge_v)
+    # Surface normal from the slope (n ~ (-fx z_u, -fy z_v, fx z_u x + fy z_v y + z)): cos of incidence.
     a = rays.fx * zu
     b = rays.fy * zv
     nz = a * rays.x + b * rays.y + z
@@ -74,7 +93,7 @@ def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generat
     p_graze = np.clip((cos_start - cos_inc) / (cos_start - cos_full), 0.0, 1.0)
     u = rng.random(z.shape, dtype=np.float32)
     out = z + rng.standard_normal(z.shape, dtype=np.float32) * np.float32(noise.sigma_at_1m) * z * z
-    drop = (edge & (u < noise.edge_dropout)) | (~edge & (u < p_graze)) | (u > 1.0 - noise.speckle_dropout)
+    drop = (edge & (u < noise.edge_dropout)) | (u < p_graze) | (u > 1.0 - noise.speckle_dropout)
     fly = edge & (u >= noise.edge_dropout) & (u < noise.edge_dropout + noise.flying_fraction * (1.0 - noise.edge_dropout))
     r, c = np.nonzero(fly)
     if len(r):

@@ -1,0 +1,181 @@
+"""The simulated D455: depth that matches the geometry exactly (checked against MuJoCo's own ray
+casting through each pixel), the rig's intrinsics honoured, the red rim where the true rim is, real
+occlusion, and a noise model that behaves like a stereo camera's."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from bagit.common.geometry import points_to_polyline_distance, transform_points
+from bagit.common.rig import CameraConfig, RigConfig
+from bagit.common.scenario import Scenario
+from bagit.scenarios import find_scenario
+from bagit.services.sim.camera import DepthNoise, _PixelRays, add_depth_noise
+from bagit.services.sim.world import SimWorld
+
+
+@pytest.fixture(scope="module")
+def coffee():
+    return Scenario.from_file(find_scenario("exp01-coffee-box"))
+
+
+def back_project(depth_m: np.ndarray, info) -> np.ndarray:
+    """(n, 3) camera-frame points of the valid pixels of `depth_m (H, W)`."""
+    v, u = np.nonzero(depth_m > 0)
+    z = depth_m[v, u]
+    return np.stack([(u - info.cx) / info.fx * z, (v - info.cy) / info.fy * z, z], axis=1)
+
+
+def ray_cast_depth(w: SimWorld, info, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    """z-depth of pixel centres (us, vs) by MuJoCo's ray casting (geoms only: it ignores flexes)."""
+    T = info.extrinsics()
+    a = np.stack([(us - info.cx) / info.fx, (vs - info.cy) / info.fy, np.ones(len(us))], axis=1)
+    vec = (a @ T[:3, :3].T) / np.linalg.norm(a, axis=1, keepdims=True)
+    dist = np.zeros(len(us))
+    geom = np.zeros(len(us), dtype=np.int32)
+    mujoco.mj_multiRay(w.model, w.data, T[:3, 3].copy(), vec.ravel().copy(), None, 1, -1, geom, dist, None, len(us), 10.0)
+    return np.where(dist > 0, dist / np.linalg.norm(a, axis=1), 0.0)
+
+
+def check_depth_against_rays(w: SimWorld) -> tuple[float, float, int]:
+    """Noise-free frame vs ray casting on a pixel grid: (share agreeing within 1 mm, share rendered
+    farther than the rays by > 2 mm, pixels seeing the object)."""
+    w.noise = DepthNoise(enabled=False)
+    f = w.render_rgbd(0)
+    info = f.camera
+    vs, us = np.mgrid[0 : info.height : 4, 0 : info.width : 4]
+    us, vs = us.ravel().astype(float), vs.ravel().astype(float)
+    rendered = f.depth[vs.astype(int), us.astype(int)] * info.depth_scale
+    cast = ray_cast_depth(w, info, us, vs)
+    both = (rendered > 0) & (cast > 0)
+    diff = rendered[both] - cast[both]
+    agree = np.mean(np.abs(diff) < 0.001 + 1e-9)  # depth is stored in whole mm
+    too_far = np.mean(diff > 0.002)  # nearer is fine: the bag (a flex) occludes, and rays ignore flexes
+    pts = transform_points(info.extrinsics(), back_project(f.depth * info.depth_scale, info))
+    on_object = sum(int((p.depth(pts) > -0.003).sum()) for p in w._monitor.parts)
+    return agree, too_far, on_object
+
+
+def test_depth_is_the_ray_cast_geometry(coffee):
+    w = SimWorld(coffee, seed=0)
+    w.step(0.3)
+    agree, too_far, on_object = check_depth_against_rays(w)
+    assert agree > 0.9 and too_far < 0.002
+    assert on_object > 1000  # the box is in view, where its geometry is
+    w.close()
+
+
+def test_the_rig_intrinsics_are_honoured_exactly_at_another_resolution(coffee):
+    """fx != fy, an off-centre principal point, 320 x 240: lower resolution is a setting."""
+    cam = CameraConfig(width=320, height=240, fx=200.0, fy=210.0, cx=170.0, cy=112.0, position=(0.5, 0.1, 1.2))
+    rig = RigConfig(camera=cam)
+    w = SimWorld(coffee, rig, seed=0)
+    f = w.render_rgbd(0)
+    assert f.color.shape == (240, 320, 3) and f.depth.shape == (240, 320)
+    assert f.camera == cam.info()
+    agree, too_far, _ = check_depth_against_rays(w)
+    assert agree > 0.9 and too_far < 0.002
+    w.close()
+
+
+def test_red_rim_pixels_fall_on_the_true_rim(coffee):
+    w = SimWorld(coffee, seed=1)
+    w.step(0.5)
+    f = w.render_rgbd(0)
+    assert f.color.shape == (480, 640, 3) and f.color.dtype == np.uint8 and f.depth.dtype == np.uint16
+    c = f.color.astype(int)
+    red = (c[..., 0] > 120) & (c[..., 1] < 70) & (c[..., 2] < 70) & (f.depth > 0)
+    assert red.sum() > 300
+    depth = np.where(red, f.depth * f.camera.depth_scale, 0.0)
+    pts = transform_points(f.camera.extrinsics(), back_project(depth, f.camera))
+    d = points_to_polyline_distance(pts, w.true_rim())
+    # the rim's 6 mm binding is seen from above, plus depth noise of ~2 mm at 1.2 m
+    assert np.median(d) < 0.009 and np.percentile(d, 90) < 0.015
+    w.close()
+
+
+def test_the_gripper_occludes_what_is_behind_it(coffee):
+    w = SimWorld(coffee, seed=0)
+    w.noise = DepthNoise(enabled=False)
+    f = w.render_rgbd(0)
+    info = f.camera
+    T_cw = np.linalg.inv(info.extrinsics())
+    for name in ("left", "right"):
+        flange = (w.mount_poses()[name] @ np.linalg.inv(w.rig.arms[name].T_flange_mount()))[:3, 3]
+        p = T_cw[:3, :3] @ flange + T_cw[:3, 3]
+        u, v = int(round(info.fx * p[0] / p[2] + info.cx)), int(round(info.fy * p[1] / p[2] + info.cy))
+        seen = f.depth[v, u] * info.depth_scale
+        assert abs(seen - p[2]) < 0.05  # the flange's disc, not the table a metre behind it
+        rgb = f.color[v, u].astype(int)
+        assert rgb.min() > 60 and rgb.max() - rgb.min() < 20  # and it is the grey flange that shows
+    w.close()
+
+
+def test_a_solid_bag_has_no_red_edge():
+    s = Scenario.from_file(find_scenario("exp09-tea-bucket-solid-bag"))
+    w = SimWorld(s, seed=0)
+    f = w.render_rgbd(0)
+    c = f.color.astype(int)
+    assert ((c[..., 0] > 120) & (c[..., 1] < 70) & (c[..., 2] < 70)).sum() < 20
+    w.close()
+
+
+def test_frames_are_seeded_by_world_seed_and_sequence(coffee):
+    w = SimWorld(coffee, seed=4)
+    w.step(0.1)
+    a, b, c = w.render_rgbd(7), w.render_rgbd(7), w.render_rgbd(8)
+    assert np.array_equal(a.depth, b.depth) and np.array_equal(a.color, b.color)
+    assert not np.array_equal(a.depth, c.depth) and np.array_equal(a.color, c.color)
+    assert a.seq == 7 and a.stamp == pytest.approx(w.time)
+    w.close()
+
+
+# -- the noise model on synthetic depth images ---------------------------------------------------
+
+CAM = CameraConfig()
+RAYS = _PixelRays(CAM)
+
+
+def test_noise_grows_with_distance_like_stereo():
+    noise = DepthNoise()
+    rng = np.random.default_rng(0)
+    for z in (1.0, 2.0):
+        out = add_depth_noise(np.full((480, 640), z), noise, rng, RAYS)
+        ok = out > 0
+        assert 0.99 < ok.mean() < 1.0  # a few speckle holes
+        assert np.std(out[ok] - z) == pytest.approx(noise.sigma_at_1m * z**2, rel=0.05)
+
+
+def test_depth_edges_lose_pixels_and_fly_some():
+    z = np.full((480, 640), 1.5)
+    z[:, :320] = 1.0  # a step: foreground on the left
+    out = add_depth_noise(z, DepthNoise(sigma_at_1m=0.0, speckle_dropout=0.0), np.random.default_rng(1), RAYS)
+    edge = out[:, 318:322]
+    assert (edge == 0).mean() > 0.2  # holes along the edge
+    flying = (edge > 1.01) & (edge < 1.49)
+    assert flying.sum() > 20  # points between the two surfaces
+    away = np.concatenate([out[:, :317].ravel(), out[:, 323:].ravel()])
+    assert np.all((away == 1.0) | (away == 1.5))  # nothing happens away from the edge
+
+
+def test_grazing_surfaces_lose_their_returns():
+    info = CAM.info()
+    rows = np.arange(480, dtype=float)
+    rng = np.random.default_rng(2)
+    for angle_deg, kept in ((88.0, (0.0, 0.02)), (45.0, (0.99, 1.0))):
+        # a plane tilted about the camera's x axis, through (0, 0, 1.5): z(v) from its slope
+        t = np.tan(np.radians(angle_deg))
+        y = (rows - info.cy) / info.fy
+        z = 1.5 / (1 - t * y)
+        z = np.where((z > 0.5) & (z < 5.0), z, 0.0)
+        img = np.repeat(z[:, None], 640, axis=1)
+        out = add_depth_noise(img, DepthNoise(sigma_at_1m=0.0, speckle_dropout=0.0), rng, RAYS)
+        band = (img > 1.4) & (img < 1.6)  # rows seen near the middle, away from the range cuts
+        assert kept[0] <= (out[band] > 0).mean() <= kept[1], angle_deg
+
+
+def test_out_of_range_is_no_return():
+    z = np.full((480, 640), 0.3)
+    z[:, 320:] = 7.0
+    out = add_depth_noise(z, DepthNoise(), np.random.default_rng(3), RAYS)
+    assert np.all(out == 0)
