@@ -201,6 +201,18 @@ def test_warm_start_falls_back_to_cold_when_the_rim_is_elsewhere():
     assert np.linalg.norm(soi - cold, axis=1).max() < 0.004
 
 
+@pytest.mark.parametrize("distance", [0.02, 0.06, 0.12, 0.25])
+def test_warm_start_from_a_far_init_never_fits_the_wrong_thing(distance):
+    """An init displaced by 2-25 cm (a dropped frame, a jolt), with 30 % outliers and a hidden
+    stretch: the SOI is on the rim whether the warm start holds or it falls back to cold."""
+    rim = true_rim("lens", rpy=(0.1, 0.0, 0.3))
+    cloud, visible = rim_cloud(rim, outlier_fraction=0.3, occlusion=0.15, seed=15)
+    cold = extract_soi(cloud, N_X)
+    for angle in (0.0, 2.0, 4.0):
+        init = cold + distance * np.array([np.cos(angle), np.sin(angle), 0.3])
+        check_soi(extract_soi(cloud, N_X, init=init), rim, visible)
+
+
 def test_huge_cloud_is_thinned_first():
     rim = true_rim("ellipse")
     cloud, visible = rim_cloud(rim, n_points=400_000, outlier_fraction=0.3, seed=7)

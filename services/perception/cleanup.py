@@ -36,7 +36,7 @@ def validate_cloud(points: object, n_x: object) -> np.ndarray:
     finite = np.isfinite(a).all(axis=1)
     if not finite.all():
         raise BadCloud(f"cloud has {int((~finite).sum())} points with NaN or infinite coordinates")
-    if np.abs(a).max() > MAX_COORDINATE_M:
+    if max(float(a.max()), -float(a.min())) > MAX_COORDINATE_M:  # no |a| copy of a huge cloud
         raise BadCloud(f"cloud has coordinates beyond {MAX_COORDINATE_M:.0f} m: not metres from a depth camera")
     if len(a) < n_x:
         raise BadCloud(f"cloud has {len(a)} points, fewer than n_x = {n_x}")
@@ -92,17 +92,20 @@ def voxel_down(points: np.ndarray, voxel: float = VOXEL_M) -> np.ndarray:
     return np.asarray(pc.voxel_down_sample(voxel).points)
 
 
-def clean_cloud(points: np.ndarray, min_points: int = 16) -> np.ndarray:
+def clean_cloud(points: np.ndarray, min_points: int = 16, strict: bool = False) -> np.ndarray:
     """Thin, drop scattered outliers and voxel down-sample: `points (n, 3)` -> `(m, 3)`.
 
     If the outlier count would leave too little (a sparse cloud, where rim points are alone in
-    their cells too), it is skipped and EM's uniform term alone deals with the outliers.
+    their cells too), it is skipped and EM's uniform term alone deals with the outliers -- unless
+    `strict`: a crop around the last rim that holds only outliers must come out (nearly) empty.
     """
     pts = subsample(points)
+    if len(pts) == 0:
+        return pts.reshape(0, 3)
     keep = dense_cells(pts)
-    if keep.sum() >= max(MIN_KEPT_FRACTION * len(pts), min_points):
+    if strict or keep.sum() >= max(MIN_KEPT_FRACTION * len(pts), min_points):
         pts = pts[keep]
-    return voxel_down(pts)
+    return voxel_down(pts) if len(pts) else pts
 
 
 def crop_near(points: np.ndarray, rim: np.ndarray, radius: float = GATE_M) -> np.ndarray:

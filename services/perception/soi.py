@@ -45,6 +45,7 @@ class SoiParams(BaseModel):
     starved_fraction: float = Field(0.2, ge=0.0, lt=1.0, description="support below this share of the median: starved")
     stray_spacing: float = Field(0.5, gt=0.0, description="off the neighbours' curve by this many spacings: a stray")
     min_supported: float = Field(0.5, gt=0.0, le=1.0, description="share of components that must hold points")
+    max_length_change: float = Field(0.3, gt=0.0, description="warm start: a rim whose length changed more is refitted cold")
     gate_m: float = Field(GATE_M, gt=0.0, le=1.0, description="warm start: ignore points this far from the last SOI")
 
 
@@ -121,19 +122,28 @@ def _cold(raw: np.ndarray, k: int, p: SoiParams) -> tuple[ClosedCurve, np.ndarra
 
 def _warm(raw: np.ndarray, prev: np.ndarray, k: int, p: SoiParams) -> ClosedCurve | None:
     """The rim curve in prev's direction, EM started from `prev (n_x, 3)`; None if the rim left it."""
-    # The gate removes everything far from the last rim, so the outlier count of a cold start is
-    # not needed; the few outliers left near the rim are the uniform term's job.
-    cloud = gate_near(voxel_down(crop_near(subsample(raw), prev, p.gate_m)), prev, p.gate_m)
+    # Only the neighbourhood of the last rim is cleaned (a box crop first: cheaper on raw points);
+    # the few outliers left near the rim are the uniform term's job.
+    cloud = gate_near(clean_cloud(crop_near(subsample(raw), prev, p.gate_m), strict=True), prev, p.gate_m)
     if len(cloud) < 2 * k:
         return None
     mu0 = prev if len(prev) == k else resample_closed(prev, k)
     spacing = closed_polyline_length(mu0) / k
-    fit = chain_em(cloud, mu0, iterations=p.warm_iterations, bending=p.bending, sigma0=spacing / 4, tol=p.tol_m)
+    fit = chain_em(cloud, mu0, iterations=p.warm_iterations, bending=p.bending, sigma0=spacing / 2, tol=p.tol_m)
+    # A warm start is for the small motion between frames; a rim that jumped by half the gate or
+    # more is only partly inside it, and EM would fit the part it sees: start cold instead.
+    if np.median(np.linalg.norm(fit.mu - mu0, axis=1)) > 0.5 * p.gate_m:
+        return None
     try:
         mu, keep = _repair(fit, p)
     except BadCloud:
         return None
-    return _curve(mu, keep, _normal_of(mu, np.array([0.0, 0.0, 1.0])))
+    curve = _curve(mu, keep, _normal_of(mu, np.array([0.0, 0.0, 1.0])))
+    # A rim's length barely changes between frames (the paper's premise); if this one did, EM
+    # latched onto something else near the old rim: start cold instead.
+    if abs(curve.length / closed_polyline_length(prev) - 1.0) > p.max_length_change:
+        return None
+    return curve
 
 
 def _repair(fit: ChainFit, p: SoiParams) -> tuple[np.ndarray, np.ndarray]:
