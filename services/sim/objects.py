@@ -26,7 +26,8 @@ ROD_RADIUS_M = 0.003
 class ConvexPart:
     """One convex piece of the object, world frame, with an exact inside-depth for its kind.
 
-    points: (k, 3) on its boundary (the hull, for display); faces: (f, 3) triangles into points;
+    points: (k, 3) on its boundary (the hull, for display); faces: (f, 3) triangles into points,
+    counter-clockwise seen from outside;
     halfspaces: (f', 4) rows [n, d], n.p + d <= 0 inside (unit outward n). A sphere or cylinder also
     keeps its centre, axis, radius and half-height, so its depth is exact rather than a polygon's.
     """
@@ -43,7 +44,11 @@ class ConvexPart:
     @classmethod
     def from_points(cls, points: np.ndarray, **round_shape) -> "ConvexPart":
         hull = ConvexHull(points)
-        return cls(points[hull.vertices], hull.equations, _reindex(hull.simplices, hull.vertices), **round_shape)
+        tri = hull.simplices.copy()
+        p = points[tri]
+        inward = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), hull.equations[:, :3]) < 0
+        tri[inward] = tri[inward][:, ::-1]  # counter-clockwise seen from outside
+        return cls(points[hull.vertices], hull.equations, _reindex(tri, hull.vertices), **round_shape)
 
     def depth(self, p: np.ndarray) -> np.ndarray:
         """(n,) how deep each of `p (n, 3)` lies inside (> 0); <= 0 outside (minus a distance bound)."""
