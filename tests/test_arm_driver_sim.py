@@ -9,6 +9,7 @@ feedback packets, recorded on connections of their own. The machine running thes
 so the servo loop's and the simulators' own jitter is allowed for where the test says so.
 """
 
+import re
 import threading
 import time
 
@@ -398,3 +399,29 @@ def test_servoj_streams_through_the_cr5_inverse_kinematics(rig):
     assert after["right"][2] - before["right"][2] == pytest.approx(-0.03, abs=0.002)
     for srv in sims.servers.values():
         assert srv.commands("ServoJ") and not srv.commands("ServoP")
+
+
+def test_a_target_out_of_reach_stops_both_arms_before_the_controller_alarms(rig):
+    sims, drv = rig()
+    drv.start()
+    u = np.zeros(12)
+    u[[0, 2, 6, 8]] = 0.1 / 30  # both mounts out and up, inside the workspace boxes but past the arms' reach
+    stop = threading.Event()
+
+    def keep_streaming():
+        k = 0
+        while not stop.is_set() and drv.submit(Command(u=u, dt=1 / 30, seq=k)):
+            k += 1
+            time.sleep(1 / 30)
+
+    th = threading.Thread(target=keep_streaming, daemon=True)
+    th.start()
+    assert wait_until(lambda: drv.mode == "fault", 8.0)
+    stop.set()
+    th.join()
+    # near the edge of the reach the elbow straightens and its joints speed up: either is caught here
+    assert re.search(r"next target (out of the arm's reach|a joint would have to move faster)", drv.status()["fault"])
+    time.sleep(0.5)
+    for a, r in sims.robots.items():
+        assert r.alarms() == [] and r.robot_mode() == 5  # the controllers never saw an unreachable target
+        assert all(reply.startswith("0,") for _, _, reply in sims.servers[a].commands("ServoP"))

@@ -20,6 +20,9 @@ class DriverConfig(BaseModel):
     servo_command: Literal["servop", "servoj"] = Field(
         "servop", description="ServoP (the controller's own IK) or ServoJ (IK here, bagit.common.cr5)"
     )
+    check_reach: bool = Field(
+        True, description="solve each ServoP target with bagit.common.cr5 first; unreachable: stop both arms smoothly"
+    )
     servo_t_factor: float = Field(
         1.0, ge=1.0, le=2.0,
         description="ServoP's t as a multiple of the servo period: 1 reaches each target as the next arrives; "

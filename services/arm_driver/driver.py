@@ -460,12 +460,14 @@ class ArmDriver:
     def _loop(self) -> None:
         next_t = time.monotonic()
         last_send = -np.inf
+        offsets: deque[float] = deque([0.0], maxlen=50)  # when in its cycle the commands go out
         while not self._stop.is_set():
             t0 = time.monotonic()
             self.cycle_starts.append(t0)
             try:
                 if self._cycle(t0):
                     last_send = time.monotonic()
+                    offsets.append(last_send - t0)
             except BagItError as e:  # never let the loop die: what went wrong becomes a fault
                 with self._lock:
                     self._set_fault(f"servo loop: {e}")
@@ -475,7 +477,8 @@ class ArmDriver:
             # Never catch up after a late cycle or a slow send: two ServoPs closer than a period would
             # make the controller cover a step in less than its `t` (Dobot: no faster than every
             # 30 ms). A late cycle shifts the schedule; the trajectory runs slightly slower, never faster.
-            next_t = max(next_t + self.period, t0 + 0.5 * self.period, last_send + 0.95 * self.period)
+            offset = min(float(np.median(offsets)), 0.2 * self.period)
+            next_t = max(next_t + self.period, t0 + 0.5 * self.period, last_send + self.period - offset)
             delay = next_t - time.monotonic()
             if delay > 0:
                 self._stop.wait(delay)
@@ -514,16 +517,25 @@ class ArmDriver:
         return bool(sends)
 
     def _servo_text(self, arm: str, T_world_mount: np.ndarray) -> str | None:
+        """The ServoP (or ServoJ) command for one arm, or None (and a fault) if the arm cannot take it.
+
+        With `check_reach` (always for ServoJ) the target is solved here first, nearest the joints of
+        the last one: a target out of reach or across a configuration flip stops both arms smoothly
+        instead of making the controller alarm and stop this one dead.
+        """
         cfg = self.cfg
-        if cfg.servo_command == "servop":
-            return DobotClient.servo_text("ServoP", self.frames[arm].servo_pose6(T_world_mount), self.servo_t, cfg.aheadtime, cfg.gain)
-        seed = self._q_seed[arm]
-        q = cr5.ik(self.frames[arm].flange_in_base(T_world_mount), seed)
-        if q is None or np.max(np.abs(q - seed)) > cr5.JOINT_SPEED_LIMIT * self.period * 0.9:
-            self._set_fault(f"{arm}: no inverse kinematics near the current joints for the next target")
-            return None
-        self._q_seed[arm] = q
-        return DobotClient.servo_text("ServoJ", np.degrees(q), self.servo_t, cfg.aheadtime, cfg.gain)
+        T_bf = self.frames[arm].flange_in_base(T_world_mount)
+        if cfg.servo_command == "servoj" or cfg.check_reach:
+            seed = self._q_seed[arm]
+            q = cr5.ik(T_bf, seed)
+            if q is None or np.max(np.abs(q - seed)) > cr5.JOINT_SPEED_LIMIT * self.period * 0.9:
+                why = "out of the arm's reach" if q is None else "a joint would have to move faster than it can"
+                self._set_fault(f"{arm}: next target {why}")
+                return None
+            self._q_seed[arm] = q
+            if cfg.servo_command == "servoj":
+                return DobotClient.servo_text("ServoJ", np.degrees(q), self.servo_t, cfg.aheadtime, cfg.gain)
+        return DobotClient.servo_text("ServoP", cr5.matrix_to_pose6(T_bf), self.servo_t, cfg.aheadtime, cfg.gain)
 
     def _check_replies(self, now: float) -> None:
         """The previous period's ServoP replies: a refusal is a fault; missing replies add up to one."""

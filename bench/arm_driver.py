@@ -1,0 +1,170 @@
+"""The arm driver's cycle: what it costs to turn the controller's increments into two ServoP commands.
+
+Offline (no sockets), per servo period for both arms:
+  pipeline    targets -> 12-DoF Ruckig step -> safety gate (check_and_clip)
+  format      mount pose -> flange in each base -> Dobot pose6 -> `ServoP(...)` text
+  reach       the driver's IK check of both targets (bagit.common.cr5.ik, on by default)
+  cycle       all of it, as the servo loop runs it (steady 30 Hz stream of increments)
+Live, against two simulated CR5 controllers on loopback:
+  loop        the driver's measured compute per cycle and its period while streaming
+  estop       from `estop()` to each controller logging EmergencyStop(1)
+
+    python -m bagit.bench.arm_driver [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from bagit.bench.common import stats_ms, timeit
+from bagit.common import cr5
+from bagit.common.rig import ARMS, RigConfig
+from bagit.services.arm_driver.client import DobotClient
+from bagit.services.arm_driver.frames import ArmFrames
+from bagit.services.arm_driver.pipeline import MotionPipeline
+from bagit.services.arm_driver.safety import Envelope
+
+PERIOD = 0.03
+
+
+def _home() -> dict[str, np.ndarray]:
+    """The simulated rig's start: mounts 0.21 m apart at 0.475 m, tool axes pointing into the bag."""
+    out = {}
+    for name, s in (("left", -1.0), ("right", 1.0)):
+        T = np.eye(4)
+        z = np.array([0.0, -s, 0.0])
+        x = np.array([-s, 0.0, 0.0])
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        T[:3, 3] = [0.15, s * 0.106, 0.475]
+        out[name] = T
+    return out
+
+
+def _offline(n: int) -> dict:
+    rig = RigConfig()
+    pipe = MotionPipeline(Envelope.from_rig(rig), PERIOD)
+    pipe.reset(_home())
+    frames = {a: ArmFrames.from_config(rig.arms[a]) for a in ARMS}
+    seeds = {}
+    for a in ARMS:
+        T_bf = frames[a].flange_in_base(_home()[a])
+        seeds[a] = cr5.ik_all(T_bf)[0]
+    state = {"k": 0, "now": 0.0}
+
+    def u_at(k: int) -> np.ndarray:
+        u = np.zeros(12)
+        u[0] = u[6] = 0.04 * np.sin(k / 40) / 30  # back and forth along x, 4 cm/s peak
+        u[2] = u[8] = 0.02 * np.cos(k / 25) / 30
+        u[5] = 0.1 * np.sin(k / 50) / 30
+        return u
+
+    def pipeline_step() -> dict:
+        k = state["k"]
+        pipe.submit(u_at(k), 1 / 30, state["now"])
+        tick = pipe.tick(state["now"])
+        state["k"] += 1
+        state["now"] += PERIOD
+        return tick.command
+
+    last = {"cmd": pipeline_step()}
+
+    def fmt() -> None:
+        for a in ARMS:
+            T_bf = frames[a].flange_in_base(last["cmd"][a])
+            DobotClient.servo_text("ServoP", cr5.matrix_to_pose6(T_bf), PERIOD, 50, 500)
+
+    def reach() -> None:
+        for a in ARMS:
+            q = cr5.ik(frames[a].flange_in_base(last["cmd"][a]), seeds[a])
+            if q is not None:
+                seeds[a] = q
+
+    def cycle() -> None:
+        last["cmd"] = pipeline_step()
+        reach()
+        fmt()
+
+    return {
+        "pipeline": timeit(lambda: last.__setitem__("cmd", pipeline_step()), n),
+        "format": timeit(fmt, n),
+        "reach": timeit(reach, n),
+        "cycle": timeit(cycle, n),
+    }
+
+
+def _live(seconds: float, estops: int) -> dict:
+    """The running driver against two simulated controllers (imports the simulator only here)."""
+    from bagit.common.geometry import invert_transform
+    from bagit.common.messages import Command
+    from bagit.services.arm_driver.config import DriverConfig
+    from bagit.services.arm_driver.driver import ArmDriver
+    from bagit.services.sim.cr5_sim import SimulatedCR5
+    from bagit.services.sim.dobot_server import DobotControllerServer
+    from bagit.services.sim.rig_sim import natural_ik
+
+    class Logged(DobotControllerServer):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            self.estop_at: list[float] = []
+
+        def handle(self, text: str) -> str:
+            if text.strip() == "EmergencyStop(1)":
+                self.estop_at.append(time.monotonic())
+            return super().handle(text)
+
+    base = RigConfig()
+    servers, arms = {}, {}
+    for a in ARMS:
+        conf = base.arms[a]
+        T_bf = invert_transform(conf.T_world_base()) @ _home()[a] @ invert_transform(conf.T_flange_mount())
+        servers[a] = Logged(SimulatedCR5(conf, q0=natural_ik(T_bf), name=a), dashboard_port=0, feedback_port=0, step_in_background=True).start()
+        arms[a] = conf.model_copy(update={"dashboard_port": servers[a].dashboard_port, "feedback_port": servers[a].feedback_port})
+    rig = base.model_copy(update={"arms": arms})
+    latency = {a: [] for a in ARMS}
+    try:
+        drv = ArmDriver(rig, DriverConfig(feedback_timeout_s=0.5)).start()
+        try:
+            drv.cycle_ms.clear()
+            drv.cycle_starts.clear()
+            t0, k = time.monotonic(), 0
+            while time.monotonic() - t0 < seconds:
+                u = np.zeros(12)
+                u[0] = u[6] = 0.04 * np.sin(k / 40) / 30
+                drv.submit(Command(u=u, dt=1 / 30, seq=k))
+                k += 1
+                time.sleep(max(0.0, t0 + k / 30 - time.monotonic()))
+            cycle = stats_ms(list(drv.cycle_ms))
+            period = stats_ms(np.diff(np.array(drv.cycle_starts)) * 1000.0)
+            for _ in range(estops):
+                t_call = time.monotonic()
+                drv.estop("bench")
+                for a in ARMS:
+                    latency[a].append((servers[a].estop_at[-1] - t_call) * 1000.0)
+                drv.reset_estop()
+                time.sleep(0.05)
+        finally:
+            drv.close()
+    finally:
+        for s in servers.values():
+            s.stop()
+    return {"loop_cycle": cycle, "loop_period": period, **{f"estop_{a}": stats_ms(latency[a]) for a in ARMS}}
+
+
+def run(quick: bool = False) -> dict:
+    return {"offline": _offline(300 if quick else 2000), "live": _live(2.0 if quick else 6.0, 3 if quick else 10)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true")
+    r = run(ap.parse_args().quick)
+    for group in ("offline", "live"):
+        for name, s in r[group].items():
+            print(f"{group}.{name}: min {s['min_ms']:.3f} / median {s['median_ms']:.3f} / p95 {s['p95_ms']:.3f} ms (n={s['n']})")
+
+
+if __name__ == "__main__":
+    main()
