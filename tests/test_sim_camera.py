@@ -11,6 +11,7 @@ from bagit.common.rig import CameraConfig, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.sim.camera import DepthNoise, _PixelRays, add_depth_noise
+from bagit.services.sim.objects import object_parts
 from bagit.services.sim.world import SimWorld
 
 
@@ -52,7 +53,7 @@ def check_depth_against_rays(w: SimWorld) -> tuple[float, float, int]:
     agree = np.mean(np.abs(diff) < 0.001 + 1e-9)  # depth is stored in whole mm
     too_far = np.mean(diff > 0.002)  # nearer is fine: the bag (a flex) occludes, and rays ignore flexes
     pts = transform_points(info.extrinsics(), back_project(f.depth * info.depth_scale, info))
-    on_object = sum(int((p.depth(pts) > -0.003).sum()) for p in w._monitor.parts)
+    on_object = sum(int((p.depth(pts) > -0.003).sum()) for p in object_parts(w.scenario.object))
     return agree, too_far, on_object
 
 

@@ -29,6 +29,7 @@ class GroundTruth:
     object_vertices: np.ndarray  # V (n_v, 3), the bottom outline
     passed_through: bool
     max_penetration_m: float
+    clearance_m: float  # now: the fabric mid-surface's gap to the object (a lower bound; inf when far, < 0 inside)
     mount_poses: dict[str, np.ndarray] = field(default_factory=dict)  # 'left'/'right' -> (4, 4) world <- mount
 
 

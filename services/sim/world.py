@@ -228,6 +228,7 @@ class SimWorld:
             object_vertices=self.scenario.object.bottom_vertices(),
             passed_through=self._monitor.passed,
             max_penetration_m=max(self._monitor.max_depth, 0.0),
+            clearance_m=-self._monitor.depth(self.bag_vertices()),
             mount_poses=self.mount_poses(),
         )
 
