@@ -10,6 +10,7 @@ import socket
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -156,6 +157,7 @@ class TcpProxy:
         self._threads: list[threading.Thread] = []
         self.refuse = False
         self._paused: set[int] = set()
+        self._mangle: dict[int, Callable[[bytes], bytes]] = {}
         for target, listen in routes.items():
             s = socket.socket()
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -204,7 +206,8 @@ class TcpProxy:
                     break
                 if target in self._paused:
                     continue  # swallowed: the client hears nothing from `target`
-                dst.sendall(data)
+                fn = self._mangle.get(target) if target is not None else None
+                dst.sendall(fn(data) if fn is not None else data)
         except OSError:
             pass
         for s in (src, dst):
@@ -219,6 +222,11 @@ class TcpProxy:
 
     def resume(self, target: int) -> None:
         self._paused.discard(target)
+        self._mangle.pop(target, None)
+
+    def mangle(self, target: int, fn: Callable[[bytes], bytes]) -> None:
+        """Pass what `target` sends through `fn` (corrupt it) until `resume(target)`."""
+        self._mangle[target] = fn
 
     def drop(self) -> None:
         """Reset every connection through the proxy (new ones are still accepted unless `refuse`)."""

@@ -425,3 +425,60 @@ def test_a_target_out_of_reach_stops_both_arms_before_the_controller_alarms(rig)
     for a, r in sims.robots.items():
         assert r.alarms() == [] and r.robot_mode() == 5  # the controllers never saw an unreachable target
         assert all(reply.startswith("0,") for _, _, reply in sims.servers[a].commands("ServoP"))
+
+
+def test_garbled_replies_and_feedback_are_reported_and_stop_the_arms_without_a_crash(rig):
+    sims, drv = rig(proxy=True)
+    drv.start()
+    u = np.zeros(12)
+    u[0] = u[6] = 0.05 / 30
+    dash, fb = sims.servers["left"].dashboard_port, sims.servers["left"].feedback_port
+    stop = threading.Event()
+
+    def keep_streaming():
+        k = 0
+        while not stop.is_set():
+            drv.submit(Command(u=u, dt=1 / 30, seq=k))
+            k += 1
+            time.sleep(1 / 30)
+
+    th = threading.Thread(target=keep_streaming, daemon=True)
+    th.start()
+    time.sleep(0.3)
+    # feedback bytes flipped here and there: packets fail their checks and are skipped, the rest is used
+    flips = iter(range(10**9))
+    sims.proxies["left"].mangle(fb, lambda b: bytes(x ^ 0xFF if (i + next(flips)) % 997 == 0 else x for i, x in enumerate(b)))
+    time.sleep(0.4)
+    sims.proxies["left"].resume(fb)
+    bad = drv.status()["arms"]["left"]["bad_packets"]
+    assert bad > 0 and drv.mode == "streaming"
+    # replies replaced by noise: each ServoP's reply is reported malformed; three in a row are a fault
+    sims.proxies["left"].mangle(dash, lambda b: b"#?!" + b[::-1])
+    assert wait_until(lambda: drv.mode == "fault", 2.0)
+    st = drv.status()
+    assert "without a good reply" in st["fault"] and st["arms"]["left"]["malformed_replies"] >= 3
+    sims.proxies["left"].resume(dash)
+    stop.set()
+    th.join()
+    time.sleep(0.4)  # both arms braked to rest
+    steps = np.linalg.norm(np.diff(servo_positions(sims.servers["right"], t0=time.monotonic() - 0.2)[1], axis=0), axis=1)
+    assert len(steps) == 0 or steps.max() < 1e-4
+    drv.clear_fault()
+    assert wait_until(lambda: drv.mode == "holding", 2.0)
+    stream(drv, lambda t: u, 0.3)
+    assert drv.status()["counters"]["accepted"] > 0 and drv.mode in ("streaming", "holding")
+
+
+def test_arm_state_is_published_at_the_feedback_rate(rig):
+    sims, drv = rig()
+    got = {"left": [], "right": []}
+    drv.on_state = lambda s: got[s.arm].append(s)
+    drv.start()
+    got["left"].clear()
+    got["right"].clear()
+    time.sleep(1.0)
+    for a, states in got.items():
+        assert 60 <= len(states) <= 140  # 125 Hz, less whatever a loaded machine delays
+        s = states[-1]
+        assert s.enabled and not s.estopped and s.q.shape == (6,) and np.all(np.isfinite(s.tool_pose))
+        assert np.allclose(s.tool_pose[:3], home_poses()[a][:3, 3], atol=1e-4)
