@@ -2,6 +2,8 @@
 
 A periodic cubic spline through the chain of means (parametrised by chord length) is sampled
 densely; arc length along the samples places the SOI points at equal spacing from any phase.
+Hidden stretches are bridged first (polar_fill), and a warm start's phase follows the last SOI
+(following_phase).
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import BSpline, CubicSpline, splrep
+
+from bagit.services.perception.ring import plane_basis
 
 SAMPLES_PER_MEAN = 16
 
@@ -116,19 +120,17 @@ def polar_fill(mu: np.ndarray, keep: np.ndarray, normal: np.ndarray, per_gap_mea
     hidden stretch) replaced by points of a polar model of the rim fitted to the kept ones.
 
     The model, about the rim centre in the plane of `normal`: 1 / r^2 as a low-order Fourier series
-    of the angle, and the height as a (periodic) smoothing spline of the angle. 1 / r^2 of an ellipse is
-    exactly a second-order series, whatever its aspect, orientation or small centre error, so a
-    hidden tip of a long ellipse is restored where any spline across the gap would cut across or
-    overshoot it; pinched rims are close to it. The height of sagging and wavy rims is not
-    low-order in the angle (a global fit overshoots across a gap by centimetres); the local spline
-    follows the heights on either side, and its light smoothing keeps the knots' noise from
-    tilting the bridge. The model's misfit at the gap's two ends is blended linearly across the gap, so the
-    bridge leaves and rejoins the seen rim without a step. Returns None when the kept means do not
-    turn once monotonically about the centre (not star-shaped) or the model is not a closed curve
-    there (the caller then bridges with the arc-length spline).
+    of the angle, and the height as a (periodic) smoothing spline of the angle. 1 / r^2 of an
+    ellipse is exactly a second-order series, whatever its aspect, orientation or small centre
+    error, so a hidden tip of a long ellipse is restored where any spline across the gap would cut
+    across or overshoot it; pinched rims are close to it. The height of sagging and wavy rims is
+    not low-order in the angle (a global fit overshoots across a gap by centimetres); the local
+    spline follows the heights on either side, and its light smoothing keeps the knots' noise from
+    tilting the bridge. The model's misfit at the gap's two ends is blended linearly across the
+    gap, so the bridge leaves and rejoins the seen rim without a step. Returns None when the kept
+    means do not turn once monotonically about the centre (not star-shaped) or the model is not a
+    closed curve there (the caller then bridges with the arc-length spline).
     """
-    from bagit.services.perception.ring import plane_basis
-
     idx = np.flatnonzero(keep)
     if len(idx) < 2 * HARMONICS + 2:
         return None
@@ -147,7 +149,8 @@ def polar_fill(mu: np.ndarray, keep: np.ndarray, normal: np.ndarray, per_gap_mea
     # FITPACK's periodic smoothing spline, smoothed down to the knots' noise level.
     with warnings.catch_warnings():  # FITPACK warns when it cannot reach s exactly (rims far off bag size)
         warnings.simplefilter("ignore", RuntimeWarning)
-        tck = splrep(np.concatenate([a, [a[0] + 2 * np.pi]]), np.concatenate([h, h[:1]]), s=len(a) * HEIGHT_NOISE_M**2, per=True)
+        a_closed, h_closed = np.concatenate([a, [a[0] + 2 * np.pi]]), np.concatenate([h, h[:1]])
+        tck = splrep(a_closed, h_closed, s=len(a) * HEIGHT_NOISE_M**2, per=True)
     height = BSpline(*tck, extrapolate="periodic")
 
     def model(angle: np.ndarray) -> np.ndarray | None:  # (n,) -> (n, 2): radius, height

@@ -35,7 +35,8 @@ def load_cloud(path: str | Path) -> np.ndarray:
         try:
             a = np.load(p, allow_pickle=False)
         except (ValueError, OSError, EOFError) as e:
-            raise BadCloud(f"cannot read {p} as a numpy array: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+            reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise BadCloud(f"cannot read {p} as a numpy array: {reason}") from None
         if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiu":
             raise BadCloud(f"{p}: expected a numeric array, got dtype {getattr(a, 'dtype', type(a))}")
     else:

@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BadCloud
 from bagit.common.geometry import align_cyclic, closed_polyline_length, pca, resample_closed
-from bagit.services.perception.cleanup import GATE_M, clean_cloud, crop_near, gate_near, subsample, validate_cloud, voxel_down
+from bagit.services.perception.cleanup import GATE_M, clean_cloud, crop_near, gate_near, subsample, validate_cloud
 from bagit.services.perception.curve import ClosedCurve, following_phase, polar_fill
 from bagit.services.perception.em import ChainFit, bending_matrix, bridge, chain_em
 from bagit.services.perception.ring import is_counter_clockwise, plane_angles, rim_plane, ring_init
@@ -45,7 +45,9 @@ class SoiParams(BaseModel):
     starved_fraction: float = Field(0.2, ge=0.0, lt=1.0, description="support below this share of the median: starved")
     stray_spacing: float = Field(0.5, gt=0.0, description="off the neighbours' curve by this many spacings: a stray")
     min_supported: float = Field(0.5, gt=0.0, le=1.0, description="share of components that must hold points")
-    max_length_change: float = Field(0.3, gt=0.0, description="warm start: a rim whose length changed more is refitted cold")
+    max_length_change: float = Field(
+        0.3, gt=0.0, description="warm start: a rim whose length changed by more than this share is refitted cold"
+    )
     gate_m: float = Field(GATE_M, gt=0.0, le=1.0, description="warm start: ignore points this far from the last SOI")
 
 
