@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BadCloud
 from bagit.common.geometry import align_cyclic, closed_polyline_length, pca, resample_closed
-from bagit.services.perception.cleanup import GATE_M, clean_cloud, crop_near, gate_near, subsample, validate_cloud
+from bagit.services.perception.cleanup import GATE_M, MAX_COORDINATE_M, clean_cloud, crop_near, gate_near, subsample, validate_cloud
 from bagit.services.perception.curve import ClosedCurve, following_phase, polar_fill
 from bagit.services.perception.em import ChainFit, bending_matrix, bridge, chain_em
 from bagit.services.perception.ring import is_counter_clockwise, plane_angles, rim_plane, ring_init
@@ -101,6 +101,8 @@ def _checked(a: object, shape: tuple[int, ...], what: str) -> np.ndarray | None:
         raise BadCloud(f"{what} is not numeric") from None
     if arr.shape != shape or not np.all(np.isfinite(arr)):
         raise BadCloud(f"{what} must be a finite array of shape {shape}, got shape {arr.shape}")
+    if np.abs(arr).max() > MAX_COORDINATE_M:
+        raise BadCloud(f"{what} has coordinates beyond {MAX_COORDINATE_M:.0f} m")
     if what == "init" and closed_polyline_length(arr) <= 0:
         raise BadCloud("init has all its points at one place")
     return arr
