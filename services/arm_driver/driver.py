@@ -103,7 +103,7 @@ class ArmDriver:
         self._reset_asked = -np.inf  # when the restart was first possible (it waits for the arms to settle)
         self._last_cmd_t = -np.inf
         self._last_seq: int | None = None
-        self._in_flight: dict[str, PendingReply] = {}
+        self._in_flight: dict[str, deque[PendingReply]] = {a: deque() for a in ARMS}
         self._failed_requests = {a: 0 for a in ARMS}
         self._q_seed: dict[str, np.ndarray] = {}
         self.counters: Counter[str] = Counter()
@@ -124,6 +124,8 @@ class ArmDriver:
         """
         if self.started:
             return self
+        if self._estop:
+            raise SafetyViolation(f"the e-stop is latched ({self._estop_reason}); reset_estop() first")
         try:
             for a in ARMS:
                 self.clients[a].connect()
@@ -439,13 +441,16 @@ class ArmDriver:
 
     def _restart_from_measured(self) -> bool:
         """Reset the pipeline at rest at the measured poses; a start outside the envelope is a fault."""
-        poses = self.measured_poses()
-        if poses is None:
+        recs = {a: self.clients[a].latest()[0] for a in ARMS}
+        if any(r is None for r in recs.values()):
+            return False
+        poses = {a: self.frames[a].mount_from_pose6(recs[a]["ToolVectorActual"]) for a in ARMS}
+        q = {a: np.radians(np.asarray(recs[a]["QActual"], dtype=float)) for a in ARMS}
+        if not all(np.all(np.isfinite(poses[a])) and np.all(np.isfinite(q[a])) for a in ARMS):
+            self._set_fault("the feedback reports a non-finite pose; cannot restart from it")
             return False
         found = self.pipe.reset(poses)
-        for a in ARMS:
-            rec, _ = self.clients[a].latest()
-            self._q_seed[a] = np.radians(np.asarray(rec["QActual"], dtype=float))
+        self._q_seed = q
         self._needs_reset = False
         self._reset_asked = -np.inf
         self._stale.clear()
@@ -468,9 +473,9 @@ class ArmDriver:
                 if self._cycle(t0):
                     last_send = time.monotonic()
                     offsets.append(last_send - t0)
-            except BagItError as e:  # never let the loop die: what went wrong becomes a fault
+            except Exception as e:  # never let the loop die: whatever went wrong becomes a fault
                 with self._lock:
-                    self._set_fault(f"servo loop: {e}")
+                    self._set_fault(f"servo loop: {e if isinstance(e, BagItError) else repr(e)}")
             self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
             if t0 - next_t > 0.2 * self.period:
                 self.counters["late_cycles"] += 1
@@ -509,7 +514,7 @@ class ArmDriver:
                     sends[a] = text
         for a, text in sends.items():
             try:
-                self._in_flight[a] = self.clients[a].send(text)
+                self._in_flight[a].append(self.clients[a].send(text))
                 self.counters["servo_sent"] += 1
             except ProtocolError as e:
                 with self._lock:
@@ -538,29 +543,29 @@ class ArmDriver:
         return DobotClient.servo_text("ServoP", cr5.matrix_to_pose6(T_bf), self.servo_t, cfg.aheadtime, cfg.gain)
 
     def _check_replies(self, now: float) -> None:
-        """The previous period's ServoP replies: a refusal is a fault; missing replies add up to one."""
-        for a, p in list(self._in_flight.items()):
-            if not p.done and now - p.sent_at < self.cfg.reply_timeout_s:
-                continue
-            del self._in_flight[a]
-            c = self.clients[a]
-            try:
-                c.check(c.wait(p, timeout=0.0))
-                self._failed_requests[a] = 0
-            except CommandRejected as e:
-                with self._lock:
-                    if not self._estop:  # a ServoP that crossed the e-stop on the wire is refused: expected
-                        self._set_fault(str(e))
-            except ConnectionLost as e:
-                with self._lock:
-                    self._link_lost(a, str(e))
-            except ProtocolError as e:
-                self._failed_requests[a] += 1
-                self.counters["servo_failed"] += 1
-                self._event("servo", str(e))
-                if self._failed_requests[a] >= self.cfg.max_failed_requests:
+        """Earlier periods' ServoP replies: a refusal is a fault; missing or garbled ones add up to one."""
+        for a in ARMS:
+            queue = self._in_flight[a]
+            while queue and (queue[0].done or now - queue[0].sent_at >= self.cfg.reply_timeout_s):
+                p = queue.popleft()
+                c = self.clients[a]
+                try:
+                    c.check(c.wait(p, timeout=0.0))
+                    self._failed_requests[a] = 0
+                except CommandRejected as e:
                     with self._lock:
-                        self._set_fault(f"{a}: {self._failed_requests[a]} motion requests in a row without a good reply ({e})")
+                        if not self._estop:  # a ServoP that crossed the e-stop on the wire is refused: expected
+                            self._set_fault(str(e))
+                except ConnectionLost as e:
+                    with self._lock:
+                        self._link_lost(a, str(e))
+                except ProtocolError as e:
+                    self._failed_requests[a] += 1
+                    self.counters["servo_failed"] += 1
+                    self._event("servo", str(e))
+                    if self._failed_requests[a] >= self.cfg.max_failed_requests:
+                        with self._lock:
+                            self._set_fault(f"{a}: {self._failed_requests[a]} motion requests in a row without a good reply ({e})")
 
     def _settled(self) -> bool:
         """Both controllers report the arm idle and still, so the measured pose is where it will stay."""
@@ -611,7 +616,7 @@ class ArmDriver:
             self._links_down[arm] = why
             self.counters["links_lost"] += 1
             self._event("link_lost", f"{arm}: {why}")
-            self._in_flight.pop(arm, None)
+            self._in_flight[arm].clear()
         self.pipe.stop()
 
     def _link_back(self, arm: str) -> None:
