@@ -6,7 +6,7 @@ import pytest
 from matplotlib.path import Path as MplPath
 from scipy.spatial.transform import Rotation
 
-from bagit.common.errors import BagItError, SafetyViolation
+from bagit.common.errors import BadScenario, BagItError, SafetyViolation
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.sim.objects import ConvexPart
@@ -289,3 +289,16 @@ def test_bad_input_is_rejected(coffee):
     with pytest.raises(RuntimeError):
         w.render_rgbd(0)
     assert issubclass(SafetyViolation, BagItError)
+
+
+def test_a_start_through_the_table_or_the_object_is_a_bad_scenario(coffee):
+    low = coffee.model_dump()
+    low["bag"]["initial_rim"] = (np.asarray(low["bag"]["initial_rim"]) - [0, 0, 0.3]).tolist()
+    with pytest.raises(BadScenario, match="table"):
+        SimWorld(Scenario.from_dict(low), camera=False)
+    inside = coffee.model_dump()
+    rim = np.asarray(inside["bag"]["initial_rim"])
+    # the rim beside the box at its middle height: the bag's wall would run through the box
+    inside["bag"]["initial_rim"] = (rim - rim.mean(axis=0) + [0.09, 0.0, 0.6]).tolist()
+    with pytest.raises(BadScenario, match="into the object"):
+        SimWorld(Scenario.from_dict(inside), camera=False)

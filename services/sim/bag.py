@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bagit.common.geometry import fit_plane, ramanujan_perimeter
+from bagit.common.geometry import ramanujan_perimeter
 
 N_AROUND = 24
 N_RINGS = 5
@@ -50,12 +50,6 @@ def rim_frame(center: np.ndarray, normal: np.ndarray | None = None) -> np.ndarra
     T[:3, :3] = np.column_stack([ex, ey, n])
     T[:3, 3] = center
     return T
-
-
-def rim_frame_from_points(rim: np.ndarray) -> np.ndarray:
-    """The rim frame of a given rim polyline `(m, 3)` (e.g. the scenario's g0): its centroid and plane."""
-    c, n, _ = fit_plane(np.asarray(rim, dtype=float))
-    return rim_frame(c, n)
 
 
 def mount_rotation(frame: np.ndarray, side: str) -> np.ndarray:

@@ -18,7 +18,7 @@ from dataclasses import dataclass  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bagit.common.errors import BadControlInput, SafetyViolation  # noqa: E402
+from bagit.common.errors import BadControlInput, BadScenario, SafetyViolation  # noqa: E402
 from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed  # noqa: E402
 from bagit.common.messages import RgbdFrame  # noqa: E402
 from bagit.common.rig import ARMS, RigConfig  # noqa: E402
@@ -90,13 +90,14 @@ class SimWorld:
         g0 = scenario.bag.g0()
         if g0 is not None:
             # At g0's centroid, level: the bag hangs from mounts at one height (perception's solid-bag
-            # segmenter expects a level rim; rim_frame_from_points(g0) would give g0's own tilt).
+            # segmenter expects a level rim, so g0's own tilt is not reproduced).
             frame = rim_frame(g0.mean(axis=0))
         else:
             pts = np.vstack([p.points for p in object_parts(scenario.object)])
             c = pts[:, :2].mean(axis=0) + [RIM_BESIDE_OBJECT_M, 0.0]
             frame = rim_frame(np.append(c, pts[:, 2].min() - RIM_BELOW_OBJECT_M))
         self.layout: BagLayout = bag_layout(R, scenario.bag.depth, frame)
+        self._check_start(scenario)
         self.model = mujoco.MjModel.from_xml_string(build_mjcf(scenario, self.rig, self.layout))
         self.data = mujoco.MjData(self.model)
         self._mocap = {name: int(self.model.body(f"mount_{name}").mocapid[0]) for name in ARMS}
@@ -113,6 +114,18 @@ class SimWorld:
         self._renderer: RgbdRenderer | None = None
         self.noise = DepthNoise()
         mujoco.mj_forward(self.model, self.data)
+
+    def _check_start(self, scenario: Scenario) -> None:
+        """The bag must start clear of the table and of the object, or nothing that follows is physical."""
+        v = self.layout.vertices
+        if v[:, 2].min() < self.rig.table_height + 0.005:
+            raise BadScenario(
+                f"{scenario.name}: the bag ({scenario.bag.depth:.2f} m deep) hanging from its start rim at z = "
+                f"{v[self.layout.rim, 2].mean():.2f} m would reach through the table at z = {self.rig.table_height:.2f} m"
+            )
+        inside = max(float(p.depth(v).max()) for p in object_parts(scenario.object))
+        if inside > 0:
+            raise BadScenario(f"{scenario.name}: the bag's start shape cuts {inside * 1000:.0f} mm into the object; start the rim clear of it")
 
     # -- physics -----------------------------------------------------------------------------
 
