@@ -17,7 +17,6 @@ import numpy as np
 from bagit.common import dobot
 from bagit.common.geometry import invert_transform
 from bagit.common.rig import ARMS, RigConfig
-from bagit.services.sim.bag import mount_rotation
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
 from bagit.services.sim.rig_sim import natural_ik
@@ -28,13 +27,14 @@ HOME_HALF_SEPARATION = 0.106
 
 
 def home_poses(centre: np.ndarray = HOME_CENTRE, half_sep: float = HOME_HALF_SEPARATION) -> dict[str, np.ndarray]:
-    """'left'/'right' -> 4x4 world <- mount, as the simulated bag's layout places them."""
-    frame = np.eye(4)
-    frame[:3, 3] = centre
+    """'left'/'right' -> 4x4 world <- mount, as the simulated bag's layout places them on a level rim:
+    each mount's z (the tool axis) points along world y into the bag, its y points down."""
     out = {}
     for name, s in (("left", -1.0), ("right", 1.0)):
+        z = np.array([0.0, -s, 0.0])
+        x = np.array([-s, 0.0, 0.0])
         T = np.eye(4)
-        T[:3, :3] = mount_rotation(frame, name)
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
         T[:3, 3] = centre + [0.0, s * half_sep, 0.0]
         out[name] = T
     return out

@@ -1,0 +1,236 @@
+"""Jerk-limited streaming of both arms' mount poses with one 12-DoF Ruckig instance.
+
+Why one instance of 12 DoF: with Ruckig's time synchronisation both arms reach each target at
+the same instant, so the rim is never stretched by one arm running ahead of the other, and both
+arms stop together.
+
+The DoFs per arm are the mount position (x, y, z, world, m) and its orientation as a rotation
+vector r with R = exp(r) R_now (world frame, rad). The orientation coordinates are re-based on the
+current orientation every cycle: at r = 0 the rotation vector's rate is exactly the angular
+velocity and its second derivative exactly the angular acceleration, so Ruckig's limits are the
+true angular limits and no Euler-angle wrap can occur. After a step the new state is mapped back
+with the SO(3) left Jacobian (omega = J_l(r) r_dot).
+
+Limits come from `SafetyLimits` and are applied per axis divided by sqrt(3), so that the norm of
+the velocity, acceleration and jerk vectors never exceeds the configured Cartesian limit whatever
+the direction of motion. (The controller's own increments stay far below: 5 cm/s per axis.)
+
+`TargetIntegrator` turns the controller's increments into targets: a `Command` moves the target
+by u over its `dt`, linearly, starting when it arrives; a new command first completes the previous
+one, so every increment is applied exactly once. Positions add, rotations compose
+(R <- exp(drv) R, about world axes, as the controller's own model does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+
+from bagit.common.rig import SafetyLimits
+from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
+from bagit.services.arm_driver.so3 import left_jacobian, rotvec_between, so3_exp
+
+N_DOF = 12
+SQRT3 = float(np.sqrt(3.0))
+
+
+@dataclass
+class StreamStep:
+    """One cycle's output: the mount poses to command and the trajectory state behind them.
+
+    `velocity`, `acceleration (2, 6)`: per arm [linear (m/s, m/s^2), angular (rad/s, rad/s^2)], world.
+    """
+
+    poses: Poses
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    at_rest: bool
+    error: str | None = None
+
+
+class Streamer:
+    """Ruckig over both arms' mount poses; one `step` per servo period.
+
+    Modes: 'idle' (at rest, nothing to stream), 'position' (tracking a target pose),
+    'stopping' (velocity target zero, Ruckig's velocity interface, until at rest).
+    """
+
+    def __init__(self, limits: SafetyLimits, period: float):
+        if not period > 0:
+            raise ValueError(f"period must be > 0, got {period}")
+        self.period = float(period)
+        self._otg = Ruckig(N_DOF, self.period)
+        self._inp = InputParameter(N_DOF)
+        self._out = OutputParameter(N_DOF)
+        lin = [limits.max_tcp_speed_mps / SQRT3, limits.max_tcp_accel_mps2 / SQRT3, limits.max_tcp_jerk_mps3 / SQRT3]
+        ang = [limits.max_angular_speed_rps / SQRT3, limits.max_angular_accel_rps2 / SQRT3, limits.max_angular_jerk_rps3 / SQRT3]
+        per_arm = [lin] * 3 + [ang] * 3
+        lim = np.array(per_arm * 2)  # (12, 3)
+        self.max_velocity, self.max_acceleration, self.max_jerk = lim[:, 0], lim[:, 1], lim[:, 2]
+        self._inp.max_velocity = self.max_velocity.tolist()
+        self._inp.max_acceleration = self.max_acceleration.tolist()
+        self._inp.max_jerk = self.max_jerk.tolist()
+        self._inp.synchronization = Synchronization.Time
+        self.mode = "idle"
+        self.p = np.zeros((2, 3))
+        self.R = np.tile(np.eye(3), (2, 1, 1))
+        self.vel = np.zeros((2, 6))  # [v, omega] per arm
+        self.acc = np.zeros((2, 6))
+        self.errors = 0
+
+    # -- state -----------------------------------------------------------------------------------
+
+    def reset(self, poses: Poses) -> None:
+        """At rest at `poses`, nothing to do until a target or a stop."""
+        self.p, self.R = poses_to_arrays(poses)
+        self.vel[:] = 0.0
+        self.acc[:] = 0.0
+        self.mode = "idle"
+
+    def poses(self) -> Poses:
+        return arrays_to_poses(self.p, self.R)
+
+    @property
+    def at_rest(self) -> bool:
+        return bool(np.all(self.vel == 0.0) and np.all(self.acc == 0.0))
+
+    def track(self) -> None:
+        """Follow targets from now on (a new command stream)."""
+        self.mode = "position"
+
+    def begin_stop(self) -> None:
+        """Brake to rest with Ruckig (velocity and acceleration targets zero), then go idle."""
+        if self.mode != "idle":
+            self.mode = "idle" if self.at_rest else "stopping"
+
+    def sync(self, sent: Poses, previous: Poses, dt: float) -> None:
+        """Take the pose actually sent (after the safety gate changed it) as the trajectory's state.
+
+        The velocity becomes the step's average, clipped to the limits, the acceleration zero: a kink
+        the gate caused and reported, after which the trajectory carries on smoothly from the truth.
+        """
+        p, R = poses_to_arrays(sent)
+        pp, Rp = poses_to_arrays(previous)
+        v = np.zeros((2, 6))
+        for i in range(2):
+            v[i, :3] = (p[i] - pp[i]) / dt
+            v[i, 3:] = rotvec_between(Rp[i], R[i]) / dt
+        lim = self.max_velocity.reshape(2, 6)
+        self.p, self.R = p, R
+        self.vel = np.clip(v, -lim, lim)
+        self.acc[:] = 0.0
+
+    # -- one cycle -------------------------------------------------------------------------------
+
+    def _set_current(self) -> None:
+        zeros = np.zeros(3)
+        self._inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
+        self._inp.current_velocity = self.vel.ravel().tolist()
+        self._inp.current_acceleration = self.acc.ravel().tolist()
+
+    def step(self, target: Poses | None = None) -> StreamStep:
+        """Advance one period towards `target` (mode 'position') or towards rest (mode 'stopping')."""
+        if self.mode == "idle":
+            return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), True)
+        self._set_current()
+        inp = self._inp
+        if self.mode == "position":
+            if target is None:
+                raise ValueError("a tracking step needs a target")
+            tp, tR = poses_to_arrays(target)
+            r = [rotvec_between(self.R[i], tR[i]) for i in range(2)]
+            inp.control_interface = ControlInterface.Position
+            inp.target_position = np.concatenate([tp[0], r[0], tp[1], r[1]]).tolist()
+        else:
+            inp.control_interface = ControlInterface.Velocity
+        inp.target_velocity = [0.0] * N_DOF
+        inp.target_acceleration = [0.0] * N_DOF
+        error = None
+        try:
+            result = self._otg.update(inp, self._out)
+        except RuntimeError as e:  # ruckig raises on input it refuses outright
+            result, error = Result.Error, str(e)
+        if result not in (Result.Working, Result.Finished):
+            return self._fail(error or f"ruckig returned {result.name}")
+        self._apply(np.asarray(self._out.new_position), np.asarray(self._out.new_velocity), np.asarray(self._out.new_acceleration))
+        finished = result == Result.Finished
+        if finished and self.mode == "stopping":
+            self.vel[:] = 0.0
+            self.acc[:] = 0.0
+            self.mode = "idle"
+        return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), self.at_rest)
+
+    def _apply(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:
+        pos, vel, acc = pos.reshape(2, 6), vel.reshape(2, 6), acc.reshape(2, 6)
+        for i in range(2):
+            r = pos[i, 3:]
+            J = left_jacobian(r)
+            self.p[i] = pos[i, :3]
+            self.R[i] = so3_exp(r) @ self.R[i]
+            self.vel[i, :3], self.vel[i, 3:] = vel[i, :3], J @ vel[i, 3:]
+            self.acc[i, :3], self.acc[i, 3:] = acc[i, :3], J @ acc[i, 3:]
+
+    def _fail(self, why: str) -> StreamStep:
+        """Ruckig refused: brake if we were tracking; if even braking fails, hold where we are."""
+        self.errors += 1
+        if self.mode == "position":
+            self.mode = "stopping"
+            out = self.step()
+            out.error = why
+            return out
+        self.vel[:] = 0.0
+        self.acc[:] = 0.0
+        self.mode = "idle"
+        return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), True, error=why)
+
+
+class TargetIntegrator:
+    """The target pose both arms stream to, built from the controller's increments.
+
+    The committed target holds every increment already completed; the active segment moves the
+    target from `start` to `end` linearly over its `dt`, from the time its command arrived.
+    """
+
+    def __init__(self) -> None:
+        self.start_p = np.zeros((2, 3))
+        self.start_R = np.tile(np.eye(3), (2, 1, 1))
+        self.end_p = self.start_p.copy()
+        self.end_R = self.start_R.copy()
+        self.t0 = 0.0
+        self.dt = 1.0
+        self._rv = np.zeros((2, 3))  # end = exp(rv) start
+
+    def reset(self, poses: Poses) -> None:
+        p, R = poses_to_arrays(poses)
+        self.start_p, self.start_R = p, R
+        self.end_p, self.end_R = p.copy(), R.copy()
+        self._rv = np.zeros((2, 3))
+        self.t0, self.dt = 0.0, 1.0
+
+    def end(self) -> Poses:
+        """Where the target will be once the active segment completes."""
+        return arrays_to_poses(self.end_p, self.end_R)
+
+    def proposed_end(self, u: np.ndarray) -> Poses:
+        """The end pose after increment `u (12,)` on top of the current end (not applied)."""
+        p = self.end_p + u.reshape(2, 6)[:, :3]
+        R = np.stack([so3_exp(u.reshape(2, 6)[i, 3:]) @ self.end_R[i] for i in range(2)])
+        return arrays_to_poses(p, R)
+
+    def add(self, end: Poses, dt: float, now: float) -> None:
+        """Complete the active segment, then move towards `end` over `dt` seconds from `now`."""
+        self.start_p, self.start_R = self.end_p.copy(), self.end_R.copy()
+        self.end_p, self.end_R = poses_to_arrays(end)
+        self._rv = np.stack([rotvec_between(self.start_R[i], self.end_R[i]) for i in range(2)])
+        self.t0, self.dt = float(now), float(dt)
+
+    def target(self, t: float) -> Poses:
+        """The target pose at time `t`."""
+        f = min(max((t - self.t0) / self.dt, 0.0), 1.0)
+        if f >= 1.0:
+            return self.end()
+        p = self.start_p + f * (self.end_p - self.start_p)
+        R = np.stack([so3_exp(f * self._rv[i]) @ self.start_R[i] for i in range(2)])
+        return arrays_to_poses(p, R)
