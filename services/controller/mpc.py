@@ -10,8 +10,9 @@ so a tick costs a 12T x 12T dense solve whatever n_x is (`prediction_matrices` b
 paper's A and B explicitly, for reference and tests). Constraints: C7 boxes on every input (speed
 limits x dt, translation and rotation separately); C6 the grippers' separation along their
 current axis within [d_min, d_max] at every step of the horizon, as linear rows on the cumulative
-inputs (the fabric rim cannot be pulled further apart than about half its perimeter, the mounts
-must not collide). Only the first input is applied.
+inputs: the fabric rim cannot be pulled further apart than about half its perimeter, and held
+closer than the subgoal's shape needs it goes slack and folds in (see ServoBase.separation_band).
+Only the first input is applied.
 
 PIQP is an interior-point solver and takes no primal start in its Python API (v0.7), so the
 "warm start" it can use is its set-up: the KKT structure and workspace are kept between ticks and
@@ -28,9 +29,14 @@ import numpy as np
 import piqp
 import scipy.sparse as sp
 
+from bagit.common.geometry import pca
 from bagit.common.params import MethodParams
+from bagit.services.controller import servo as servo_mod
 from bagit.services.controller.servo import ServoBase
 
+# Q on the error out of the subgoal's plane, relative to in it. 1 is the paper's Q = qI; 0.3 was
+# measured worse in the simulator (with the sag no longer weighed, the grippers ran apart to C6's limit).
+OUT_OF_PLANE_WEIGHT = 1.0
 ROTATION_COST_FACTOR = 10.0  # a mount's turn moves the rim little: spend it only where it pays
 POSITION_COLUMNS = (0, 1, 2, 6, 7, 8)  # left and right gripper translation inside u (12,)
 
@@ -61,12 +67,30 @@ def rotation_weighted_r(r: float, horizon: int) -> np.ndarray:
     return r * np.tile(per_tick, horizon)
 
 
+def plane_weight(target: np.ndarray, out_of_plane: float) -> np.ndarray:
+    """W `(3, 3)` = I - (1 - out_of_plane) n nᵀ with n the normal of the subgoal `target (3 n_x,)`:
+    whether the object passes is decided in the rim's plane, while the sag of the free fabric out of
+    it is neither harmful nor in the arms' power to remove."""
+    pts = np.asarray(target, dtype=float).reshape(-1, 3)
+    n = pca(pts)[2][-1]
+    return np.eye(3) - (1.0 - out_of_plane) * np.outer(n, n)
+
+
 def separation_gradient(axis: np.ndarray) -> np.ndarray:
     """d(separation)/du `(12,)`: the change of the grippers' distance along the unit `axis (3,)` (left -> right)."""
     a = np.zeros(12)
     a[0:3] = -axis
     a[6:9] = axis
     return a
+
+
+def separation_bounds(sep_now: float, limits: tuple[float, float], recover: float, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds `(T,)`, `(T,)` on the separation change after k+1 steps: inside the band `limits` it may
+    move anywhere in it; outside, it must come back by at least `recover` per step (0: no worse)."""
+    k = np.arange(1, horizon + 1)
+    lo = np.minimum(limits[0] - sep_now, k * recover)
+    hi = np.maximum(limits[1] - sep_now, -k * recover)
+    return lo, np.maximum(hi, lo)
 
 
 class MpcSolver:
@@ -109,10 +133,16 @@ class MpcSolver:
         self._has_g: bool | None = None
         self.last: MpcSolution | None = None
 
-    def condensed(self, J: np.ndarray, x: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """H `(12T, 12T)` and c `(12T,)` of the condensed cost for `J (3 n_x, 12)`, `x`, `target (3 n_x,)`."""
-        H = self.q * np.kron(self._LtL, J.T @ J) + self._R
-        c = self.q * np.outer(self._Lt1, J.T @ (x - target)).ravel()
+    def condensed(
+        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, point_weight: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """H `(12T, 12T)` and c `(12T,)` of the condensed cost for `J (3 n_x, 12)`, `x`, `target (3 n_x,)`.
+
+        point_weight `(3, 3)`: Q = q (I_{n_x} ⊗ W) instead of q I, the same symmetric weight on every
+        point's (x, y, z) error (e.g. less on the direction out of the rim's plane)."""
+        WJ = J if point_weight is None else np.einsum("ab,ibk->iak", point_weight, J.reshape(-1, 3, J.shape[1])).reshape(J.shape)
+        H = self.q * np.kron(self._LtL, J.T @ WJ) + self._R
+        c = self.q * np.outer(self._Lt1, WJ.T @ (x - target)).ravel()
         return H, c
 
     def separation_rows(self, axis: np.ndarray) -> np.ndarray:
@@ -128,12 +158,15 @@ class MpcSolver:
         sep_axis: np.ndarray | None = None,
         sep_now: float = 0.0,
         sep_limits: tuple[float, float] = (0.0, np.inf),
+        sep_recover: float = 0.0,
+        point_weight: np.ndarray | None = None,
     ) -> MpcSolution:
         """Inputs for the SOI `x (3 n_x,)` to reach `target (3 n_x,)` under the model `J (3 n_x, 12)`.
 
         `u_max (12,)`: C7 bound per input per tick. `sep_axis (3,)`: unit vector from the left to the
         right gripper; the separation along it stays within `sep_limits` over the horizon (C6). If the
-        grippers are already outside that band the rows only ask for no worse.
+        grippers are already outside that band they must head back by `sep_recover` (m) per step
+        (0: only no worse), never faster than the band asks. `point_weight (3, 3)`: see `condensed`.
         """
         T = self.T
         t0 = time.perf_counter()
@@ -143,15 +176,14 @@ class MpcSolver:
         zeros = np.zeros(12 * T)
         if not (np.all(np.isfinite(J)) and np.all(np.isfinite(x)) and np.all(np.isfinite(target))):
             return self._fail(zeros, t0, "non-finite model or SOI")
-        H, c = self.condensed(J, x, target)
+        H, c = self.condensed(J, x, target, point_weight)
         ub = np.tile(np.asarray(u_max, dtype=float), T)
         lb = -ub
         has_g = sep_axis is not None
         G = hl = hu = None
         if has_g:
             a = separation_gradient(np.asarray(sep_axis, dtype=float))
-            hl = np.minimum(np.full(T, sep_limits[0] - sep_now), 0.0)
-            hu = np.maximum(np.full(T, sep_limits[1] - sep_now), 0.0)
+            hl, hu = separation_bounds(sep_now, sep_limits, sep_recover, T)
             G = a[self._g_pos]  # the values on the fixed pattern
         if self._solver is None or has_g != self._has_g:
             self._setup(H, c, G, hl, hu, lb, ub)
@@ -248,9 +280,9 @@ def uncondensed_qp(
     gk, gj = np.nonzero(np.tril(np.ones((T, T))))
     g_rows = np.repeat(gk, len(POSITION_COLUMNS))
     g_cols = n * T + (12 * gj[:, None] + np.asarray(POSITION_COLUMNS)[None, :]).ravel()
-    G = sp.csc_matrix((a[g_cols - n * T - 12 * np.repeat(gj, len(POSITION_COLUMNS))], (g_rows, g_cols)), shape=(T, n * T + 12 * T))
-    h_l = np.minimum(np.full(T, sep_limits[0] - sep_now), 0.0)
-    h_u = np.maximum(np.full(T, sep_limits[1] - sep_now), 0.0)
+    g_vals = a[np.tile(POSITION_COLUMNS, len(gj))]
+    G = sp.csc_matrix((g_vals, (g_rows, g_cols)), shape=(T, n * T + 12 * T))
+    h_l, h_u = separation_bounds(sep_now, sep_limits, 0.0, T)
     ub = np.concatenate([np.full(n * T, np.inf), np.tile(np.asarray(u_max, float), T)])
     lb = np.concatenate([np.full(n * T, -np.inf), -np.tile(np.asarray(u_max, float), T)])
     return {"P": P, "c": c, "A": A, "b": b, "G": G, "h_l": h_l, "h_u": h_u, "x_l": lb, "x_u": ub}
@@ -272,7 +304,9 @@ class MpcController(ServoBase):
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
         sep = float(np.linalg.norm(pr - pl))
         axis = (pr - pl) / max(sep, 1e-9)
-        sol = self.solver.solve(J, x, target, self.u_max, axis, sep, self.sep_limits)
+        band = self.separation_band(target, axis)
+        W = plane_weight(target, OUT_OF_PLANE_WEIGHT) if OUT_OF_PLANE_WEIGHT != 1.0 else None
+        sol = self.solver.solve(J, x, target, self.u_max, axis, sep, band, servo_mod.SEP_RECOVER_M, W)
         if not sol.ok:
             return np.zeros(12), sol.solve_ms, f"MPC QP not solved ({sol.status})"
         return sol.u, sol.solve_ms, None
