@@ -6,7 +6,7 @@ Offline (no sockets), per servo period for both arms:
   reach       the driver's IK check of both targets (bagit.common.cr5.ik, on by default)
   cycle       all of it, as the servo loop runs it (steady 30 Hz stream of increments)
 Live, against two simulated CR5 controllers on loopback:
-  loop        the driver's measured compute per cycle and its period while streaming
+  loop        the driver's measured compute per cycle, and the interval between its ServoPs
   estop       from `estop()` to each controller logging EmergencyStop(1)
 
     python -m bagit.bench.arm_driver [--quick]
@@ -128,7 +128,7 @@ def _live(seconds: float, estops: int) -> dict:
         drv = ArmDriver(rig, DriverConfig(feedback_timeout_s=0.5)).start()
         try:
             drv.cycle_ms.clear()
-            drv.cycle_starts.clear()
+            drv.send_times.clear()
             t0, k = time.monotonic(), 0
             while time.monotonic() - t0 < seconds:
                 u = np.zeros(12)
@@ -137,7 +137,7 @@ def _live(seconds: float, estops: int) -> dict:
                 k += 1
                 time.sleep(max(0.0, t0 + k / 30 - time.monotonic()))
             cycle = stats_ms(list(drv.cycle_ms))
-            period = stats_ms(np.diff(np.array(drv.cycle_starts)) * 1000.0)
+            period = stats_ms(np.diff(np.array(drv.send_times)) * 1000.0)
             for _ in range(estops):
                 t_call = time.monotonic()
                 drv.estop("bench")
@@ -150,7 +150,7 @@ def _live(seconds: float, estops: int) -> dict:
     finally:
         for s in servers.values():
             s.stop()
-    return {"loop_cycle": cycle, "loop_period": period, **{f"estop_{a}": stats_ms(latency[a]) for a in ARMS}}
+    return {"loop_cycle": cycle, "servo_interval": period, **{f"estop_{a}": stats_ms(latency[a]) for a in ARMS}}
 
 
 def run(quick: bool = False) -> dict:

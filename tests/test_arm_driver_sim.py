@@ -182,6 +182,8 @@ def test_streamed_commands_are_jerk_limited_as_received_and_in_the_feedback(rig)
             fb_acc = np.linalg.norm(vel[j[ok]] - vel[ok], axis=1) / (tsim[j[ok]] - tsim[ok])
             assert fb_acc.max() <= 1.2 * lim.max_tcp_accel_mps2, fb_acc.max()
         assert drv.status()["violations"] == {}
+        # ServoP no faster than every servo period (Dobot's rule for ServoP: 30 ms)
+        assert np.diff(np.array(drv.send_times)).min() >= drv.period - 1e-3
     finally:
         for r in rec.values():
             r.close()

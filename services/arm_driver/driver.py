@@ -104,6 +104,7 @@ class ArmDriver:
         self._last_cmd_t = -np.inf
         self._last_seq: int | None = None
         self._in_flight: dict[str, deque[PendingReply]] = {a: deque() for a in ARMS}
+        self._last_send = -np.inf
         self._failed_requests = {a: 0 for a in ARMS}
         self._q_seed: dict[str, np.ndarray] = {}
         self.counters: Counter[str] = Counter()
@@ -113,6 +114,7 @@ class ArmDriver:
         self.last_violations: list[str] = []
         self.cycle_ms: deque[float] = deque(maxlen=1000)  # compute time of each cycle
         self.cycle_starts: deque[float] = deque(maxlen=1000)  # monotonic start of each cycle
+        self.send_times: deque[float] = deque(maxlen=1000)  # when each period's motion commands went out
 
     # -- life cycle ------------------------------------------------------------------------------
 
@@ -408,6 +410,7 @@ class ArmDriver:
             cycle = np.array(self.cycle_ms) if self.cycle_ms else np.zeros(1)
             starts = np.array(self.cycle_starts)
             period = np.diff(starts) * 1000.0 if len(starts) > 1 else np.zeros(1)
+            sends = np.diff(np.array(self.send_times)) * 1000.0 if len(self.send_times) > 1 else np.zeros(1)
             return {
                 "mode": self.mode,
                 "estop": {"latched": self._estop, "reason": self._estop_reason, "unconfirmed": sorted(self._estop_unconfirmed)},
@@ -419,6 +422,7 @@ class ArmDriver:
                 "last_violations": list(self.last_violations),
                 "cycle_ms": {"median": float(np.median(cycle)), "max": float(cycle.max())},
                 "period_ms": {"median": float(np.median(period)), "max": float(period.max())},
+                "send_interval_ms": {"min": float(sends.min()), "median": float(np.median(sends))},
                 "arms": {a: {**self.clients[a].stats(), "feedback_age_s": self.clients[a].feedback_age()} for a in ARMS},
                 "events": [f"{t:.3f} {k}: {d}" for t, k, d in list(self.events)[-20:]],
             }
@@ -464,26 +468,26 @@ class ArmDriver:
 
     def _loop(self) -> None:
         next_t = time.monotonic()
-        last_send = -np.inf
         offsets: deque[float] = deque([0.0], maxlen=50)  # when in its cycle the commands go out
         while not self._stop.is_set():
             t0 = time.monotonic()
             self.cycle_starts.append(t0)
             try:
                 if self._cycle(t0):
-                    last_send = time.monotonic()
-                    offsets.append(last_send - t0)
+                    offsets.append(self._last_send - t0)
             except Exception as e:  # never let the loop die: whatever went wrong becomes a fault
                 with self._lock:
                     self._set_fault(f"servo loop: {e if isinstance(e, BagItError) else repr(e)}")
             self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
             if t0 - next_t > 0.2 * self.period:
                 self.counters["late_cycles"] += 1
-            # Never catch up after a late cycle or a slow send: two ServoPs closer than a period would
-            # make the controller cover a step in less than its `t` (Dobot: no faster than every
-            # 30 ms). A late cycle shifts the schedule; the trajectory runs slightly slower, never faster.
+            # Never catch up after a late cycle: two ServoPs closer than a period would make the
+            # controller cover a step in less than its `t` (Dobot: no faster than every 30 ms). A late
+            # cycle shifts the schedule (the trajectory runs slightly slower, never faster), and the
+            # next cycle starts so that its commands go out about a period after the last ones
+            # (`_cycle` itself waits out any remainder before sending).
             offset = min(float(np.median(offsets)), 0.2 * self.period)
-            next_t = max(next_t + self.period, t0 + 0.5 * self.period, last_send + self.period - offset)
+            next_t = max(next_t + self.period, t0 + 0.5 * self.period, self._last_send + self.period - offset)
             delay = next_t - time.monotonic()
             if delay > 0:
                 self._stop.wait(delay)
@@ -512,6 +516,11 @@ class ArmDriver:
                 text = self._servo_text(a, tick.command[a])
                 if text is not None:
                     sends[a] = text
+        wait = self._last_send + self.period - time.monotonic()
+        if wait > 0:  # never two ServoPs less than a period apart, whatever the schedule did
+            time.sleep(wait)
+        self._last_send = time.monotonic()
+        self.send_times.append(self._last_send)
         for a, text in sends.items():
             try:
                 self._in_flight[a].append(self.clients[a].send(text))
