@@ -484,3 +484,23 @@ def test_arm_state_is_published_at_the_feedback_rate(rig):
         s = states[-1]
         assert s.enabled and not s.estopped and s.q.shape == (6,) and np.all(np.isfinite(s.tool_pose))
         assert np.allclose(s.tool_pose[:3], home_poses()[a][:3, 3], atol=1e-4)
+
+
+def test_non_finite_increments_are_refused_and_reported(rig):
+    sims, drv = rig()
+    drv.start()
+    before = mount_positions(drv)
+    bad = np.zeros(12)
+    bad[3] = np.inf
+    assert not drv.submit_increment(bad, 1 / 30)
+    assert not drv.submit(Command.model_construct(u=np.full(12, np.nan), dt=1 / 30, mode="servo", seq=1))
+    huge = np.zeros(12)
+    huge[2] = 1e9  # finite but absurd: accepted, clipped to the lead limit and the box, reported
+    assert drv.submit_increment(huge, 1 / 30)
+    assert wait_until(lambda: drv.mode == "holding", 3.0)
+    st = drv.status()
+    assert st["rejections"]["non_finite"] == 2 and st["violations"]["non_finite"] == 2
+    assert st["violations"]["lead"] >= 1 and st["counters"]["clipped"] == 1
+    after = mount_positions(drv)
+    rise = after["left"][2] - before["left"][2]
+    assert 0.0 < rise <= drv.cfg.max_target_lead_m + 1e-3 and abs(after["right"][2] - before["right"][2]) < 1e-3
