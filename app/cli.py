@@ -29,6 +29,7 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.sim",
     "bagit.commands.bench",
     "bagit.commands.router",
+    "bagit.commands.dashboard",
 ]
 
 

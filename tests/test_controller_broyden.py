@@ -136,3 +136,23 @@ def test_exploration_jacobian_of_the_synthetic_rim_is_close_to_the_true_one():
         g = apply_increment(g, u)
     J_true = _synthetic_jacobian(m, m.home())
     assert np.linalg.norm(ex.jacobian() - J_true) / np.linalg.norm(J_true) < 0.1
+
+
+def test_scaled_update_keeps_the_secant_condition_and_converges():
+    """In units of each input's limit the update still satisfies J_new u = J u + eps (s - J u), and
+    corrections no longer pile onto the inputs with the larger raw numbers (radians)."""
+    rng = np.random.default_rng(8)
+    scale = c7_limits(MethodParams())
+    J_true = rng.normal(size=(30, 12)) / scale * 1e-3  # every input moves the SOI about equally per tick
+    est = BroydenJacobian(np.zeros((30, 12)), epsilon=0.5, input_scale=scale, min_step=0.5, max_norm=1e6)
+    u = rng.normal(size=12) * scale
+    J_before = est.J.copy()
+    assert est.update(u, J_true @ u)
+    assert np.allclose(est.J @ u, J_before @ u + 0.5 * (J_true @ u - J_before @ u))
+    assert not est.update(0.1 * scale * np.eye(12)[0], np.ones(30))  # a tenth of one tick: too small to learn
+    for _ in range(800):
+        u = rng.normal(size=12) * scale
+        est.update(u, J_true @ u)
+    assert np.linalg.norm((est.J - J_true) * scale) / np.linalg.norm(J_true * scale) < 1e-3
+    with pytest.raises(ValueError):
+        BroydenJacobian(np.zeros((30, 12)), input_scale=np.zeros(12))

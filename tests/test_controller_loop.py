@@ -165,3 +165,17 @@ def test_separation_gradient_is_the_derivative_of_the_separation():
     u = rng.normal(size=12) * 1e-6
     d = np.linalg.norm(pr + u[6:9] - pl - u[0:3]) - np.linalg.norm(pr - pl)
     assert np.isclose(d, separation_gradient(axis) @ u, rtol=1e-4, atol=1e-12)
+
+
+def test_c6_lower_bound_follows_the_subgoal_held_taut():
+    """The mounts hold the rim inside its ends; a subgoal as wide as the start needs the same separation."""
+    m = SyntheticRim(32)
+    c = make_controller("mpc", P, 32)
+    g = m.home()
+    x0 = m.rim(g)
+    c.reset(x0, _path(m), g, dagger_index=5)
+    axis = np.array([0.0, 1.0, 0.0])
+    lower, upper = c.separation_band(x0.ravel(), axis)
+    assert np.isclose(lower, m.sep0 - 0.01) and np.isclose(upper, 0.9 * c.perimeter / 2)
+    narrow = x0 * [1.0, 0.8, 1.0]  # a subgoal 20 % narrower along the grippers' axis
+    assert np.isclose(c.separation_band(narrow.ravel(), axis)[0], 0.8 * m.sep0 - 0.01)

@@ -112,3 +112,38 @@ def test_bad_model_gives_no_input_instead_of_nan():
     assert not sol.ok and np.all(sol.u == 0)
     with pytest.raises(ValueError):
         MpcSolver(10, 1.0, 0.05, backend="gpu")
+
+
+def test_outside_the_c6_band_the_plan_heads_back_at_the_asked_rate():
+    from bagit.services.controller.mpc import separation_bounds
+
+    lo, hi = separation_bounds(0.15, (0.18, 0.30), 0.001, 10)
+    assert np.allclose(lo, 0.001 * np.arange(1, 11)) and np.all(hi >= lo)  # 3 cm short: +1 mm per step
+    lo, hi = separation_bounds(0.20, (0.18, 0.30), 0.001, 10)
+    assert np.allclose(lo, -0.02) and np.allclose(hi, 0.10)  # inside: anywhere in the band
+    rng = np.random.default_rng(9)
+    J, x, target, _ = _problem(rng)
+    s = MpcSolver(10, 1.0, 0.05)
+    sol = s.solve(J, x, x, U_MAX, AXIS, 0.15, (0.18, 0.30), sep_recover=0.001)  # target = here: no wish to move
+    d_sep = np.cumsum(sol.u_bar.reshape(10, 12) @ separation_gradient(AXIS))
+    assert sol.ok and np.all(d_sep >= 0.001 * np.arange(1, 11) - 1e-7)
+
+
+def test_point_weight_is_q_kron_w_in_the_papers_cost():
+    from bagit.services.controller.mpc import plane_weight
+
+    rng = np.random.default_rng(10)
+    T, q = 3, 1.5
+    t = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ring = np.stack([0.1 * np.cos(t), 0.1 * np.sin(t), np.zeros(8)], 1) @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    W = plane_weight(ring.ravel(), 0.2)
+    n = np.linalg.svd(ring - ring.mean(0))[2][-1]
+    assert np.allclose(W @ n, 0.2 * n) and np.allclose(W @ np.cross(n, ring[0]), np.cross(n, ring[0]))
+    J = rng.normal(size=(24, 12))
+    x, k = rng.normal(size=24), rng.normal(size=24)
+    s = MpcSolver(T, q, 0.1)
+    H, c = s.condensed(J, x, k, W)
+    A, B = prediction_matrices(J, T)
+    Q = q * np.kron(np.eye(8 * T), W)
+    assert np.allclose(H, B.T @ Q @ B + np.diag(s.r_diag))
+    assert np.allclose(c, B.T @ Q @ (A @ x - np.tile(k, T)))

@@ -15,7 +15,15 @@ MAX_JACOBIAN_NORM = 50.0  # Frobenius bound on J (SOI metres per input unit)
 
 
 class BroydenJacobian:
-    """J: (3 n_x, 12), updated from (u, s) pairs."""
+    """J: (3 n_x, 12), updated from (u, s) pairs.
+
+    input_scale `(12,)` (optional): the natural unit of each input, e.g. its per-tick C7 limit. The
+    rank-one update then uses the inner product that unit defines (Broyden's update is the least
+    change of J in that norm): J <- J + eps (s - J u) wᵀ / (uᵀ w), w = u / scale². Without it,
+    metres and radians are mixed in uᵀu and a step of 0.01 rad outweighs one of 1.7 mm 36 times over,
+    so every correction, noise included, lands on the rotation columns. Tiny steps are then judged in
+    those units too (`min_step` becomes a share of one full-speed tick).
+    """
 
     def __init__(
         self,
@@ -23,6 +31,7 @@ class BroydenJacobian:
         epsilon: float = 0.3,
         max_norm: float = MAX_JACOBIAN_NORM,
         min_step: float = MIN_STEP_NORM,
+        input_scale: np.ndarray | None = None,
     ):
         J0 = np.array(J0, dtype=float)
         if J0.ndim != 2 or not np.all(np.isfinite(J0)):
@@ -31,11 +40,16 @@ class BroydenJacobian:
             raise ValueError(f"Broyden rate epsilon must be in (0, 1], got {epsilon}")
         if not max_norm > 0.0:
             raise ValueError(f"max_norm must be positive, got {max_norm}")
+        if input_scale is not None:
+            input_scale = np.asarray(input_scale, dtype=float).ravel()
+            if input_scale.shape != (J0.shape[1],) or not np.all(input_scale > 0) or not np.all(np.isfinite(input_scale)):
+                raise ValueError(f"input_scale must be {J0.shape[1]} positive finite units")
         n = np.linalg.norm(J0)
         self.J = J0 * (max_norm / n) if n > max_norm else J0
         self.epsilon = epsilon
         self.max_norm = max_norm
         self.min_step = min_step
+        self.input_scale = input_scale
         self.updates = 0
         self.skipped = 0
         self.clamped = 0
@@ -46,11 +60,12 @@ class BroydenJacobian:
         s = np.asarray(s, dtype=float).ravel()
         if u.shape[0] != self.J.shape[1] or s.shape[0] != self.J.shape[0]:
             raise ValueError(f"u {u.shape} and s {s.shape} do not fit J {self.J.shape}")
-        uu = float(u @ u)
-        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(s))) or uu < self.min_step**2:
+        w = u if self.input_scale is None else u / self.input_scale**2
+        uw = float(u @ w)
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(s))) or not uw >= self.min_step**2:
             self.skipped += 1
             return False
-        J = self.J + self.epsilon * np.outer(s - self.J @ u, u) / uu
+        J = self.J + self.epsilon * np.outer(s - self.J @ u, w) / uw
         n = np.linalg.norm(J)
         if n > self.max_norm:
             J *= self.max_norm / n

@@ -26,6 +26,11 @@ EXPLORE_SETTLE_TICKS = 2  # ticks held after each push before its SOI change is 
 BROYDEN_WINDOW = 5  # ticks of input and SOI change summed per Broyden update: one tick is mostly noise
 SEPARATION_MARGIN = 0.9  # C6: the grippers stay within this share of the rim's half perimeter apart
 MIN_SEPARATION_M = 0.06  # C6: the two mounts never come closer than this
+TAUT_SEPARATION = True  # C6: ... nor closer than the subgoal's rim, held taut, needs (less TAUT_MARGIN_M)
+TAUT_MARGIN_M = 0.01
+SEP_RECOVER_M = 0.001  # outside the C6 band the grippers head back by at least this per tick
+BROYDEN_SCALED = True  # Broyden's update in units of each input's C7 limit (see BroydenJacobian)
+MIN_SCALED_STEP = 0.5  # ... and windows that moved less than half a full-speed tick are not learnt from
 GOAL_STALL_TICKS = 45  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
 
 
@@ -166,7 +171,10 @@ class ServoBase:
         self._win_n = 0
         self._goal_best = np.inf
         self._goal_since = 0
+        self._sep_offset: float | None = None
         self.ticks = 0
+        if x0 is not None and gripper_poses is not None:
+            self._learn_separation_offset(x0, gripper_poses)
         self._on_reset()
 
     def _on_reset(self) -> None:
@@ -200,6 +208,8 @@ class ServoBase:
             return self._hold(reason, np.asarray(x, dtype=float) if shaped else None)
         x = np.asarray(x, dtype=float)
         xf = x.ravel()
+        if self._sep_offset is None:
+            self._learn_separation_offset(x, gripper_poses)
         self._learn(xf)
         self._x_prev = xf
         if self.jacobian is None:
@@ -207,7 +217,11 @@ class ServoBase:
             if u is not None:
                 self._u_prev = u
                 return self._out(u, "explore", None, x)
-            self.jacobian = BroydenJacobian(self.exploration.jacobian(), self.p.epsilon)
+            J0 = self.exploration.jacobian()
+            if BROYDEN_SCALED:
+                self.jacobian = BroydenJacobian(J0, self.p.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
+            else:
+                self.jacobian = BroydenJacobian(J0, self.p.epsilon)
         idx = self.tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
@@ -226,6 +240,29 @@ class ServoBase:
         out = self._out(u, "servo", None, x)
         out.solve_ms = solve_ms
         return out
+
+    def _learn_separation_offset(self, x: np.ndarray, grippers: dict[str, np.ndarray]) -> None:
+        """How far inside the rim's ends the mounts hold it: the rim's extent along the grippers' axis
+        less their separation, from the first SOI `x (n_x, 3)` (the bag hangs taut from its mounts)."""
+        pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
+        sep = float(np.linalg.norm(pr - pl))
+        if sep > 1e-6:
+            proj = np.asarray(x, dtype=float).reshape(-1, 3) @ ((pr - pl) / sep)
+            self._sep_offset = float(proj.max() - proj.min()) - sep
+
+    def separation_band(self, target: np.ndarray, axis: np.ndarray) -> tuple[float, float]:
+        """C6 for a subgoal `target (3 n_x,)` and the grippers' unit `axis (3,)`: (lower, upper) separation.
+
+        upper: the rim cannot be pulled further apart than a share of half its perimeter. lower: a
+        rim with its mounts closer than its shape needs goes slack, and a slack fabric rim folds in
+        (the fold is what leaves an object's corner outside): the subgoal's extent along the axis,
+        less the mounts' offset inside the rim, less a margin."""
+        lower, upper = self.sep_limits
+        if TAUT_SEPARATION and self._sep_offset is not None:
+            proj = np.asarray(target, dtype=float).reshape(-1, 3) @ axis
+            taut = float(proj.max() - proj.min()) - self._sep_offset - TAUT_MARGIN_M
+            lower = float(np.clip(taut, lower, upper - TAUT_MARGIN_M))
+        return lower, upper
 
     def _learn(self, xf: np.ndarray) -> None:
         """Broyden on windows of `broyden_window` ticks: the summed input and the SOI change it caused."""

@@ -1,0 +1,106 @@
+"""A dashboard URL opened in Debian's headless Chromium, driven by Playwright (tests, benchmarks).
+
+Uses the system browser (/usr/bin/chromium, `apt-get install chromium`), never a downloaded one,
+with a fresh profile per page. Console errors and uncaught page errors are collected, so a check
+can insist on none. Playwright is a development dependency, imported only here.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]
+
+
+def chromium_available() -> bool:
+    """Whether Playwright's Python package and the system Chromium are both installed."""
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return False
+    return Path(CHROMIUM).exists()
+
+
+class BrowserPage:
+    """One headless Chromium page on `url`; `errors` collects console errors and page errors."""
+
+    def __init__(self, url: str, viewport: tuple[int, int] = (1400, 900)) -> None:
+        from playwright.sync_api import sync_playwright
+
+        self.url = url
+        self.errors: list[str] = []
+        self.console: list[tuple[str, str]] = []
+        self.context: Any = None
+        self._profile = tempfile.mkdtemp(prefix="bagit-chromium-")
+        self._pw = sync_playwright().start()
+        try:
+            self.context = self._pw.chromium.launch_persistent_context(
+                self._profile, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
+                viewport={"width": viewport[0], "height": viewport[1]},
+            )
+            self.page = self.context.new_page()
+            self.page.on("console", self._on_console)
+            self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
+            self.page.goto(url)
+        except BaseException:
+            self.close()
+            raise
+
+    def _on_console(self, m: Any) -> None:
+        if len(self.console) < 1000:
+            self.console.append((m.type, m.text))
+        if m.type == "error":
+            self.errors.append(f"console: {m.text}")
+
+    def wait_text(self, text: str, timeout_s: float = 20.0) -> None:
+        self.page.get_by_text(text).first.wait_for(timeout=timeout_s * 1000)
+
+    def click_button(self, name: str) -> None:
+        self.page.get_by_role("button", name=name, exact=True).click()
+
+    def screenshot(self, path: str | Path) -> Path:
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        self.page.screenshot(path=str(p))
+        return p
+
+    def canvas_pixels(self) -> np.ndarray:
+        """The 3-D view as an (H, W, 3) uint8 RGB array."""
+        import cv2
+
+        png = self.page.locator("canvas").first.screenshot()
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        return np.ascontiguousarray(img[:, :, ::-1])
+
+    def js_heap_mb(self) -> float | None:
+        """Chromium's used JS heap (MB), or None when the browser does not report it."""
+        v = self.page.evaluate("() => (performance.memory ? performance.memory.usedJSHeapSize : null)")
+        return None if v is None else float(v) / 1e6
+
+    def close(self) -> None:
+        try:
+            if self.context is not None:
+                self.context.close()
+        finally:
+            self._pw.stop()
+            shutil.rmtree(self._profile, ignore_errors=True)
+
+    def __enter__(self) -> "BrowserPage":
+        return self
+
+    def __exit__(self, *_: Any) -> None:
+        self.close()
+
+
+def count_color(img: np.ndarray, rgb: tuple[int, int, int] | np.ndarray, tol: int = 40) -> int:
+    """Pixels of `img (H, W, 3)` within `tol` of `rgb` in every channel."""
+    return int(np.all(np.abs(img.astype(int) - np.asarray(rgb, dtype=int)) <= tol, axis=2).sum())

@@ -1,0 +1,143 @@
+"""The dashboard on Zenoh: subscribe to the rig's keys, drive run/control and estop.
+
+The subscriber callbacks go straight to the Dashboard's `on_*` methods, which only leave the
+message for the render thread, so the Zenoh threads are never held up by drawing. The e-stop
+publisher is declared up front: pressing E-STOP is one `put` on a reliable, express, real-time key.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from bagit.common.bus import (
+    BusConfig,
+    Keys,
+    LivelinessWatcher,
+    Publisher,
+    Subscriber,
+    declare_alive,
+    open_session,
+    request_run_control,
+)
+from bagit.common.errors import BusError
+from bagit.common.messages import (
+    ArmState,
+    Command,
+    ControllerStatus,
+    EStop,
+    Goal,
+    Path,
+    PointCloud,
+    RunControl,
+    RunControlReply,
+    RunState,
+    SoiState,
+)
+from bagit.common.rig import RigConfig
+from bagit.dashboard.server import Dashboard, DashboardConfig
+
+log = logging.getLogger("bagit.dashboard")
+
+SERVICE_NAME = "dashboard"
+
+
+class ZenohRunLink:
+    """RunLink over the bus: run/control queries and puts on estop."""
+
+    def __init__(self, session: Any, keys: Keys, timeout_s: float = 5.0, source: str = SERVICE_NAME) -> None:
+        self.session = session
+        self.keys = keys
+        self.timeout_s = timeout_s
+        self.source = source
+        self._estop = Publisher(session, keys.estop, EStop)
+
+    def start(self, scenario: str | dict[str, Any], params: dict[str, Any]) -> RunControlReply:
+        if isinstance(scenario, dict):
+            req = RunControl(action="start", scenario_doc=scenario, params=params)
+        else:
+            req = RunControl(action="start", scenario=scenario, params=params)
+        return request_run_control(self.session, self.keys, req, timeout=self.timeout_s)
+
+    def stop(self) -> RunControlReply:
+        return request_run_control(self.session, self.keys, RunControl(action="stop"), timeout=self.timeout_s)
+
+    def reset(self) -> RunControlReply:
+        return request_run_control(self.session, self.keys, RunControl(action="reset"), timeout=self.timeout_s)
+
+    def estop(self, reason: str) -> None:
+        self._estop.put(EStop(engage=True, source=self.source, reason=reason))
+
+    def release_estop(self, reason: str) -> None:
+        self._estop.put(EStop(engage=False, source=self.source, reason=reason))
+
+    def close(self) -> None:
+        self._estop.close()
+
+
+class DashboardNode:
+    """A Zenoh session, the subscriptions, the liveliness token and the Dashboard they feed."""
+
+    def __init__(self, bus: BusConfig, config: DashboardConfig | None = None, rig: RigConfig | None = None,
+                 query_timeout_s: float = 5.0) -> None:
+        self.bus = bus
+        self.keys = Keys(bus.rig)
+        self.session = open_session(bus)
+        self._closers: list[Any] = []
+        try:
+            self.link = ZenohRunLink(self.session, self.keys, query_timeout_s)
+            self._closers.append(self.link)
+            self.dashboard = Dashboard(self.link, config, rig)
+            k = self.keys
+            d = self.dashboard
+            for key, msg_type, cb in (
+                (k.perception_cloud, PointCloud, d.on_cloud),
+                (k.perception_soi, SoiState, d.on_soi),
+                (k.planner_goal, Goal, d.on_goal),
+                (k.planner_path, Path, d.on_path),
+                (k.controller_cmd, Command, d.on_command),
+                (k.controller_status, ControllerStatus, d.on_controller_status),
+                (k.arm_state_any, ArmState, d.on_arm_state),
+                (k.run_state, RunState, d.on_run_state),
+                (k.estop, EStop, d.on_estop),
+            ):
+                self._closers.append(Subscriber(self.session, key, msg_type, cb))
+            self._closers.append(LivelinessWatcher(self.session, k, d.on_service))
+            self._token = declare_alive(self.session, k, SERVICE_NAME)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def url(self) -> str:
+        return self.dashboard.url
+
+    def close(self) -> None:
+        if getattr(self, "_closed", False):
+            return
+        self._closed = True
+        for c in reversed(self._closers):
+            try:
+                c.close()
+            except Exception:  # noqa: BLE001 - closing what is left
+                log.exception("closing %s failed", type(c).__name__)
+        self._closers = []
+        token = getattr(self, "_token", None)
+        if token is not None:
+            try:
+                token.undeclare()
+            except Exception:  # noqa: BLE001
+                pass
+        d = getattr(self, "dashboard", None)
+        if d is not None:
+            d.close()
+        try:
+            self.session.close()
+        except Exception as e:  # noqa: BLE001
+            raise BusError(f"closing the zenoh session failed: {e}") from None
+
+    def __enter__(self) -> "DashboardNode":
+        return self
+
+    def __exit__(self, *_: Any) -> None:
+        self.close()

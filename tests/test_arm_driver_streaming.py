@@ -1,0 +1,270 @@
+"""Ruckig streaming and the motion pipeline: jerk-limited, increments integrated exactly, rotations
+composed, smooth stops, and (property test) nothing outside the limits whatever comes in."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from bagit.common.rig import RigConfig
+from bagit.services.arm_driver.pipeline import MotionPipeline
+from bagit.services.arm_driver.safety import Envelope, violations
+from bagit.services.arm_driver.so3 import left_jacobian, rotvec_between, so3_exp, so3_log
+from bagit.services.arm_driver.streaming import Streamer, TargetIntegrator
+
+from arm_driver_support import home_poses
+
+RIG = RigConfig()
+ENV = Envelope.from_rig(RIG)
+LIM = RIG.safety
+T = LIM.servo_period_s
+
+
+def run_stream(pipe, u_per_tick, ticks, dt=1 / 30, extra=60):
+    """Submit `u_per_tick` at 30 Hz for `ticks` commands while ticking at the servo period; commanded poses."""
+    out, now, t_cmd, sent = [], 0.0, 0.0, 0
+    while sent < ticks or pipe.moving:
+        while sent < ticks and t_cmd <= now:
+            pipe.submit(u_per_tick, dt, t_cmd)
+            sent += 1
+            t_cmd += dt
+        tick = pipe.tick(now)
+        if tick.command is not None:
+            out.append(tick)
+        now += T
+        if len(out) > ticks * 2 + extra:
+            pipe.stop()
+    return out
+
+
+def positions(ticks, arm=0):
+    a = "left" if arm == 0 else "right"
+    return np.array([t.command[a][:3, 3] for t in ticks])
+
+
+def finite_difference_limits(p):
+    """Max norm of the 1st, 2nd and 3rd differences of sampled positions `(n, 3)`, in units of v, a, j."""
+    d1 = np.linalg.norm(np.diff(p, 1, axis=0), axis=1).max() / T
+    d2 = np.linalg.norm(np.diff(p, 2, axis=0), axis=1).max() / T**2
+    d3 = np.linalg.norm(np.diff(p, 3, axis=0), axis=1).max() / T**3
+    return d1, d2, d3
+
+
+def test_so3_helpers_match_scipy_and_the_left_jacobian_maps_rates():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        r = rng.normal(size=3) * rng.uniform(0, 3.0)
+        assert np.allclose(so3_exp(r), Rotation.from_rotvec(r).as_matrix(), atol=1e-12)
+        assert np.allclose(so3_exp(so3_log(so3_exp(r))), so3_exp(r), atol=1e-9)
+        R0 = Rotation.random(random_state=int(rng.integers(1e6))).as_matrix()
+        assert np.allclose(so3_exp(rotvec_between(R0, so3_exp(r) @ R0)) @ R0, so3_exp(r) @ R0, atol=1e-9)
+        # omega = J_l(r) r_dot, by finite differences of exp(r(t))
+        rdot, h = rng.normal(size=3), 1e-6
+        W = (so3_exp(r + h * rdot) - so3_exp(r - h * rdot)) / (2 * h) @ so3_exp(r).T
+        omega = np.array([W[2, 1], W[0, 2], W[1, 0]])
+        assert np.allclose(omega, left_jacobian(r) @ rdot, atol=1e-6)
+    assert np.allclose(so3_log(np.diag([1.0, -1.0, -1.0])), [np.pi, 0, 0])  # at pi the axis still comes out
+
+
+def test_a_steady_stream_is_jerk_limited_and_integrates_every_increment():
+    pipe = MotionPipeline(ENV, T)
+    start = home_poses()
+    assert pipe.reset(start) == []
+    u = np.zeros(12)
+    u[:3] = np.array([0.05, 0.02, -0.03]) / 30  # left, m per 1/30 s
+    u[6:9] = np.array([0.05, -0.02, 0.01]) / 30  # right
+    u[3:6] = np.array([0.0, 0.0, 0.25]) / 30  # left turns about world z
+    ticks = run_stream(pipe, u, 60)
+    for arm in (0, 1):
+        v, a, j = finite_difference_limits(positions(ticks, arm))
+        assert v <= LIM.max_tcp_speed_mps * (1 + 1e-9)
+        assert a <= LIM.max_tcp_accel_mps2 * (1 + 1e-6)
+        assert j <= LIM.max_tcp_jerk_mps3 * (1 + 1e-6)
+    vel = np.array([t.step.velocity for t in ticks])
+    acc = np.array([t.step.acceleration for t in ticks])
+    assert np.linalg.norm(vel[:, :, :3], axis=2).max() <= LIM.max_tcp_speed_mps + 1e-12
+    assert np.linalg.norm(acc[:, :, :3], axis=2).max() <= LIM.max_tcp_accel_mps2 + 1e-9
+    assert np.linalg.norm(vel[:, :, 3:], axis=2).max() <= LIM.max_angular_speed_rps + 1e-9
+    assert not any(t.violations for t in ticks)
+    end = ticks[-1].command
+    assert np.allclose(end["left"][:3, 3], start["left"][:3, 3] + 60 * u[:3], atol=1e-9)
+    assert np.allclose(end["right"][:3, 3], start["right"][:3, 3] + 60 * u[6:9], atol=1e-9)
+    assert np.allclose(end["left"][:3, :3], so3_exp(60 * u[3:6]) @ start["left"][:3, :3], atol=1e-9)
+    assert np.allclose(end["right"][:3, :3], start["right"][:3, :3], atol=1e-12)
+
+
+def test_rotations_compose_about_world_axes_not_as_euler_sums():
+    pipe = MotionPipeline(ENV, T)
+    start = home_poses()
+    pipe.reset(start)
+    a, b = np.zeros(12), np.zeros(12)
+    a[5] = 0.2  # left: 0.2 rad about world z ...
+    b[3] = 0.2  # ... then 0.2 rad about world x
+    pipe.submit(a, 1.0, 0.0)
+    pipe.submit(b, 1.0, 0.0)  # completes the first at once, then the second over 1 s
+    now = 0.0
+    while now < 6.0 and pipe.moving:
+        pipe.tick(now)
+        now += T
+    R = pipe.commanded()["left"][:3, :3]
+    expect = so3_exp(b[3:6]) @ so3_exp(a[3:6]) @ start["left"][:3, :3]
+    assert np.allclose(R, expect, atol=1e-9)
+    eul = Rotation.from_matrix(start["left"][:3, :3]).as_euler("xyz") + [0.2, 0.0, 0.2]
+    assert not np.allclose(R, Rotation.from_euler("xyz", eul).as_matrix(), atol=1e-3)
+
+
+def test_target_integrator_spreads_each_increment_over_its_dt():
+    ti = TargetIntegrator()
+    start = home_poses()
+    ti.reset(start)
+    u = np.zeros(12)
+    u[0] = 0.01
+    ti.add(ti.proposed_end(u), 0.1, now=1.0)
+    assert ti.target(1.0)["left"][0, 3] == pytest.approx(start["left"][0, 3])
+    assert ti.target(1.05)["left"][0, 3] == pytest.approx(start["left"][0, 3] + 0.005)
+    assert ti.target(5.0)["left"][0, 3] == pytest.approx(start["left"][0, 3] + 0.01)
+    ti.add(ti.proposed_end(u), 0.1, now=1.02)  # the first completes at once
+    assert ti.target(1.02)["left"][0, 3] == pytest.approx(start["left"][0, 3] + 0.01)
+    assert ti.target(2.0)["left"][0, 3] == pytest.approx(start["left"][0, 3] + 0.02)
+
+
+def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
+    st_ = Streamer(LIM, T)
+    start = home_poses()
+    st_.reset(start)
+    st_.track()
+    far = {k: v.copy() for k, v in start.items()}
+    far["left"][0, 3] += 0.2
+    far["right"][0, 3] += 0.2
+    for _ in range(40):  # up to cruise (0.25/sqrt(3) m/s per axis)
+        st_.step(far)
+    assert st_.vel[0, 0] == pytest.approx(LIM.max_tcp_speed_mps / np.sqrt(3), rel=1e-6)
+    x = [st_.p[0, 0]]
+    st_.begin_stop()
+    n = 0
+    while st_.mode != "idle":
+        out = st_.step()
+        x.append(out.poses["left"][0, 3])
+        n += 1
+        assert n < 100
+    x = np.array(x)
+    assert np.all(np.diff(x) >= -1e-12)  # never backs up
+    v = np.diff(x) / T
+    assert np.abs(np.diff(v) / T).max() <= LIM.max_tcp_accel_mps2 / np.sqrt(3) * (1 + 1e-6)
+    # braking from v with jerk j and acceleration a limits takes v/a + a/j; one period of slack
+    v0, a, j = (LIM.max_tcp_speed_mps, LIM.max_tcp_accel_mps2, LIM.max_tcp_jerk_mps3)
+    assert n * T <= v0 / a + a / j + T
+    assert st_.at_rest and np.all(st_.vel == 0)
+
+
+def test_a_new_stream_starts_where_the_arms_are_not_at_an_old_target():
+    pipe = MotionPipeline(ENV, T)
+    start = home_poses()
+    pipe.reset(start)
+    u = np.zeros(12)
+    u[0] = 0.02
+    pipe.submit(u, 1.0, 0.0)  # 2 cm over 1 s
+    now = 0.0
+    for _ in range(10):
+        pipe.tick(now)
+        now += T
+    pipe.stop()  # the watchdog: brake, forget the target
+    while pipe.moving:
+        pipe.tick(now)
+        now += T
+    stopped = pipe.commanded()["left"][0, 3]
+    assert start["left"][0, 3] < stopped < start["left"][0, 3] + 0.02
+    pipe.submit(np.zeros(12), 1 / 30, now)  # a new stream with no motion
+    for _ in range(20):
+        tick = pipe.tick(now)
+        now += T
+    assert tick.command["left"][0, 3] == pytest.approx(stopped, abs=1e-12)
+
+
+def test_a_runaway_target_is_pulled_back_and_reported():
+    pipe = MotionPipeline(ENV, T, max_lead_m=0.05)
+    pipe.reset(home_poses())
+    u = np.zeros(12)
+    u[2] = 0.3  # 30 cm up in one go
+    found = pipe.submit(u, 1 / 30, 0.0)
+    assert [v.kind for v in found] == ["lead"]
+    assert pipe.targets.end()["left"][2, 3] == pytest.approx(home_poses()["left"][2, 3] + 0.05)
+
+
+def test_an_overshoot_past_the_box_is_clipped_at_the_gate_and_the_trajectory_continues_from_it():
+    pipe = MotionPipeline(ENV, T)
+    start = home_poses()
+    for a in start:
+        start[a][2, 3] = 0.948  # 2 mm under the top of the box, with the flange under the mount
+    pipe.reset(start)
+    pipe.submit(np.zeros(12), 1 / 30, 0.0)
+    pipe.streamer.vel[:, 2] = LIM.max_tcp_speed_mps / np.sqrt(3)  # rising at full speed: cannot brake in 2 mm
+    prev, now, kinds, z = pipe.commanded(), 0.0, [], []
+    for _ in range(40):
+        tick = pipe.tick(now)
+        now += T
+        kinds += [v.kind for v in tick.violations]
+        if tick.command is not None:
+            assert violations(tick.command, prev, T, ENV) == []
+            prev = tick.command
+            z.append(prev["left"][2, 3])
+    assert "workspace" in kinds
+    assert max(z) == pytest.approx(0.95, abs=1e-9)  # held at the wall, not through it
+    assert z[-1] == pytest.approx(0.948, abs=1e-9)  # then back to the target, smoothly again
+    assert np.abs(pipe.streamer.vel).max() < 1e-9
+
+
+def test_non_finite_increments_are_rejected_and_leave_no_trace():
+    pipe = MotionPipeline(ENV, T)
+    pipe.reset(home_poses())
+    bad = np.zeros(12)
+    bad[4] = np.nan
+    assert [v.kind for v in pipe.submit(bad, 1 / 30, 0.0)] == ["non_finite"]
+    assert [v.kind for v in pipe.submit(np.zeros(12), np.inf, 0.0)] == ["non_finite"]
+    assert [v.kind for v in pipe.submit(np.zeros(11), 0.03, 0.0)] == ["non_finite"]
+    assert not pipe.moving and pipe.tick(0.0).command is None
+
+
+wild = st.one_of(
+    st.floats(-0.05, 0.05, allow_nan=False),
+    st.floats(-5.0, 5.0, allow_nan=False),
+    st.sampled_from([np.nan, np.inf, -np.inf, 1e12, -1e12, 0.0]),
+)
+op = st.one_of(
+    st.tuples(st.just("cmd"), st.lists(wild, min_size=12, max_size=12), st.sampled_from([1 / 30, 0.01, 0.2, 1.0, np.nan])),
+    st.tuples(st.just("tick"), st.integers(1, 8), st.none()),
+    st.tuples(st.just("stop"), st.none(), st.none()),
+)
+
+
+@settings(max_examples=150, deadline=None, derandomize=True)
+@given(ops=st.lists(op, min_size=1, max_size=40))
+def test_no_input_sequence_gets_a_command_outside_the_limits(ops):
+    pipe = MotionPipeline(ENV, T)
+    pipe.reset(home_poses())
+    prev = pipe.commanded()
+    now = 0.0
+    for kind, a, b in ops:
+        if kind == "cmd":
+            pipe.submit(np.array(a, dtype=float), b, now)
+        elif kind == "stop":
+            pipe.stop()
+        else:
+            for _ in range(a):
+                tick = pipe.tick(now)
+                now += T
+                if tick.command is not None:
+                    assert violations(tick.command, prev, T, ENV) == [], tick.violations
+                    prev = tick.command
+    for _ in range(200):  # and it always comes to rest
+        tick = pipe.tick(now)
+        now += T
+        if tick.command is not None:
+            assert violations(tick.command, prev, T, ENV) == []
+            prev = tick.command
+        if not pipe.moving:
+            break
+        if _ == 20:
+            pipe.stop()
+    assert not pipe.moving
