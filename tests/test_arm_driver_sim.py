@@ -422,10 +422,11 @@ def test_a_target_out_of_reach_stops_both_arms_before_the_controller_alarms(rig)
     stop.set()
     th.join()
     # near the edge of the reach the elbow straightens and its joints speed up: either is caught here
-    assert re.search(r"next target (out of the arm's reach|a joint would have to move faster)", drv.status()["fault"])
+    fault = drv.status()["fault"]
+    assert re.search(r"next target (out of the arm's reach|a joint would have to move faster)", fault), fault
     time.sleep(0.5)
     for a, r in sims.robots.items():
-        assert r.alarms() == [] and r.robot_mode() == 5  # the controllers never saw an unreachable target
+        assert r.alarms() == [] and r.robot_mode() == 5, (a, r.alarms(), fault)  # the controllers never saw it
         assert all(reply.startswith("0,") for _, _, reply in sims.servers[a].commands("ServoP"))
 
 

@@ -53,6 +53,9 @@ _RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
 _MAX_EVENTS = 200
 SETTLE_TIMEOUT_S = 1.0  # a restart waits at most this long for the arms to report idle
 SETTLED_MM_S = 1.0
+# A target whose joints would move faster than this fraction of the CR5's joint speed limit is refused
+# (the controller alarms at the limit, measured from its own lagging reference: keep well clear).
+REACH_JOINT_SPEED_FRACTION = 0.5
 
 
 class ArmDriver:
@@ -534,16 +537,23 @@ class ArmDriver:
         """The ServoP (or ServoJ) command for one arm, or None (and a fault) if the arm cannot take it.
 
         With `check_reach` (always for ServoJ) the target is solved here first, nearest the joints of
-        the last one: a target out of reach or across a configuration flip stops both arms smoothly
-        instead of making the controller alarm and stop this one dead.
+        the last one: a target out of reach, across a configuration flip (joints too fast) or with
+        the tool against the arm's body stops both arms smoothly instead of making the controller
+        alarm and stop this one dead.
         """
         cfg = self.cfg
         T_bf = self.frames[arm].flange_in_base(T_world_mount)
         if cfg.servo_command == "servoj" or cfg.check_reach:
             seed = self._q_seed[arm]
             q = cr5.ik(T_bf, seed)
-            if q is None or np.max(np.abs(q - seed)) > cr5.JOINT_SPEED_LIMIT * self.period * 0.9:
-                why = "out of the arm's reach" if q is None else "a joint would have to move faster than it can"
+            why = None
+            if q is None:
+                why = "out of the arm's reach"
+            elif np.max(np.abs(q - seed)) > cr5.JOINT_SPEED_LIMIT * self.period * REACH_JOINT_SPEED_FRACTION:
+                why = "a joint would have to move faster than it can"  # near a singularity
+            elif cr5.self_collision(q, np.asarray(self.rig.arms[arm].mount_offset, dtype=float)):
+                why = "puts the tool against the arm's own body"
+            if why is not None:
                 self._set_fault(f"{arm}: next target {why}")
                 return None
             self._q_seed[arm] = q
