@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from bagit.bench.common import stats_ms
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits, make_controller
-from bagit.services.controller.mpc import separation_gradient, uncondensed_qp
+from bagit.services.controller.mpc import separation_bounds, separation_gradient, uncondensed_qp
 from bagit.services.controller.subgoal import rms_error, slide_to
 from bagit.services.controller.synthetic import SyntheticRim, apply_increment
 
@@ -88,6 +88,13 @@ def _time_solver(solver: MpcSolver, qps: list[tuple]) -> tuple[list[float], list
     return ms, cpu, sols, its
 
 
+def _unpack(args: tuple) -> tuple:
+    """A recorded MpcSolver.solve call as (J, x, target, u_max, axis, sep, limits, recover, W)."""
+    full = list(args) + [None] * (9 - len(args))
+    J, x, target, u_max, axis, sep, lim, recover, W = full
+    return J, x, target, u_max, axis, 0.0 if sep is None else sep, (0.0, np.inf) if lim is None else lim, recover or 0.0, W
+
+
 def _stacked_constraints(ref: MpcSolver, axis: np.ndarray) -> sp.csc_matrix:
     """[I; G] `(12T + T, 12T)` with a pattern that never changes (explicit zeros kept)."""
     n = 12 * ref.T
@@ -104,11 +111,13 @@ def _osqp(qps: list[tuple], p: MethodParams, warm: bool, ref: MpcSolver, eps: fl
     ms, cpu, sols, its = [], [], [], []
     T = p.horizon
     prob, prev = None, None
-    for J, x, target, u_max, axis, sep, lim in qps:
-        H, c = ref.condensed(J, x, target)
+    for args in qps:
+        J, x, target, u_max, axis, sep, lim, recover, W = _unpack(args)
+        H, c = ref.condensed(J, x, target, W)
         A = _stacked_constraints(ref, axis)
-        lo = np.concatenate([-np.tile(u_max, T), np.minimum(np.full(T, lim[0] - sep), 0)])
-        hi = np.concatenate([np.tile(u_max, T), np.maximum(np.full(T, lim[1] - sep), 0)])
+        h_l, h_u = separation_bounds(sep, lim, recover, T)
+        lo = np.concatenate([-np.tile(u_max, T), h_l])
+        hi = np.concatenate([np.tile(u_max, T), h_u])
         Pu = ref._sparse_p(H)  # noqa: SLF001 - the full upper triangle, explicit zeros kept
         t0, c0 = time.perf_counter(), time.thread_time()
         if prob is None or not warm:
@@ -132,8 +141,9 @@ def _sparse_uncondensed(qps: list[tuple], p: MethodParams, r_diag: np.ndarray) -
     """PIQP's sparse solver on the MPC with the states kept as variables (C8 as equalities): the
     formulation a sparse solver would usually get, 1080 variables at n_x = 32. Solver calls timed."""
     ms, cpu, solver = [], [], None
-    for J, x, target, u_max, axis, sep, lim in qps:
-        qp = uncondensed_qp(J, x, target, u_max, p.horizon, p.q_weight, r_diag, axis, sep, lim)
+    for args in qps:
+        J, x, target, u_max, axis, sep, lim, recover, W = _unpack(args)
+        qp = uncondensed_qp(J, x, target, u_max, p.horizon, p.q_weight, r_diag, axis, sep, lim, recover, W)
         t0, c0 = time.perf_counter(), time.thread_time()
         if solver is None:
             solver = piqp.SparseSolver()

@@ -89,14 +89,19 @@ def test_dense_sparse_and_uncondensed_agree():
     rng = np.random.default_rng(2)
     dense, sparse = MpcSolver(10, 1.0, 0.05, "dense"), MpcSolver(10, 1.0, 0.05, "sparse")
     tol = 1e-3 * np.tile(U_MAX, 10)  # a thousandth of each input's range (the solver's eps is 1e-7)
-    for _ in range(5):
+    from bagit.services.controller.mpc import plane_weight
+
+    for i in range(6):
         J, x, target, _ = _problem(rng)
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
-        a = dense.solve(J, x, target, U_MAX, axis, 0.28, (0.06, 0.285))
-        b = sparse.solve(J, x, target, U_MAX, axis, 0.28, (0.06, 0.285))
+        # half the cases: 3 cm short of the C6 band with a recovery rate, and an in-plane weight
+        sep, recover = (0.28, 0.0) if i % 2 == 0 else (0.15, 0.001)
+        W = None if i % 2 == 0 else plane_weight(target, 0.5)
+        args = (J, x, target, U_MAX, axis, sep, (0.18, 0.285), recover, W)
+        a, b = dense.solve(*args), sparse.solve(*args)
         assert a.ok and b.ok and np.all(np.abs(a.u_bar - b.u_bar) <= tol)
-        qp = uncondensed_qp(J, x, target, U_MAX, 10, 1.0, dense.r_diag, axis, 0.28, (0.06, 0.285))
+        qp = uncondensed_qp(J, x, target, U_MAX, 10, 1.0, dense.r_diag, axis, sep, (0.18, 0.285), recover, W)
         solver = piqp.SparseSolver()
         solver.settings.verbose = False
         solver.settings.eps_abs = solver.settings.eps_rel = 1e-9

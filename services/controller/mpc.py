@@ -256,14 +256,18 @@ def uncondensed_qp(
     sep_axis: np.ndarray,
     sep_now: float,
     sep_limits: tuple[float, float],
+    sep_recover: float = 0.0,
+    point_weight: np.ndarray | None = None,
 ) -> dict[str, np.ndarray | sp.csc_matrix]:
     """The same MPC without condensing, for sparse solvers: variables z = [x̄ (3 n_x T), ū (12 T)],
     C8 as equality rows x_{k+1} = x_k + J u_k. Returns P (upper triangle), c, A, b, G, h_l, h_u, x_l, x_u."""
     n, T = J.shape[0], horizon
     x = np.asarray(x, dtype=float).ravel()
     target = np.asarray(target, dtype=float).ravel()
-    P = sp.diags(np.concatenate([np.full(n * T, q), r_diag])).tocsc()
-    c = np.concatenate([np.tile(-q * target, T), np.zeros(12 * T)])
+    W = np.eye(3) if point_weight is None else np.asarray(point_weight, dtype=float)
+    Qx = sp.kron(sp.eye(n // 3 * T), sp.csc_matrix(q * W))
+    P = sp.triu(sp.block_diag([Qx, sp.diags(r_diag)])).tocsc()
+    c = np.concatenate([np.tile(-q * (target.reshape(-1, 3) @ W).ravel(), T), np.zeros(12 * T)])
     # x_k - x_{k-1} - J u_k = 0 (x_{-1} = x_t): [I - shift] ⊗ I_n on x̄, -I_T ⊗ J on ū. Built from
     # explicit coordinates so the patterns (zeros in J or the axis included) never change.
     k, i = np.meshgrid(np.arange(T), np.arange(n), indexing="ij")
@@ -282,7 +286,7 @@ def uncondensed_qp(
     g_cols = n * T + (12 * gj[:, None] + np.asarray(POSITION_COLUMNS)[None, :]).ravel()
     g_vals = a[np.tile(POSITION_COLUMNS, len(gj))]
     G = sp.csc_matrix((g_vals, (g_rows, g_cols)), shape=(T, n * T + 12 * T))
-    h_l, h_u = separation_bounds(sep_now, sep_limits, 0.0, T)
+    h_l, h_u = separation_bounds(sep_now, sep_limits, sep_recover, T)
     ub = np.concatenate([np.full(n * T, np.inf), np.tile(np.asarray(u_max, float), T)])
     lb = np.concatenate([np.full(n * T, -np.inf), -np.tile(np.asarray(u_max, float), T)])
     return {"P": P, "c": c, "A": A, "b": b, "G": G, "h_l": h_l, "h_u": h_u, "x_l": lb, "x_u": ub}
