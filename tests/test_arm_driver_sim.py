@@ -235,6 +235,8 @@ def test_the_watchdog_stops_both_arms_within_250_ms_of_the_last_command(rig):
 
 def test_estop_reaches_both_controllers_within_50_ms_and_stays_latched(rig):
     sims, drv = rig()
+    seen = []
+    drv.on_event = lambda kind, detail: seen.append(kind)
     drv.start()
     u = np.zeros(12)
     u[1] = -0.05 / 30
@@ -244,7 +246,7 @@ def test_estop_reaches_both_controllers_within_50_ms_and_stays_latched(rig):
     time.sleep(0.5)
     t_call = time.monotonic()
     reached = drv.estop("test: operator pressed E-STOP")
-    assert reached == {"left": True, "right": True}
+    assert reached == {"left": True, "right": True} and "estop" in seen
     for a, srv in sims.servers.items():
         got = [t for t, text, reply in srv.log if text == "EmergencyStop(1)"]
         assert len(got) == 1 and got[0] - t_call < 0.05, got[0] - t_call

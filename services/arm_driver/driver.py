@@ -1,6 +1,7 @@
 """The arm driver: both CR5s from one process, streaming smoothed, safe when anything else fails.
 
     drv = ArmDriver(rig, DriverConfig(), on_state=publish)    # on_state: each feedback packet as ArmState
+                                                              # (on_event: (kind, detail) of each event)
     drv.start()                     # connect, ClearError, EnableRobot(payload), SpeedFactor; loop running
     drv.submit(command)             # the controller's 12-D increment (bagit.common.messages.Command)
     drv.estop("operator")           # EmergencyStop(1) to both controllers at once; latched
@@ -66,6 +67,7 @@ class ArmDriver:
         rig: RigConfig | None = None,
         config: DriverConfig | None = None,
         on_state: Callable[[ArmState], None] | None = None,
+        on_event: Callable[[str, str], None] | None = None,
     ):
         self.rig = rig or RigConfig()
         self.cfg = config or DriverConfig()
@@ -75,6 +77,7 @@ class ArmDriver:
         self.env = Envelope.from_rig(self.rig)
         self.frames = {a: ArmFrames.from_config(self.rig.arms[a]) for a in ARMS}
         self.on_state = on_state
+        self.on_event = on_event  # (kind, detail) for estop, fault, watchdog, link_lost, ...; must not block
         self.pipe = MotionPipeline(self.env, self.period, self.cfg.max_target_lead_m, self.cfg.max_target_lead_rad)
         self.clients = {
             a: DobotClient(
@@ -432,6 +435,12 @@ class ArmDriver:
 
     def _event(self, kind: str, detail: str) -> None:
         self.events.append((time.monotonic(), kind, detail))
+        cb = self.on_event
+        if cb is not None:
+            try:
+                cb(kind, detail)
+            except Exception as e:  # a subscriber's bug must not stop the arms' loop
+                self.events.append((time.monotonic(), "event_callback", repr(e)))
 
     def _record(self, found: list[Violation]) -> None:
         if found:
