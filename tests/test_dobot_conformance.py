@@ -66,6 +66,13 @@ def wait_mode(c: Client, mode: int, timeout: float = 5.0) -> None:
     raise AssertionError(f"robot mode never became {mode}")
 
 
+def same_pose(a: list[float], b: list[float], atol: float) -> bool:
+    """Dobot poses (x, y, z mm, rx, ry, rz deg): angles compared modulo 360 (roll -180 == 180)."""
+    d = np.asarray(a, float) - np.asarray(b, float)
+    d[3:] = (d[3:] + 180.0) % 360.0 - 180.0
+    return bool(np.all(np.abs(d) <= atol))
+
+
 def test_reply_format_echoes_the_command(client):
     assert client.raw("RobotMode()") == "0,{4},RobotMode();"
     assert client.raw("EnableRobot()") == "0,{},EnableRobot();"
@@ -73,7 +80,7 @@ def test_reply_format_echoes_the_command(client):
     r = client.raw("GetPose()")
     assert r.startswith("0,{") and r.endswith("},GetPose();")
     p = dobot.parse_reply(r)
-    assert np.allclose(p.values, [473, -141, 469, -180, 0, -90], atol=1e-3)
+    assert same_pose(p.values, [473, -141, 469, -180, 0, -90], atol=1e-3)
     a = client.ask("GetAngle()")
     assert a.ok and np.allclose(a.values, READY, atol=1e-6)
     assert client.ask("GetPose(user=0,tool=0)").ok
@@ -139,7 +146,7 @@ def test_movj_movl_queue_ids_and_completion(client):
     assert r1.ok and r2.ok and r2.values[0] == r1.values[0] + 1
     assert client.ask("RobotMode()").values == [7]
     wait_mode(client, 5)
-    assert np.allclose(client.ask("GetPose()").values, [450, -100, 450, -180, 0, -90], atol=0.5)
+    assert same_pose(client.ask("GetPose()").values, [450, -100, 450, -180, 0, -90], atol=0.5)
     assert client.ask("GetCurrentCommandID()").values == [r2.values[0]]
     j = client.ask("MovJ(pose={400,-141,500,-180,0,-90})")
     assert j.ok
@@ -210,7 +217,7 @@ def test_emergency_stop_latch(client):
 
 def test_kinematics_commands(client):
     p = client.ask("PositiveKin(0,0,-90,0,90,0,user=0,tool=0)")
-    assert np.allclose(p.values, [473, -141, 469, -180, 0, -90], atol=1e-3)
+    assert same_pose(p.values, [473, -141, 469, -180, 0, -90], atol=1e-3)
     q = client.ask("InverseKin(473,-141,469,-180,0,-90,useJointNear=1,jointNear={0,0,-90,0,90,0})")
     assert np.allclose(q.values, READY, atol=1e-3)
     assert client.ask("InverseKin(2500,0,0,0,0,0)").error_id == -1
@@ -263,7 +270,7 @@ def test_feedback_packets_layout_and_period(server, client):
     assert int(p["RobotMode"]) == 5 and int(p["EnableStatus"]) == 1 and int(p["ErrorStatus"]) == 0
     assert int(p["RobotType"]) == 5
     assert np.allclose(p["QActual"], READY, atol=1e-6)
-    assert np.allclose(p["ToolVectorActual"], [473, -141, 469, -180, 0, -90], atol=1e-3)
+    assert same_pose(p["ToolVectorActual"], [473, -141, 469, -180, 0, -90], atol=1e-3)
     T = cr5.pose6_to_matrix(p["ToolVectorActual"])
     w, x, y, z = p["ActualQuaternion"]
     from scipy.spatial.transform import Rotation
