@@ -465,9 +465,11 @@ def test_garbled_replies_and_feedback_are_reported_and_stop_the_arms_without_a_c
     sims.proxies["left"].resume(dash)
     stop.set()
     th.join()
-    time.sleep(0.4)  # both arms braked to rest
-    steps = np.linalg.norm(np.diff(servo_positions(sims.servers["right"], t0=time.monotonic() - 0.2)[1], axis=0), axis=1)
-    assert len(steps) == 0 or steps.max() < 1e-4
+    def right_at_rest() -> bool:  # the other arm braked to rest (timing is the watchdog test's job)
+        steps = np.linalg.norm(np.diff(servo_positions(sims.servers["right"], t0=time.monotonic() - 0.2)[1], axis=0), axis=1)
+        return len(steps) == 0 or steps.max() < 1e-4
+
+    assert wait_until(right_at_rest, 3.0)
     drv.clear_fault()
     assert wait_until(lambda: drv.mode == "holding", 2.0)
     stream(drv, lambda t: u, 0.3)
