@@ -25,7 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flush-s", type=float, default=1.0, help="close a chunk at most this long after its first message")
     p.add_argument("--linger-s", type=float, default=2.0, help="keep a finished run's file open this long (its last states)")
     p.add_argument("--keep-idle", type=int, default=4, help="idle files of the rig kept (older ones deleted)")
-    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="lz4",
+                   help="chunk compression (default lz4: keeps up with 30 Hz RGB-D; zstd: ~40%% smaller, ~2x the CPU)")
     p.add_argument("--exclude", action="append", default=[], metavar="KEY",
                    help="key under bagit/<rig>/ not to record, e.g. camera/rgbd (repeatable; wildcards allowed)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until stopped)")

@@ -53,7 +53,9 @@ class RecorderConfig(BaseModel):
     linger_s: float = Field(2.0, ge=0, le=600, description="keep a finished run's file open this long for its last states")
     keep_idle: int = Field(4, ge=1, le=10_000, description="idle files of this rig kept (older ones are deleted)")
     retry_s: float = Field(5.0, gt=0, le=3600, description="after a write error, try a new file this often")
-    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    compression: Literal["zstd", "lz4", "none"] = Field(
+        "lz4", description="chunk compression: lz4 keeps up with 30 Hz RGB-D on 2 loaded cores; zstd makes ~40% smaller files"
+    )
 
 
 class _RawFile:
