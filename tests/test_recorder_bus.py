@@ -251,3 +251,31 @@ def test_disk_full_is_reported_on_stderr_and_run_state(tmp_path, pair, capfd):
     assert status["errors"] >= 1 and status["lost"] > 0 and "ENOSPC" in status["error"]
     assert any(lvl == "error" and "disk full" in t for lvl, t in reports)
     assert "bagit recorder: ERROR: recording stopped: disk full (ENOSPC)" in capfd.readouterr().err
+
+
+def test_recorder_stopped_by_sigterm_closes_its_files_with_the_result(tmp_path, plan):
+    rig = "recterm"
+    a = open_session(BusConfig(rig=rig, adminspace=True))
+    try:
+        proc = _spawn(["recorder", "--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--linger-s", "30", "--json"],
+                      tmp_path)
+        pub = ScriptPublisher(a, rig)
+        probe = Publisher(a, f"bagit/{rig}/run/state", RunState)
+        assert wait_until(lambda: probe.matched, 20.0), "the recorder did not subscribe"
+        script = run_script(plan, "t1", steps=10)
+        for rest, msg in script:
+            pub.put(rest, msg)
+            time.sleep(0.003)
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGTERM)  # within the linger: the run file is closed by the shutdown
+        out, err = proc.communicate(timeout=20)
+    finally:
+        a.close()
+    assert proc.returncode == 0, err
+    res = json.loads(out)
+    assert res["messages"] == len(script) and res["lost"] == 0 and res["malformed"] == 0
+    (run_file,) = tmp_path.glob(f"{rig}_*_run-t1.mcap")
+    got, rec = read_messages(run_file)
+    assert rec.complete and len(got) == len(script)
+    runs = json.loads(_cli_json(["runs", str(tmp_path)]))["runs"]
+    assert runs[0]["run_id"] == "t1" and runs[0]["complete"] and runs[0]["result"] == {"success": True, "error_to_goal": 0.004}
