@@ -30,6 +30,9 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.bench",
     "bagit.commands.router",
     "bagit.commands.dashboard",
+    "bagit.commands.recorder",
+    "bagit.commands.replay",
+    "bagit.commands.runs",
 ]
 
 

@@ -47,3 +47,7 @@ class BadControlInput(BagItError, ValueError):
 
 class BusError(BagItError, RuntimeError):
     """The Zenoh bus refused: a session that cannot open, a bad bus config, or no answer to a query."""
+
+
+class BadRecording(BagItError, ValueError):
+    """An MCAP recording that is missing, unreadable, not BagIt's, or holds a malformed message."""

@@ -1,0 +1,294 @@
+"""The recorder and replay on Zenoh: the only module of the recorder that imports zenoh.
+
+Recording: one subscriber on `bagit/<rig>/**` hands each payload (with its receive time) to a
+queue; a writer thread decodes it (`bagit.common.wire`: malformed payloads are counted and
+dropped) and gives it to `RecordingWriter`. The Zenoh thread never blocks on the disk: when the
+queue holds more than `max_queue_bytes` the sample is dropped and counted. Writer events go to
+stderr; a write error (disk full) is also published on `run/state` (the last run state seen,
+with the reason), so the dashboard shows it.
+
+Replay: messages are published on their recorded keys (or the same keys of another rig) at their
+recorded gaps divided by `speed`, restamped to now unless told otherwise. Commands (`controller/cmd`)
+and e-stops are left out unless asked for, and even then refused while anything listens to
+controller/cmd on the target rig (an arm driver would move the arms).
+"""
+
+from __future__ import annotations
+
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import zenoh
+
+from bagit.common import wire
+from bagit.common.bus import DROPS, KEY_TABLE, STATE, BusError, Keys, Publisher, declare_alive
+from bagit.common.errors import BadMessage, BadRecording
+from bagit.common.messages import Message, RunState
+from bagit.services.recorder.reading import Recording
+from bagit.services.recorder.writer import RecordingWriter
+
+COMMAND_KEYS = ("controller/cmd", "estop")
+_STOP = object()
+
+
+def stderr_report(level: str, text: str) -> None:
+    print(f"bagit recorder: {'ERROR: ' if level == 'error' else ''}{text}", file=sys.stderr, flush=True)
+
+
+class RecorderNode:
+    """Records everything on bagit/<rig>/** through a RecordingWriter (see the module doc)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        writer: RecordingWriter,
+        exclude: list[str] | tuple[str, ...] = (),
+        max_queue_bytes: int = 256 << 20,
+        report: Callable[[str, str], None] = stderr_report,
+        tick_s: float = 0.05,
+    ) -> None:
+        self.keys = keys
+        self.writer = writer
+        self.report = report
+        self.tick_s = tick_s
+        self.max_queue_bytes = max_queue_bytes
+        self.exclude = [zenoh.KeyExpr(f"{keys.prefix}/{e.strip('/')}") for e in exclude]
+        self.received = 0
+        self.overflow = 0
+        self.bad = 0
+        self._queued_bytes = 0
+        self._lock = threading.Lock()
+        self._q: queue.Queue = queue.Queue()
+        writer.on_event = self._on_event
+        self._state_pub = Publisher(session, keys.run_state, RunState)
+        self._thread = threading.Thread(target=self._loop, name="recorder-writer", daemon=True)
+        self._thread.start()
+        self._sub = session.declare_subscriber(keys.all, self._on_sample)
+        self._token = declare_alive(session, keys, "recorder")
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        t = time.time_ns()
+        key = sample.key_expr
+        if any(ex.includes(key) for ex in self.exclude):
+            return
+        payload = sample.payload.to_bytes()
+        with self._lock:
+            self.received += 1
+            if self._queued_bytes + len(payload) > self.max_queue_bytes:
+                self.overflow += 1
+                n = self.overflow
+                full = True
+            else:
+                self._queued_bytes += len(payload)
+                full = False
+        if full:
+            if n == 1 or n % 100 == 0:
+                self.report("error", f"writer behind: {n} messages dropped (queue over {self.max_queue_bytes >> 20} MiB)")
+            return
+        self._q.put((str(key), payload, t))
+
+    def _loop(self) -> None:
+        next_tick = time.monotonic()
+        while True:
+            try:
+                item = self._q.get(timeout=self.tick_s)
+            except queue.Empty:
+                item = None
+            if item is _STOP:
+                break
+            if item is not None:
+                key, payload, t = item
+                with self._lock:
+                    self._queued_bytes -= len(payload)
+                self._record(key, payload, t)
+            if time.monotonic() >= next_tick:
+                self._safe(self.writer.tick)
+                next_tick = time.monotonic() + self.tick_s
+
+    def _record(self, key: str, payload: bytes, t: int) -> None:
+        try:
+            msg = wire.decode(payload)
+        except BadMessage as e:
+            self.bad += 1
+            DROPS.add(key, str(e))
+            return
+        self._safe(lambda: self.writer.write(key, msg, t))
+
+    def _safe(self, fn: Callable[[], Any]) -> None:
+        try:
+            fn()
+        except Exception as e:  # noqa: BLE001 - the writer thread must survive anything and say so
+            self.report("error", f"recorder fault: {type(e).__name__}: {e}")
+
+    def _on_event(self, level: str, text: str) -> None:
+        self.report(level, text)
+        if level == "error":
+            base = self.writer.last_run_state or RunState()
+            try:
+                self._state_pub.put(RunState(
+                    run_id=base.run_id, scenario=base.scenario, stage=base.stage, progress=base.progress,
+                    elapsed_s=base.elapsed_s, result=base.result, reason=f"recorder: {text}",
+                ))
+            except Exception as e:  # noqa: BLE001 - reporting must not take the recorder down
+                print(f"bagit recorder: could not publish the error on run/state: {e}", file=sys.stderr, flush=True)
+
+    def status(self) -> dict[str, Any]:
+        with self._lock:
+            q = {"received": self.received, "overflow": self.overflow, "queued_bytes": self._queued_bytes}
+        return {**self.writer.status(), **q, "malformed": self.bad}
+
+    def close(self) -> dict[str, Any]:
+        """Stop listening, write what is queued, finish the open file; the final status."""
+        try:
+            self._sub.undeclare()
+        except zenoh.ZError:
+            pass
+        self._q.put(_STOP)
+        self._thread.join()
+        self._safe(self.writer.close)
+        try:
+            self._token.undeclare()
+        except zenoh.ZError:
+            pass
+        self._state_pub.close()
+        return self.status()
+
+
+# ---------------------------------------------------------------------------------------------
+# Replay
+# ---------------------------------------------------------------------------------------------
+
+
+def _rest_of(topic: str) -> tuple[str, str] | None:
+    parts = topic.split("/", 2)
+    if len(parts) < 3 or parts[0] != "bagit":
+        return None
+    return parts[1], parts[2]
+
+
+class Replayer:
+    """Publishes a recording's messages at their recorded timing (see the module doc)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        rig: str | None = None,
+        speed: float = 1.0,
+        with_commands: bool = False,
+        restamp: bool = True,
+        stop: threading.Event | None = None,
+    ) -> None:
+        if not (speed > 0 and speed < float("inf")):
+            raise BadRecording(f"--speed must be a positive finite number, got {speed}")
+        self.session = session
+        self.rig = rig
+        self.speed = speed
+        self.with_commands = with_commands
+        self.restamp = restamp
+        self.stop = stop or threading.Event()
+        self.pubs: dict[str, Publisher] = {}
+        self.sent = 0
+        self.skipped = 0
+        self.bad = 0
+        self.lateness: list[float] = []
+        self.checked_rigs: set[str] = set()
+
+    def _publisher(self, key: str, cls: type[Message]) -> Publisher:
+        pub = self.pubs.get(key)
+        if pub is None:
+            try:
+                pub = Publisher(self.session, key, cls)
+            except BusError:
+                pub = Publisher(self.session, key, cls, qos=STATE)  # a key outside the table: latest-wins
+            self.pubs[key] = pub
+        return pub
+
+    def prepare(self, rig: str, wait_s: float) -> bool:
+        """Declare the rig's publishers up front and wait (up to wait_s) until a subscriber matches one."""
+        for row in KEY_TABLE:
+            if row.kind != "pub" or row.message is None or (row.key in COMMAND_KEYS and not self.with_commands):
+                continue
+            for k in ([row.key.replace("*", "left"), row.key.replace("*", "right")] if "*" in row.key else [row.key]):
+                self._publisher(f"bagit/{rig}/{k}", row.message)
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline and not self.stop.is_set():
+            if any(p.matched for p in self.pubs.values()):
+                return True
+            time.sleep(0.01)
+        return any(p.matched for p in self.pubs.values())
+
+    def _check_commands(self, rig: str) -> None:
+        if rig in self.checked_rigs:
+            return
+        self.checked_rigs.add(rig)
+        probe = self._publisher(f"bagit/{rig}/controller/cmd", _command_type())
+        deadline = time.monotonic() + 0.3
+        while time.monotonic() < deadline and not probe.matched:
+            time.sleep(0.01)
+        if probe.matched:
+            raise BusError(
+                f"refusing to replay commands: something subscribes to bagit/{rig}/controller/cmd (an arm driver or a "
+                "recorder); replay onto another --rig, or without --with-commands"
+            )
+
+    def play(self, path: Path) -> dict[str, Any]:
+        """One pass over the file; returns what was sent and whether the file was complete."""
+        rec = Recording(path)
+        t_start = None
+        first_log = first_wall = 0.0
+        for r in rec.records():
+            if self.stop.is_set():
+                break
+            if t_start is None:
+                t_start, first_log, first_wall = time.monotonic(), r.log_time_ns / 1e9, time.time()
+            split = _rest_of(r.topic)
+            if split is None:
+                self.skipped += 1
+                continue
+            rig, rest = split[0] if self.rig is None else self.rig, split[1]
+            if rest in COMMAND_KEYS:
+                if not self.with_commands:
+                    self.skipped += 1
+                    continue
+                self._check_commands(rig)
+            try:
+                msg = r.message()
+            except BadRecording:
+                self.bad += 1
+                continue
+            due = t_start + (r.log_time_ns / 1e9 - first_log) / self.speed
+            wait = due - time.monotonic()
+            if wait > 0 and self.stop.wait(wait):
+                break
+            if self.restamp:
+                msg = _restamped(msg, first_wall, first_log, self.speed)
+            self._publisher(f"bagit/{rig}/{rest}", r.cls).put(msg)
+            self.sent += 1
+            self.lateness.append(max(0.0, time.monotonic() - due))
+        return {"complete": rec.complete, "truncated": rec.truncated, "read": rec.read}
+
+    def close(self) -> None:
+        for p in self.pubs.values():
+            p.close()
+
+
+def _command_type() -> type[Message]:
+    from bagit.common.messages import Command
+
+    return Command
+
+
+def _restamped(msg: Message, wall0: float, log0: float, speed: float) -> Message:
+    """The message with its stamps moved to replay time (the same offsets from the first record)."""
+    upd: dict[str, float] = {"stamp": wall0 + (msg.stamp - log0) / speed}
+    src = getattr(msg, "source_stamp", None)
+    if isinstance(src, float) and src > 0:
+        upd["source_stamp"] = wall0 + (src - log0) / speed
+    return msg.model_copy(update=upd)
