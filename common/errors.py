@@ -47,3 +47,11 @@ class BadControlInput(BagItError, ValueError):
 
 class BusError(BagItError, RuntimeError):
     """The Zenoh bus refused: a session that cannot open, a bad bus config, or no answer to a query."""
+
+
+class CameraError(BagItError, RuntimeError):
+    """A camera or recording that cannot be opened or read: no device, another serial, an unreadable file."""
+
+
+class MarkerNotFound(BagItError, LookupError):
+    """No ArUco marker of a known object (or no calibration board) in the image."""
