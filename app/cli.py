@@ -27,6 +27,8 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.plan",
     "bagit.commands.run",
     "bagit.commands.sim",
+    "bagit.commands.camera",
+    "bagit.commands.calibrate",
     "bagit.commands.bench",
     "bagit.commands.router",
     "bagit.commands.dashboard",

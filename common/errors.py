@@ -51,3 +51,11 @@ class BusError(BagItError, RuntimeError):
 
 class BadRecording(BagItError, ValueError):
     """An MCAP recording that is missing, unreadable, not BagIt's, or holds a malformed message."""
+
+
+class CameraError(BagItError, RuntimeError):
+    """A camera or recording that cannot be opened or read: no device, another serial, an unreadable file."""
+
+
+class MarkerNotFound(BagItError, LookupError):
+    """No ArUco marker of a known object (or no calibration board) in the image."""

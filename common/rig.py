@@ -14,6 +14,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from bagit.common.board import BoardSpec
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import make_transform, pose_to_matrix
 from bagit.common.messages import CameraInfo
@@ -79,6 +80,13 @@ class CameraConfig(BaseModel):
         y = np.cross(z, x)
         return make_transform(np.column_stack([x, y, z]), p)
 
+    def with_pose(self, T_world_camera: np.ndarray) -> "CameraConfig":
+        """A copy placed at `T_world_camera (4, 4)` (e.g. calibrated): position, a look-at point 1 m along
+        the optical axis and `up` = the camera's -y, which `T_world_camera()` turns back into exactly T."""
+        T = np.asarray(T_world_camera, dtype=float)
+        p, z, y = T[:3, 3], T[:3, 2], T[:3, 1]
+        return self.model_copy(update={"position": tuple(map(float, p)), "look_at": tuple(map(float, p + z)), "up": tuple(map(float, -y))})
+
     def info(self) -> CameraInfo:
         """The frame header for this camera."""
         return CameraInfo(
@@ -130,6 +138,7 @@ class RigConfig(BaseModel):
     camera: CameraConfig = CameraConfig()
     safety: SafetyLimits = SafetyLimits()
     table_height: float = 0.0
+    board: BoardSpec = Field(default_factory=BoardSpec, description="the calibration board and where it lies (bagit calibrate)")
 
     @classmethod
     def from_file(cls, path: str | Path) -> "RigConfig":
@@ -142,3 +151,8 @@ class RigConfig(BaseModel):
         except ValidationError as e:
             first = e.errors()[0]
             raise BadScenario(f"{p}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+
+    def to_yaml(self) -> str:
+        import json
+
+        return yaml.safe_dump(json.loads(self.model_dump_json(exclude_none=True)), sort_keys=False)

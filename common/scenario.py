@@ -15,7 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from bagit.common.errors import BadScenario
-from bagit.common.geometry import closed_polyline_length, resample_closed
+from bagit.common.geometry import closed_polyline_length, make_transform, pca, pose_to_matrix, resample_closed
 from bagit.common.params import DEFAULT_LAMBDA_D_M, MethodParams
 from bagit.common.shapes import Shape
 
@@ -36,8 +36,59 @@ def _finite_points(v: list[list[float]] | None, what: str, min_points: int) -> l
     return a.tolist()
 
 
+MARKER_THICKNESS_M = 0.001  # a printed card: the marker's face stands this far off the surface it is stuck on
+# OpenCV's predefined ArUco dictionaries this project prints markers from, and how many ids each has.
+ARUCO_DICTIONARIES = {
+    f"DICT_{bits}X{bits}_{n}": n for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)
+}
+
+
+class MarkerSpec(BaseModel):
+    """The ArUco marker stuck on the object, which tells perception which object it sees (as in the paper).
+
+    Its pose is given in the object's bottom frame (`ObjectSpec.bottom_frame`), with OpenCV's marker
+    axes: x to the right and y up on the printed marker, z out of its face. Without `position` the
+    marker lies centred on the object's top (the bottom frame moved up by the object's height).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: int = Field(..., ge=0, le=999)
+    size: float = Field(0.05, gt=0.005, lt=0.5, description="side of the marker's black square (m)")
+    dictionary: str = Field("DICT_4X4_50", description="OpenCV predefined dictionary, e.g. DICT_4X4_50")
+    position: tuple[float, float, float] | None = Field(None, description="marker centre in the bottom frame (m)")
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @field_validator("dictionary")
+    @classmethod
+    def _dictionary(cls, v: str) -> str:
+        if v not in ARUCO_DICTIONARIES:
+            raise ValueError(f"unknown ArUco dictionary {v!r} (use one of DICT_4X4_50 ... DICT_7X7_1000)")
+        return v
+
+    @field_validator("position", "rpy")
+    @classmethod
+    def _finite(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None and not np.all(np.isfinite(v)):
+            raise ValueError("must be finite")
+        return v
+
+    @model_validator(mode="after")
+    def _id_in_dictionary(self) -> "MarkerSpec":
+        if self.id >= ARUCO_DICTIONARIES[self.dictionary]:
+            raise ValueError(f"marker id {self.id} is not in {self.dictionary} (ids 0..{ARUCO_DICTIONARIES[self.dictionary] - 1})")
+        return self
+
+    def T_bottom_marker(self) -> np.ndarray:
+        """4x4 object bottom frame <- marker (needs `position`, which ObjectSpec fills in)."""
+        if self.position is None:
+            raise ValueError("the marker's position is resolved by its ObjectSpec")
+        return pose_to_matrix(self.position, self.rpy)
+
+
 class ObjectSpec(BaseModel):
-    """The object to bag: its bottom outline V (given, or derived from `shape`) and its height."""
+    """The object to bag: its bottom outline V (given, or derived from `shape`), its height, and the
+    ArUco marker that identifies it."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -45,7 +96,8 @@ class ObjectSpec(BaseModel):
     vertices: list[list[float]] | None = Field(None, description="bottom outline V, world frame (m)")
     height: float | None = Field(None, gt=0, lt=5, description="how far the object reaches above its bottom (m)")
     shape: Shape | None = None
-    marker_id: int | None = Field(None, ge=0, description="ArUco id that identifies the object")
+    marker_id: int | None = Field(None, ge=0, description="shorthand for `marker: {id: ...}` (a default marker on top)")
+    marker: MarkerSpec | None = None
 
     @field_validator("vertices")
     @classmethod
@@ -60,7 +112,43 @@ class ObjectSpec(BaseModel):
             self.vertices = self.shape.bottom_vertices().tolist()
         if self.height is None and self.shape is not None:
             self.height = self.shape.local_height()
+        if self.marker_id is not None:
+            if self.marker is None:
+                self.marker = MarkerSpec(id=self.marker_id)
+            elif self.marker.id != self.marker_id:
+                raise ValueError(f"object.marker_id {self.marker_id} disagrees with object.marker.id {self.marker.id}")
+        if self.marker is not None:
+            self.marker_id = self.marker.id
+            if self.marker.position is None:
+                self.marker.position = (0.0, 0.0, float(self.effective_height()) + MARKER_THICKNESS_M)
         return self
+
+    def bottom_frame(self) -> np.ndarray:
+        """4x4 world <- the object's bottom frame: on the bottom face, z up out of the object.
+
+        With a shape: the shape's own axes, moved down to its bottom outline (origin straight under
+        the shape's origin). With V only: origin at V's centroid, z normal to V (upward), x along
+        V's principal axis. Markers and the object library (perception) are placed in this frame.
+        """
+        if self.shape is not None:
+            zb = float(self.shape.local_bottom()[:, 2].min())
+            return self.shape.pose() @ make_transform(None, np.array([0.0, 0.0, zb]))
+        centroid, _, axes = pca(self.bottom_vertices())
+        z = axes[2] if axes[2][2] >= 0 else -axes[2]
+        x = axes[0] - np.dot(axes[0], z) * z
+        x /= np.linalg.norm(x)
+        return make_transform(np.column_stack([x, np.cross(z, x), z]), centroid)
+
+    def local_vertices(self) -> np.ndarray:
+        """V `(n_v, 3)` in the object's bottom frame: the object's outline wherever it is placed."""
+        T = self.bottom_frame()
+        return (self.bottom_vertices() - T[:3, 3]) @ T[:3, :3]
+
+    def T_world_marker(self) -> np.ndarray | None:
+        """4x4 world <- marker, or None without a marker (where the scenario puts the marker)."""
+        if self.marker is None:
+            return None
+        return self.bottom_frame() @ self.marker.T_bottom_marker()
 
     def bottom_vertices(self) -> np.ndarray:
         """V `(n_v, 3)`, world frame."""

@@ -3,7 +3,9 @@ the ground truth measures penetration against.
 
 A shape's geoms sit in one static body (the object is held still, as in the experiments, by a thin
 rod from above that takes no contacts). With only V in the scenario, V is extruded along its
-upward normal by `ObjectSpec.effective_height()` into a convex mesh.
+upward normal by `ObjectSpec.effective_height()` into a convex mesh. The object's ArUco marker, when
+the scenario gives one, is a thin printed card (a box textured with OpenCV's marker image and a
+white quiet zone) stuck on at its pose; the rod then comes down beside the card, not through it.
 """
 
 from __future__ import annotations
@@ -14,12 +16,13 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from bagit.common.geometry import make_transform
-from bagit.common.scenario import ObjectSpec
+from bagit.common.scenario import MARKER_THICKNESS_M, MarkerSpec, ObjectSpec
 from bagit.common.shapes import Box, Bundle, Cylinder, Prism, Sphere
 
 OBJECT_RGBA = "0.85 0.65 0.25 1"
 ROD_LENGTH_M = 0.6
 ROD_RADIUS_M = 0.003
+MARKER_PX_PER_CELL = 16  # texture resolution of the printed marker
 
 
 @dataclass
@@ -159,8 +162,9 @@ def object_pose(obj: ObjectSpec) -> np.ndarray:
 
 
 def object_mjcf(obj: ObjectSpec, contact: str = 'condim="3" friction="0.6"', round_as_mesh: bool = False) -> tuple[str, list[str], list[str]]:
-    """(body XML, mesh assets, names of the geoms that make up the object) for a static, rod-held object.
-    `round_as_mesh`: cylinders as fine convex meshes (for contact modes that take meshes, not cylinders)."""
+    """(body XML, assets XML, names of the geoms that make up the object) for a static, rod-held object.
+    `round_as_mesh`: cylinders as fine convex meshes (for contact modes that take meshes, not cylinders).
+    A marker's texture file is in `object_files(obj)`, to be handed to MuJoCo with the XML."""
     if obj.shape is not None:
         geoms, assets = _shape_geoms(obj.shape, "object", contact, round_as_mesh)
         names = _geom_names(obj.shape, "object")
@@ -169,23 +173,117 @@ def object_mjcf(obj: ObjectSpec, contact: str = 'condim="3" friction="0.6"', rou
         assets = [f'<mesh name="object_mesh" vertex="{_v(pts)}"/>']
         geoms = f'<geom name="object" type="mesh" mesh="object_mesh" rgba="{OBJECT_RGBA}" {contact}/>'
         names = ["object"]
-    base = _rod_foot(object_parts(obj))
-    # The rod comes straight down onto the top of the object's highest part, above that part's centre.
+    parts = object_parts(obj)
+    card = ""
+    if obj.marker is not None:
+        card, card_assets = _marker_card(obj.marker, obj.T_world_marker())
+        assets = assets + card_assets
+    base = _rod_foot(parts, obj.T_world_marker(), _card_side(obj.marker) if obj.marker is not None else 0.0)
+    # The rod comes straight down onto the top of the object, beside the marker if there is one.
     rod = (
         f'<geom name="object_rod" type="cylinder" fromto="{_v(base - [0, 0, 0.01])} {_v(base + [0, 0, ROD_LENGTH_M])}" '
         f'size="{ROD_RADIUS_M}" contype="0" conaffinity="0" rgba="0.6 0.6 0.62 1"/>'
     )
-    return f'<body name="object_body">{geoms}{rod}</body>', assets, names
+    return f'<body name="object_body">{geoms}{card}{rod}</body>', assets, names
 
 
-def _rod_foot(parts: list[ConvexPart]) -> np.ndarray:
-    """(3,) where a vertical line through the highest part's centroid leaves that part's top."""
+def marker_image(marker: MarkerSpec, px_per_cell: int = MARKER_PX_PER_CELL) -> np.ndarray:
+    """The printed card `(n, n)` uint8: OpenCV's marker image with one white cell of quiet zone around it."""
+    import cv2
+
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, marker.dictionary))
+    cells = dictionary.markerSize + 2  # data bits plus the black border
+    img = cv2.aruco.generateImageMarker(dictionary, marker.id, cells * px_per_cell, borderBits=1)
+    return cv2.copyMakeBorder(img, px_per_cell, px_per_cell, px_per_cell, px_per_cell, cv2.BORDER_CONSTANT, value=255)
+
+
+def _card_side(marker: MarkerSpec) -> float:
+    """Side (m) of the card: the black square plus a white cell on each side."""
+    import cv2
+
+    cells = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, marker.dictionary)).markerSize + 2
+    return marker.size * (cells + 2) / cells
+
+
+def _marker_file(marker: MarkerSpec) -> str:
+    return f"aruco_{marker.dictionary.lower()}_{marker.id}.png"
+
+
+def object_files(obj: ObjectSpec) -> dict[str, bytes]:
+    """Files the object's MJCF refers to (the marker's texture PNG), for `MjModel.from_xml_string(assets=...)`."""
+    if obj.marker is None:
+        return {}
+    import cv2
+
+    ok, png = cv2.imencode(".png", marker_image(obj.marker))
+    if not ok:  # pragma: no cover - encoding a small grey image does not fail
+        raise RuntimeError("cannot encode the marker texture")
+    return {_marker_file(obj.marker): png.tobytes()}
+
+
+def _marker_card(marker: MarkerSpec, T_world_marker: np.ndarray) -> tuple[str, list[str]]:
+    """A thin textured box whose top face is the marker (MuJoCo maps a 2-D texture onto a box's +z face
+    with the image's columns along the box's x and its rows down its -y: OpenCV's marker axes).
+    The card lies under the marker's face, so a marker placed on a surface stands its thickness proud of it."""
+    half = _card_side(marker) / 2
+    centre = T_world_marker[:3, 3] - T_world_marker[:3, 2] * (MARKER_THICKNESS_M / 2)
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(T_world_marker[:3, :3]).as_quat()
+    name = f"marker_{marker.id}"
+    assets = [
+        f'<texture name="{name}_tex" type="2d" file="{_marker_file(marker)}"/>',
+        f'<material name="{name}_mat" texture="{name}_tex" specular="0" shininess="0" reflectance="0"/>',
+    ]
+    geom = (
+        f'<geom name="{name}" type="box" size="{half:.6g} {half:.6g} {MARKER_THICKNESS_M / 2:.6g}" pos="{_v(centre)}" '
+        f'quat="{_v([w, x, y, z])}" material="{name}_mat" contype="0" conaffinity="0"/>'
+    )
+    return geom, assets
+
+
+def _top_at(parts: list[ConvexPart], xy: np.ndarray) -> float | None:
+    """The highest z where the vertical line through `xy (2,)` leaves one of the parts, or None if it misses them all."""
+    best = None
+    for part in parts:
+        h = part.halfspaces
+        rhs = -(h[:, 3] + h[:, 0] * xy[0] + h[:, 1] * xy[1])  # n_z z <= rhs
+        up, down, flat = h[:, 2] > 1e-9, h[:, 2] < -1e-9, np.abs(h[:, 2]) <= 1e-9
+        if np.any(rhs[flat] < 0):
+            continue
+        z_hi = np.min(rhs[up] / h[up, 2])
+        z_lo = np.max(rhs[down] / h[down, 2]) if down.any() else -np.inf
+        if z_lo <= z_hi and (best is None or z_hi > best):
+            best = float(z_hi)
+    return best
+
+
+def _rod_foot(parts: list[ConvexPart], T_world_marker: np.ndarray | None = None, card_side: float = 0.0) -> np.ndarray:
+    """(3,) where the holding rod meets the object's top: above the highest part's centroid, or, when
+    that would pierce the marker card, just beside the card on its side away from the camera (-x), so
+    that the rod, seen from the rig's camera, rises away from the marker."""
     part = max(parts, key=lambda p: p.points[:, 2].max())
     c = part.points.mean(axis=0)
-    h = part.halfspaces
-    upper = h[h[:, 2] > 1e-9]
-    z = np.min(-(upper[:, 3] + upper[:, 0] * c[0] + upper[:, 1] * c[1]) / upper[:, 2])
-    return np.array([c[0], c[1], z])
+    foot = np.array([c[0], c[1], _top_at([part], c[:2])])
+    if T_world_marker is None:
+        return foot
+    half = card_side / 2 + ROD_RADIUS_M + 0.002
+    local = (foot - T_world_marker[:3, 3]) @ T_world_marker[:3, :3]
+    if np.max(np.abs(local[:2])) > half + ROD_RADIUS_M:
+        return foot
+    # candidates on a square ring just outside the card, in the marker's plane
+    s = np.linspace(-half, half, 9)
+    ring = np.vstack([np.column_stack([s, np.full(9, half)]), np.column_stack([s, np.full(9, -half)]),
+                      np.column_stack([np.full(9, half), s]), np.column_stack([np.full(9, -half), s])])
+    pts = np.column_stack([ring, np.zeros(len(ring))]) @ T_world_marker[:3, :3].T + T_world_marker[:3, 3]
+    best = None
+    for p in pts:
+        z = _top_at(parts, p[:2])
+        if z is None or z < T_world_marker[2, 3] - 0.03:  # off the object or far down its side
+            continue
+        if best is None or p[0] < best[0]:
+            best = np.array([p[0], p[1], z])
+    return best if best is not None else foot
 
 
 def _geom_names(shape, name: str) -> list[str]:

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from bagit.common.rig import CameraConfig, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.sim.bag import BagLayout
-from bagit.services.sim.objects import object_mjcf
+from bagit.services.sim.objects import object_files, object_mjcf
 
 CAMERA_NAME = "rgbd"
 TIMESTEP = 0.004  # s, the physics step (discrete integrator, as flex elasticity requires)
@@ -93,6 +93,11 @@ def _mount_body(name: str, T_home: np.ndarray, rim_local: np.ndarray, T_flange_m
     disc = f'<geom type="cylinder" fromto="{_v(flange - 0.008 * axis)} {_v(flange)}" size="0.032" contype="0" conaffinity="0" rgba="{FLANGE_RGBA}"/>'
     wrist = f'<geom type="cylinder" fromto="{_v(flange - 0.09 * axis)} {_v(flange - 0.008 * axis)}" size="0.045" contype="0" conaffinity="0" rgba="{FLANGE_RGBA}"/>'
     return f'<body name="mount_{name}" mocap="true" pos="{_v(T_home[:3, 3])}" quat="{_v(_quat(T_home[:3, :3]))}">{arc}{stem}{disc}{wrist}</body>'
+
+
+def scene_files(scenario: Scenario) -> dict[str, bytes]:
+    """Files `build_mjcf`'s XML refers to (textures), for `MjModel.from_xml_string(xml, assets=...)`."""
+    return object_files(scenario.object)
 
 
 def build_mjcf(scenario: Scenario, rig: RigConfig, layout: BagLayout) -> str:

@@ -26,7 +26,7 @@ from bagit.common.scenario import Scenario  # noqa: E402
 from bagit.services.sim.bag import BagLayout, bag_layout, rim_frame  # noqa: E402
 from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise  # noqa: E402
 from bagit.services.sim.objects import object_mesh, object_parts, object_pose  # noqa: E402
-from bagit.services.sim.scene import TIMESTEP, build_mjcf  # noqa: E402
+from bagit.services.sim.scene import TIMESTEP, build_mjcf, scene_files  # noqa: E402
 from bagit.services.sim.truth import GroundTruth, PenetrationMonitor  # noqa: E402
 
 DEFAULT_PERIMETER_M = 0.68  # the paper's bag
@@ -98,7 +98,7 @@ class SimWorld:
             frame = rim_frame(np.append(c, pts[:, 2].min() - RIM_BELOW_OBJECT_M))
         self.layout: BagLayout = bag_layout(R, scenario.bag.depth, frame)
         self._check_start(scenario)
-        self.model = mujoco.MjModel.from_xml_string(build_mjcf(scenario, self.rig, self.layout))
+        self.model = mujoco.MjModel.from_xml_string(build_mjcf(scenario, self.rig, self.layout), assets=scene_files(scenario))
         self.data = mujoco.MjData(self.model)
         self._mocap = {name: int(self.model.body(f"mount_{name}").mocapid[0]) for name in ARMS}
         self._target_pos = {n: self.data.mocap_pos[i].copy() for n, i in self._mocap.items()}
