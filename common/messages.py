@@ -238,6 +238,12 @@ class RunState(Message):
     elapsed_s: float = 0.0
     reason: str | None = None
     result: dict[str, Any] | None = None
+    # What the run was started with, so every service configures itself from run/state alone.
+    scenario_doc: dict[str, Any] | None = None
+    controller: str | None = None
+    planner: str | None = None
+    seed: int | None = None
+    params: dict[str, Any] = {}
 
 
 class RunControl(Message):
