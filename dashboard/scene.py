@@ -96,32 +96,31 @@ class SceneView:
         """The viser handle drawn under `name` (e.g. "/cloud/points"), or None."""
         return self._nodes.get(name)
 
+    def _refresh(self, name: str, points: np.ndarray, colors: np.ndarray) -> bool:
+        """Update an existing node's points and colours in place (no re-creation); False if it must be added."""
+        h = self._nodes.get(name)
+        if h is None or len(h.points) != len(points):
+            return False
+        with self.server.atomic():
+            h.points = points
+            h.colors = colors
+            h.visible = True
+        return True
+
     def _points(self, name: str, points: np.ndarray, colors: np.ndarray, size: float, precision: str = "float32") -> None:
         """Clouds go as float16 (half the bytes; 0.5 mm steps at 1 m), rims and outlines as float32."""
         pts = np.ascontiguousarray(points, dtype=np.float32)
         cols = np.ascontiguousarray(colors, dtype=np.uint8)
-        h = self._nodes.get(name)
-        if h is not None and len(h.points) == len(pts):
-            with self.server.atomic():
-                h.points = pts
-                h.colors = cols
-                h.visible = True
-            return
-        self._nodes[name] = self.server.scene.add_point_cloud(
-            name, pts, cols, point_size=size, point_shape="circle", precision=precision  # type: ignore[arg-type]
-        )
+        if not self._refresh(name, pts, cols):
+            self._nodes[name] = self.server.scene.add_point_cloud(
+                name, pts, cols, point_size=size, point_shape="circle", precision=precision  # type: ignore[arg-type]
+            )
 
     def _segments(self, name: str, segments: np.ndarray, colors: np.ndarray, px: float) -> None:
         segs = np.ascontiguousarray(segments, dtype=np.float32)
         cols = np.ascontiguousarray(colors, dtype=np.uint8)
-        h = self._nodes.get(name)
-        if h is not None and len(h.points) == len(segs):
-            with self.server.atomic():
-                h.points = segs
-                h.colors = cols
-                h.visible = True
-            return
-        self._nodes[name] = self.server.scene.add_line_segments(name, segs, cols, thickness=px, thickness_units="screen")
+        if not self._refresh(name, segs, cols):
+            self._nodes[name] = self.server.scene.add_line_segments(name, segs, cols, thickness=px, thickness_units="screen")
 
     def _hide(self, *names: str) -> None:
         for n in names:

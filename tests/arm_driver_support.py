@@ -16,6 +16,7 @@ import numpy as np
 
 from bagit.common import dobot
 from bagit.common.geometry import invert_transform
+from bagit.common.messages import Command
 from bagit.common.rig import ARMS, RigConfig
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
@@ -246,3 +247,29 @@ class TcpProxy:
             s.close()
         for t in self._threads:
             t.join(timeout=1.0)
+
+
+class Streamer:
+    """A controller stand-in: submits the increment u (12,) to a driver at `rate_hz` from a thread
+    until stopped (or, with until_refused, until the driver refuses one)."""
+
+    def __init__(self, drv, u: np.ndarray, rate_hz: float = 30.0, until_refused: bool = False) -> None:
+        self.drv, self.u, self.dt, self.until_refused = drv, u, 1.0 / rate_hz, until_refused
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        k = 0
+        while not self._stop.is_set():
+            if not self.drv.submit(Command(u=self.u, dt=self.dt, seq=k)) and self.until_refused:
+                return
+            k += 1
+            time.sleep(self.dt)
+
+    def start(self) -> "Streamer":
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()

@@ -28,19 +28,13 @@ from bagit.common.messages import (
     SoiState,
 )
 from bagit.common.rig import RigConfig
+from bus_support import wait_until  # noqa: F401  (re-exported for the dashboard tests)
 
 ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
 CLOUD_RGB = (0, 200, 0)  # the synthetic cloud's colour, so a screenshot can find it
 HOME_Q = np.radians([0.0, -20.0, -100.0, 30.0, 90.0, 0.0])
 
 
-def wait_until(pred: Callable[[], bool], timeout: float = 5.0, step: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return bool(pred())
 
 
 @dataclass

@@ -22,7 +22,7 @@ from bagit.common.messages import Command, EStop
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 
-from arm_driver_support import FeedbackRecorder, home_poses, start_sims
+from arm_driver_support import FeedbackRecorder, Streamer, home_poses, start_sims
 
 # On a loaded CI machine the simulated controllers' feedback threads can stall for a while; only the
 # feedback-loss test uses the (shorter) production default.
@@ -308,17 +308,7 @@ def test_feedback_loss_stops_both_arms_and_a_new_stream_resumes_after_it(rig):
     u = np.zeros(12)
     u[0] = u[6] = 0.08 / 30
     fb_right = sims.servers["right"].feedback_port
-    stop = threading.Event()
-
-    def keep_streaming():
-        k = 0
-        while not stop.is_set():
-            drv.submit(Command(u=u, dt=1 / 30, seq=k))
-            k += 1
-            time.sleep(1 / 30)
-
-    th = threading.Thread(target=keep_streaming, daemon=True)
-    th.start()
+    feed = Streamer(drv, u).start()
     time.sleep(0.4)
     t_cut = time.monotonic()
     sims.proxies["right"].pause(fb_right)  # the right controller's feedback goes silent
@@ -330,8 +320,7 @@ def test_feedback_loss_stops_both_arms_and_a_new_stream_resumes_after_it(rig):
     assert len(ts) == 0  # the left arm has braked and holds
     sims.proxies["right"].resume(fb_right)
     assert wait_until(lambda: drv.mode == "streaming", 3.0)  # reconnected, restarted, the stream resumed
-    stop.set()
-    th.join()
+    feed.stop()
     st = drv.status()
     assert st["counters"]["links_lost"] >= 1 and st["counters"]["reconnects"] >= 1
     assert st["rejections"]["link_down"] > 0
@@ -345,26 +334,15 @@ def test_a_dropped_connection_mid_stream_reconnects_without_a_jump(rig):
         u = np.zeros(12)
         u[0] = 0.06 / 30
         u[6] = 0.06 / 30
-        stop = threading.Event()
-
-        def keep_streaming():
-            k = 0
-            while not stop.is_set():
-                drv.submit(Command(u=u, dt=1 / 30, seq=k))
-                k += 1
-                time.sleep(1 / 30)
-
-        th = threading.Thread(target=keep_streaming, daemon=True)
         t0 = time.monotonic()
-        th.start()
+        feed = Streamer(drv, u).start()
         time.sleep(0.6)
         t_drop = time.monotonic()
         sims.proxies["left"].drop()  # both of the left controller's connections reset mid-stream
         assert wait_until(lambda: drv.status()["counters"].get("reconnects", 0) >= 1, 3.0)
         assert wait_until(lambda: drv.mode == "streaming", 3.0)
         time.sleep(0.6)
-        stop.set()
-        th.join()
+        feed.stop()
         assert wait_until(lambda: drv.mode == "holding", 2.0)
         t1 = time.monotonic()
         lim = sims.rig.safety
@@ -410,19 +388,9 @@ def test_a_target_out_of_reach_stops_both_arms_before_the_controller_alarms(rig)
     drv.start()
     u = np.zeros(12)
     u[[0, 2, 6, 8]] = 0.1 / 30  # both mounts out and up, inside the workspace boxes but past the arms' reach
-    stop = threading.Event()
-
-    def keep_streaming():
-        k = 0
-        while not stop.is_set() and drv.submit(Command(u=u, dt=1 / 30, seq=k)):
-            k += 1
-            time.sleep(1 / 30)
-
-    th = threading.Thread(target=keep_streaming, daemon=True)
-    th.start()
+    feed = Streamer(drv, u, until_refused=True).start()
     assert wait_until(lambda: drv.mode == "fault", 8.0)
-    stop.set()
-    th.join()
+    feed.stop()
     # near the edge of the reach the elbow straightens and its joints speed up: either is caught here
     fault = drv.status()["fault"]
     assert re.search(r"next target (out of the arm's reach|a joint would have to move faster)", fault), fault
@@ -438,17 +406,7 @@ def test_garbled_replies_and_feedback_are_reported_and_stop_the_arms_without_a_c
     u = np.zeros(12)
     u[0] = u[6] = 0.05 / 30
     dash, fb = sims.servers["left"].dashboard_port, sims.servers["left"].feedback_port
-    stop = threading.Event()
-
-    def keep_streaming():
-        k = 0
-        while not stop.is_set():
-            drv.submit(Command(u=u, dt=1 / 30, seq=k))
-            k += 1
-            time.sleep(1 / 30)
-
-    th = threading.Thread(target=keep_streaming, daemon=True)
-    th.start()
+    feed = Streamer(drv, u).start()
     time.sleep(0.3)
     # feedback bytes flipped here and there: packets fail their checks and are skipped, the rest is used
     flips = iter(range(10**9))
@@ -463,8 +421,7 @@ def test_garbled_replies_and_feedback_are_reported_and_stop_the_arms_without_a_c
     st = drv.status()
     assert "without a good reply" in st["fault"] and st["arms"]["left"]["malformed_replies"] >= 3
     sims.proxies["left"].resume(dash)
-    stop.set()
-    th.join()
+    feed.stop()
     def right_at_rest() -> bool:  # the other arm braked to rest (timing is the watchdog test's job)
         steps = np.linalg.norm(np.diff(servo_positions(sims.servers["right"], t0=time.monotonic() - 0.2)[1], axis=0), axis=1)
         return len(steps) == 0 or steps.max() < 1e-4
