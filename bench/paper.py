@@ -202,7 +202,7 @@ def manipulation_summary(runs: list[dict[str, Any]], rows: list[dict[str, Any]])
             "error_cm_std": float(np.std(err)) if err else None,
             "time_s_mean": float(np.mean(dur)) if dur else None,
             "time_s_std": float(np.std(dur)) if dur else None,
-            "failures": sorted({f"{r.get('stage_reached', '?')}: {r.get('reason')}" for r in rs if not r["success"]}),
+            "failures": sorted({(f"{r['stage_reached']}: " if r.get("stage_reached") else "") + str(r.get("reason")) for r in rs if not r["success"]}),
             "sources": sorted({r["source"] for r in rs}),
         }
     for row in rows:  # aggregated rows only where no per-run records exist

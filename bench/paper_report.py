@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from bagit.bench import paper_data as P
@@ -150,8 +151,8 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         "Closed-loop runs in the simulator (`bagit run`: rendered camera → perception → planner → controller), "
         "judged on the simulator's ground truth; `mpc+ffg-rrt` is MPC along FFG-RRT's path, as in the paper's "
-        f"planner rows. Read from: {', '.join(f'`{c}`' for c in cl) if cl else 'no closed-loop results'}. "
-        f"Experiments or methods without runs say *{NOT_RUN}*.",
+        f"planner rows. Read from: {', '.join(f'`{Path(c).name}`' for c in cl) if cl else 'no closed-loop results'}. "
+        f"Experiments or methods without runs say *{NOT_RUN}*; k/n counts the n runs present (the paper ran 8 per cell).",
         "",
         *manipulation_table(r),
         "",
