@@ -23,6 +23,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
+    p.add_argument("--seeds", type=int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3)")
+    p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
+    p.add_argument(
+        "--closed-loop", type=Path, action="append", default=None,
+        help="for `paper`: closed-loop results (.jsonl runs or .json); default: closed-loop*.json[l] in the results folder",
+    )
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -35,7 +41,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.what == "paper":
         from bagit.bench import paper
 
-        return paper.run(quick=args.quick, out_dir=args.out)
+        return paper.run(quick=args.quick, seeds=args.seeds, reuse=args.reuse, closed_loop=args.closed_loop, out_dir=args.out)
     stages = args.only or STAGES
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:
@@ -94,6 +100,22 @@ def human(result: dict[str, Any]) -> str:
         for r in result["rows"]:
             out.append(f"{r['metric']:60s} {r['old']:12.4g} {r['new']:12.4g} {r['ratio']:8.2f}")
         return "\n".join(out)
+    if "planning_runs" in result:
+        return paper_summary(result)
     if "stages" in result:
         return stages_markdown(result) + f"\nwritten: {result['files']['markdown']}"
     return json.dumps(result, indent=2, default=str)
+
+
+def paper_summary(r: dict[str, Any]) -> str:
+    """A few lines for the terminal; the tables are in the Markdown report."""
+    lines = [f"planning ({r['seeds']} seeds):"]
+    for stem, row in r["planning"].items():
+        cells = [f"{p} {c['success']}/{c['of']} {c['time_mean_s'] or float('nan'):.3f} s" for p, c in row.items()]
+        lines.append(f"  {stem:32s} " + "  ".join(cells))
+    a = r["placements"]["all"]
+    lines.append(f"bagging SOI over {r['placements']['valid']} placements: mean c1 {a['c1_mean']:.3f}, c2 {a['c2_mean']:.4f} m, c3 {a['c3_mean']:.4f}")
+    n = sum(c["of"] for row in r["manipulation"].values() for c in row.values())
+    lines.append(f"closed-loop runs read: {n}" + ("" if n else " (manipulation: not run)"))
+    lines.append(f"written: {r['files']['markdown']}, {r['files']['json']}, {len(r['figures'])} figures")
+    return "\n".join(lines)

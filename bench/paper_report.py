@@ -1,0 +1,181 @@
+"""The Markdown report of `bagit bench paper`: our numbers and the paper's side by side."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from bagit.bench import paper_data as P
+
+NOT_RUN = "not run"
+
+
+def _pm(mean: float | None, std: float | None, fmt: str = "{:.3f}") -> str:
+    if mean is None:
+        return "—"
+    return fmt.format(mean) + ("" if std is None else " ± " + fmt.format(std))
+
+
+def _exp(stem: str) -> str:
+    return stem[:5] if stem.startswith("exp") else stem
+
+
+def _ratio_ok(ours: dict[str, Any], paper: tuple[int, ...] | None) -> str:
+    """Is our success rate at least the paper's? ('—' where the paper gives none)."""
+    if paper is None:
+        return "—"
+    return "yes" if ours["success"] * paper[1] >= paper[0] * ours["of"] else "**no**"
+
+
+def planning_table(r: dict[str, Any]) -> list[str]:
+    lines = [
+        "| scenario | planner | success (ours) | success (paper) | ≥ paper | time s, mean ± std (ours) | time s (paper) | median s (ours) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for stem, row in r["planning"].items():
+        for planner in P.PLANNERS:
+            if planner not in row:
+                continue
+            c = row[planner]
+            paper = P.PLANNING.get(_exp(stem), {}).get(planner)
+            lines.append(
+                f"| {stem} | {planner} | {c['success']}/{c['of']} | {f'{paper[0]}/{paper[1]}' if paper else '—'} | "
+                f"{_ratio_ok(c, paper)} | {_pm(c['time_mean_s'], c['time_std_s'])} | "
+                f"{_pm(paper[2], paper[3], '{:.2f}') if paper else '—'} | {_pm(c['time_median_s'], None)} |"
+            )
+    return lines
+
+
+def planning_failures(r: dict[str, Any]) -> list[str]:
+    lines = []
+    for stem, row in r["planning"].items():
+        for planner, c in row.items():
+            for why in c["failures"]:
+                lines.append(f"- {stem} / {planner}: {why}")
+    return lines or ["- none"]
+
+
+MANIP_METHODS = ["mpc", "ibvs", "ssvs", "mpc+ffg-rrt", "mpc+ts-rrt"]
+
+
+def manipulation_table(r: dict[str, Any]) -> list[str]:
+    lines = [
+        "| scenario | method | success (ours) | success (paper) | error cm (ours) | time s, simulated (ours) | runs from |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    stems = list(r["planning"]) or sorted(r["manipulation"])
+    for stem in dict.fromkeys(stems + sorted(r["manipulation"])):
+        for method in MANIP_METHODS:
+            paper = P.MANIPULATION.get(_exp(stem), {}).get(method)
+            ours = r["manipulation"].get(stem, {}).get(method)
+            if ours is None and paper is None and method != "mpc":
+                continue
+            ptxt = f"{paper[0]}/{paper[1]}" if paper else "—"
+            if ours is None:
+                lines.append(f"| {stem} | {method} | {NOT_RUN} | {ptxt} | — | — | — |")
+            else:
+                lines.append(
+                    f"| {stem} | {method} | {ours['success']}/{ours['of']} | {ptxt} | "
+                    f"{_pm(ours['error_cm_mean'], ours['error_cm_std'], '{:.2f}')} | {_pm(ours['time_s_mean'], ours['time_s_std'], '{:.1f}')} | "
+                    f"{', '.join(ours['sources'])} |"
+                )
+    return lines
+
+
+def table1(r: dict[str, Any]) -> list[str]:
+    lines = ["| method | success | time s | error cm | source |", "|---|---|---|---|---|"]
+    for name, (k, n, tm, ts, em, es) in P.TABLE1.items():
+        lines.append(f"| {name} | {k}/{n} | {tm:.2f} ± {ts:.2f} | {em:.2f} ± {es:.2f} | paper (real rig) |")
+    exp01 = next((v for s, v in r["manipulation"].items() if s.startswith("exp01")), {})
+    for method in ("mpc", "ibvs", "ssvs"):
+        c = exp01.get(method)
+        label = f"ours: {method}" + (" (the paper's Ours)" if method == "mpc" else "")
+        if c is None:
+            lines.append(f"| {label} | {NOT_RUN} | — | — | simulation |")
+        else:
+            lines.append(
+                f"| {label} | {c['success']}/{c['of']} | {_pm(c['time_s_mean'], c['time_s_std'], '{:.1f}')} | "
+                f"{_pm(c['error_cm_mean'], c['error_cm_std'], '{:.2f}')} | simulation |"
+            )
+    return lines
+
+
+def soi_section(r: dict[str, Any]) -> list[str]:
+    s = r["placements"]
+    a, t = s["all"], s["tilted_over_10deg"]
+    f = lambda v, p=3: "—" if v is None else f"{v:.{p}f}"  # noqa: E731
+    lines = [
+        f"{s['placements']} placements of {s['shapes']} bottom shapes (tilted up to 20°, turned at random; "
+        f"R = 0.68 m, n_x = 32): {s['valid']} valid goals; median {f(s['time_ms_median'], 2)} ms per goal.",
+        "",
+        "| | mean c1 (max F_e) | mean c2 (m) | mean c3 (abs(d_e·d_v)) | placements |",
+        "|---|---|---|---|---|",
+        f"| paper | {P.SOI_STATS['c1']} | {P.SOI_STATS['c2']} | {P.SOI_STATS['c3']} | {P.SOI_STATS['placements']} |",
+        f"| ours, all | {f(a['c1_mean'])} | {f(a['c2_mean'], 4)} | {f(a['c3_mean'], 4)} (over {a['c3_n']} with a principal axis) | {a['n']} |",
+        f"| ours, tilted > 10° | {f(t['c1_mean'])} | {f(t['c2_mean'], 4)} | {f(t['c3_mean'], 4)} | {t['n']} |",
+        "",
+        "| shape | n | mean c1 | max c1 | mean c2 (m) | mean c3 |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, x in s["per_shape"].items():
+        lines.append(f"| {name} | {x['n']} | {f(x['c1_mean'])} | {f(x['c1_max'])} | {f(x['c2_mean'], 4)} | {f(x['c3_mean'], 4)} |")
+    return lines
+
+
+def markdown(r: dict[str, Any]) -> str:
+    m = r["machine"]
+    figs = r.get("figures", [])
+    cl = r["closed_loop_files"]
+    out = [
+        "# The paper's tables, reproduced in simulation (`bagit bench paper`)",
+        "",
+        f"Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, numpy {m['numpy']}; {m['when']}"
+        + ("; **quick subset**" if r["quick"] else "")
+        + (f"; planning and placements reused from `{r['reused']}`" if r.get("reused") else "")
+        + ".",
+        "",
+        "## Table II: planning",
+        "",
+        f"Each scenario planned from its g0 with {r['seeds']} seeds per planner (`cbirrt` is the paper's *Ours*); "
+        f"time is wall-clock per whole path g0 → g† → g* (mean ± std over the successful plans), "
+        f"{r['planning_wall_s']:.0f} s for the whole table. exp11/12 (bound, tilted) and the obstacle layouts "
+        "of Fig. 7(c) have no numbers in the paper.",
+        "",
+        *planning_table(r),
+        "",
+        "Planning failures:",
+        "",
+        *planning_failures(r),
+        "",
+        "## Table II: manipulation",
+        "",
+        "Closed-loop runs in the simulator (`bagit run`: rendered camera → perception → planner → controller), "
+        "judged on the simulator's ground truth; `mpc+ffg-rrt` is MPC along FFG-RRT's path, as in the paper's "
+        f"planner rows. Read from: {', '.join(f'`{Path(c).name}`' for c in cl) if cl else 'no closed-loop results'}. "
+        f"Experiments or methods without runs say *{NOT_RUN}*; k/n counts the n runs present (the paper ran 8 per cell).",
+        "",
+        *manipulation_table(r),
+        "",
+        "## Table I: comparison on Exp. 1",
+        "",
+        "ShakingBot, AutoBag and BimaManip. are not reimplemented here; our rows are the three controllers on exp01 in "
+        "simulation (time is simulated time to the goal).",
+        "",
+        *table1(r),
+        "",
+        "## Bagging SOI statistics (section VII-A)",
+        "",
+        *soi_section(r),
+        "",
+        "c1 is the largest F_e of V's vertices in the bagging ellipse, so it measures how much of the ellipse the "
+        "object's bottom fills: it depends on the objects' size against the rim (R = 0.68 m), which the paper does "
+        "not give for its 12 shapes. Our goal solver reaches L = R exactly with the ellipse centred on V and "
+        "parallel to its principal axis (see `services/planner/goal.py`), so c2 = 0 and c3 = 1 whenever the bag "
+        "is large enough; the paper's numerical optimiser stops near those values (0.005 m, 0.9978).",
+        "",
+        "## Figures",
+        "",
+        *([f"![{f}]({f})" for f in figs] or ["none drawn"]),
+        "",
+    ]
+    return "\n".join(out)
