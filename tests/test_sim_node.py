@@ -55,7 +55,7 @@ def test_frames_truth_and_reset_between_runs(pair):
             time.sleep(0.3)
             assert node.stats.resets == 1
             # a scenario the world cannot be built from pauses the camera with the reason
-            bad = dict(doc, bag={**doc.get("bag", {}), "depth": 1.9}  # hangs through the table)
+            bad = dict(doc, bag={**doc.get("bag", {}), "depth": 1.9})  # hangs through the table
             state_pub.put(RunState(run_id="run-3", stage="perceiving", scenario="bad", scenario_doc=bad))
             assert wait_until(lambda: any("cannot build" in s for s in said), 20), said
             n = node.stats.frames
