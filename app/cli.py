@@ -33,6 +33,7 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.router",
     "bagit.commands.dashboard",
     "bagit.commands.planner",
+    "bagit.commands.up",
     "bagit.commands.recorder",
     "bagit.commands.replay",
     "bagit.commands.runs",
