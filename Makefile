@@ -32,7 +32,7 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/python
 setup: sysdeps $(VENV)/.installed
 
 demo: setup
-	$(BIN)/bagit demo
+	$(BIN)/bagit up exp02 --exit-when-done
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -32,6 +32,8 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.bench",
     "bagit.commands.router",
     "bagit.commands.dashboard",
+    "bagit.commands.planner",
+    "bagit.commands.up",
     "bagit.commands.recorder",
     "bagit.commands.replay",
     "bagit.commands.runs",

@@ -51,6 +51,7 @@ from bagit.common.messages import (
     RunControl,
     RunControlReply,
     RunState,
+    SimTruth,
     SoiState,
 )
 
@@ -328,6 +329,8 @@ KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("run/control", RunControl, CONTROL, "query", "queryable: start, stop or reset; answered by a RunControlReply"),
     KeySpec("estop", EStop, ESTOP, "pub", "emergency stop: highest priority, express, reliable"),
     KeySpec("alive/*", None, None, "liveliness", "liveliness token per service; gone within ~1 s of its death"),
+    KeySpec("sim/truth", SimTruth, DISPLAY, "pub",
+            "simulator ground truth (true rim, pass-through, real-time factor) for tests and benchmarks only: no service may subscribe"),
 )
 
 
@@ -353,6 +356,7 @@ class Keys:
         self.run_control = f"{p}/run/control"
         self.estop = f"{p}/estop"
         self.alive_any = f"{p}/alive/*"
+        self.sim_truth = f"{p}/sim/truth"  # tests and benchmarks only
         self.all = f"{p}/**"
 
     def arm_state(self, arm: Literal["left", "right"]) -> str:

@@ -277,7 +277,28 @@ class EStop(Message):
     reason: str | None = None
 
 
+class SimTruth(Message):
+    """The simulator's ground truth, for tests and benchmarks only (no service may read it).
+    rim: (n, 3) the true rim vertices in order, world frame."""
+
+    KIND: ClassVar[str] = "sim_truth"
+    run_id: str | None = None
+    scenario: str | None = None
+    sim_time: float = 0.0
+    realtime_factor: float = 0.0
+    frames: int = 0
+    rim: ArrayF64
+    passed_through: bool = False
+    max_penetration_m: float = 0.0
+    clearance_m: float = 0.0
+
+    @field_validator("rim")
+    @classmethod
+    def _rim(cls, v: np.ndarray) -> np.ndarray:
+        return _check_points(v, "rim")
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     m.KIND: m
-    for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ControllerStatus, ArmState, RunState, RunControl, RunControlReply, EStop)
+    for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ControllerStatus, ArmState, RunState, RunControl, RunControlReply, EStop, SimTruth)
 }

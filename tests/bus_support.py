@@ -70,6 +70,7 @@ def example_message(kind: str, rng: np.random.Generator | None = None) -> Messag
         "run_control": dict(action="start", scenario="exp01", params={"n_x": 32}, seed=3),
         "run_control_reply": dict(accepted=False, reason="a run is in progress"),
         "estop": dict(engage=True, source="dashboard", reason="operator"),
+        "sim_truth": dict(run_id="r1", scenario="exp01", sim_time=3.5, realtime_factor=0.8, frames=35, rim=rim, clearance_m=0.02),
     }
     if kind not in ex:
         raise KeyError(f"no bus test example for message kind {kind!r}; add one to tests/bus_support.py")

@@ -140,6 +140,7 @@ def _example(kind):
         "run_control": dict(action="start", scenario="exp01"),
         "run_control_reply": dict(accepted=False, reason="busy"),
         "estop": dict(source="test"),
+        "sim_truth": dict(rim=arr, sim_time=1.0),
     }
     return MESSAGE_TYPES[kind](**ex[kind])
 

@@ -2,10 +2,12 @@
 
 The controllers listen on the rig config's ports (defaults: left 29999/30004, right 29989/30014,
 loopback) and speak Dobot's TCP/IP protocol V4, so an arm driver connects to them as to real
-CR5s. Simulated time runs `--speed` times the wall clock (as fast as the machine allows). Camera
-frames are rendered at `--fps` per simulated second; publishing them over Zenoh comes with the
-services.
-Ctrl-C stops cleanly.
+CR5s. Simulated time runs `--speed` times the wall clock (as fast as the machine allows; when it
+cannot keep up it says its real-time factor). Camera frames are rendered at `--fps` per simulated
+second and published on camera/rgbd (stamped with the wall clock), ground truth on sim/truth
+(tests and benchmarks only), and the world is reset to each new run's scenario as run/state
+announces it (bagit.services.sim.node). `--no-bus` runs without Zenoh.
+Ctrl-C or SIGTERM stops cleanly.
 """
 
 from __future__ import annotations
@@ -21,14 +23,19 @@ HELP = "run the simulated rig: bag, object, camera and two CR5 controllers speak
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", help="scenario file, or the name of a bundled scenario")
-    p.add_argument("--rig", help="rig config YAML (arm bases, controller ports, camera); default: the paper's set-up")
+    from bagit.common.bus import add_bus_arguments
+
+    p.add_argument("scenario", help="scenario file, or the name of a bundled scenario (the world until a run says otherwise)")
+    p.add_argument("--rig-config", metavar="YAML", help="rig config YAML (arm bases, controller ports, camera); default: the paper's set-up")
     p.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second (default 1)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds (default: run until Ctrl-C)")
     p.add_argument("--no-camera", action="store_true", help="no camera frames (faster)")
-    p.add_argument("--fps", type=float, default=15.0, help="camera frames per simulated second (default 15, at most the camera's rate)")
+    p.add_argument("--fps", type=float, default=10.0, help="camera frames per simulated second (default 10, at most the camera's rate)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ephemeral-ports", action="store_true", help="listen on free ports instead of the rig config's")
+    p.add_argument("--no-bus", action="store_true", help="no Zenoh: frames are rendered but not published, no resets")
+    p.add_argument("--truth-hz", type=float, default=2.0, help="ground truth on sim/truth this often (default 2 Hz)")
+    add_bus_arguments(p)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -45,16 +52,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.duration is not None and not args.duration > 0:
         raise BadScenario(f"--duration must be > 0, got {args.duration}")
     scenario = Scenario.from_file(find_scenario(args.scenario))
-    rig_cfg = RigConfig.from_file(args.rig) if args.rig else RigConfig()
+    rig_cfg = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
     out = sys.stderr if args.json else sys.stdout
 
     def say(msg: str) -> None:
         print(f"[sim] {msg}", file=out, flush=True)
 
     stop = threading.Event()
-    previous = signal.getsignal(signal.SIGINT)
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, lambda *_: stop.set())
+    main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
     frames = {"n": 0}
 
     def on_frame(_frame: object) -> None:
@@ -68,20 +74,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             ports = rig.start_servers(ephemeral_ports=args.ephemeral_ports)
             for name, (dash, fb) in ports.items():
                 say(f"{name} CR5: dashboard {rig_cfg.arms[name].host}:{dash}, feedback {rig_cfg.arms[name].host}:{fb}")
-            say(f"scenario {scenario.name}, seed {args.seed}, speed x{args.speed:g}" + (", no camera" if args.no_camera else ""))
-            stats = rig.run_realtime(
-                args.speed,
-                args.duration,
-                stop,
-                on_frame=None if args.no_camera else on_frame,
-                on_progress=on_progress,
-                fps=min(args.fps, rig_cfg.camera.fps),
-            )
+            say(f"scenario {scenario.name}, seed {args.seed}, speed x{args.speed:g}" + (", no camera" if args.no_camera else f", camera {args.fps:g} fps"))
+            if not args.no_bus:
+                stats = _run_on_bus(args, rig, scenario.name, min(args.fps, rig_cfg.camera.fps), stop, say)
+            else:
+                stats = rig.run_realtime(
+                    args.speed,
+                    args.duration,
+                    stop,
+                    on_frame=None if args.no_camera else on_frame,
+                    on_progress=on_progress,
+                    fps=min(args.fps, rig_cfg.camera.fps),
+                )
             gt = rig.ground_truth()
             modes = {name: arm.robot_mode() for name, arm in rig.arms.items()}
     finally:
-        if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, previous)
+        for sig, h in previous.items():
+            signal.signal(sig, h)
     return {
         "success": True,
         "scenario": scenario.name,
@@ -96,6 +105,26 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "rim_perimeter": gt.rim_perimeter,
         "passed_through": gt.passed_through,
     }
+
+
+def _run_on_bus(args: argparse.Namespace, rig: Any, scenario_name: str, fps: float, stop: threading.Event, say: Any) -> Any:
+    from bagit.common.bus import Keys, bus_config_from_args, open_session
+    from bagit.services.sim.node import SimNode, SimNodeConfig
+    from bagit.services.sim.rig_sim import RealtimeStats
+
+    bus = bus_config_from_args(args)
+    cfg = SimNodeConfig(speed=args.speed, fps=fps, camera=not args.no_camera, truth_hz=args.truth_hz)
+    session = open_session(bus)
+    try:
+        node = SimNode(session, Keys(bus.rig), rig, cfg, scenario_name, say=say)
+        say(f"on the bus as rig {bus.rig}: camera/rgbd, sim/truth; following run/state")
+        try:
+            st = node.run(stop, args.duration)
+        finally:
+            node.close()
+    finally:
+        session.close()
+    return RealtimeStats(st.sim_s, st.wall_s, st.realtime_factor, st.frames)
 
 
 def human(r: dict[str, Any]) -> str:

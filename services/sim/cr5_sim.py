@@ -372,6 +372,18 @@ class SimulatedCR5:
         self._q_ref = self._q.copy()
         self._qd_ref = np.zeros(6)
 
+    def teleport(self, q: np.ndarray) -> None:
+        """Put the arm at rest at `q (6,)` rad at once, its queue and servo target dropped: the
+        simulator's reset between runs (an operator re-placing the arms), never a motion command."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (6,) or not cr5.within_limits(q):
+            raise ValueError(f"{self.name}: angles {np.degrees(q).round(1).tolist()} deg are not within the CR5's limits")
+        with self._lock:
+            self._q = q.copy()
+            self._qd = np.zeros(6)
+            self._hold()
+            self._q_ref_checked = q.copy()
+
     # -- simulation ------------------------------------------------------------------------------
 
     def step(self, dt: float) -> None:

@@ -102,23 +102,55 @@ class SimRig:
 
             world = SimWorld(scenario, self.rig, seed, camera=camera)
         self.world: World = world
+        self.camera = camera
         self.arms: dict[str, SimulatedCR5] = {}
-        homes = self.world.mount_home_poses()
+        try:
+            start = self._start_angles(self.world)
+        except BadScenario:
+            self.world.close()
+            raise
         for name in ARMS:
-            arm = self.rig.arms[name]
-            T_bf = invert_transform(arm.T_world_base()) @ homes[name] @ invert_transform(arm.T_flange_mount())
-            q = natural_ik(T_bf)
-            if q is None:
-                d = np.linalg.norm(T_bf[:3, 3])
-                self.world.close()
-                raise BadScenario(f"the {name} mount starts {d:.2f} m from its CR5's base, out of the arm's reach; move the base in the rig config")
-            self.arms[name] = SimulatedCR5(arm, q0=q, name=name)
+            self.arms[name] = SimulatedCR5(self.rig.arms[name], q0=start[name], name=name)
         self.servers: dict[str, DobotControllerServer] = {}
         self._loop_lock = threading.Lock()
         self._synced_q: dict[str, np.ndarray] = {}
         if with_servers:
             self.start_servers(ephemeral_ports)
         self._sync_mounts()
+
+    def _start_angles(self, world: World) -> dict[str, np.ndarray]:
+        """Each arm's joints holding its mount where `world` starts it; BadScenario if out of reach."""
+        homes = world.mount_home_poses()
+        out = {}
+        for name in ARMS:
+            arm = self.rig.arms[name]
+            T_bf = invert_transform(arm.T_world_base()) @ homes[name] @ invert_transform(arm.T_flange_mount())
+            q = natural_ik(T_bf)
+            if q is None:
+                d = np.linalg.norm(T_bf[:3, 3])
+                raise BadScenario(f"the {name} mount starts {d:.2f} m from its CR5's base, out of the arm's reach; move the base in the rig config")
+            out[name] = q
+        return out
+
+    def reset(self, scenario: Scenario, seed: int = 0, world: World | None = None) -> None:
+        """A new world for `scenario` with the arms re-placed at its start; the controllers and
+        their TCP servers (and their clients' connections) stay. On BadScenario the old world stays."""
+        if world is None:
+            from bagit.services.sim.world import SimWorld
+
+            world = SimWorld(scenario, self.rig, seed, camera=self.camera)
+        try:
+            start = self._start_angles(world)
+        except BadScenario:
+            world.close()
+            raise
+        with self._loop_lock:
+            old, self.world = self.world, world
+            for name, q in start.items():
+                self.arms[name].teleport(q)
+            self._synced_q = {}
+            self._sync_mounts()
+        old.close()
 
     # -- servers ---------------------------------------------------------------------------------
 

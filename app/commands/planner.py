@@ -1,0 +1,90 @@
+"""`bagit planner`: the planner service and the rig's run coordinator.
+
+Answers run/control (start a scenario, stop, reset; one run at a time), takes g0 from perception,
+computes the bagging goal and the SOI path, publishes them on planner/goal and planner/path, and
+publishes run/state (on every change and at --publish-hz) while following the controller's
+status and the services' liveliness. Config: `--config FILE` (YAML, PlannerServiceConfig:
+`coordinator:` timing rules, `publish_hz`, `bus:`); the bus flags override its `bus:` section.
+Stops on Ctrl-C or SIGTERM, or after --duration seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+NAME = "planner"
+HELP = "run the planner service: the run coordinator (run/control, run/state), goal and SOI path"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from bagit.common.bus import add_bus_arguments
+
+    p.add_argument("--config", type=Path, metavar="YAML", help="service config (coordinator timing, publish_hz, bus)")
+    p.add_argument("--publish-hz", type=float, default=None, help="run/state republish rate (default 2)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until stopped)")
+    add_bus_arguments(p)
+
+
+def load_config(path: Path | None, model: Any) -> Any:
+    """A service config from YAML (empty when no file); one-line BadScenario naming the bad field."""
+    import yaml
+    from pydantic import ValidationError
+
+    from bagit.common.errors import BadScenario
+
+    if path is None:
+        return model()
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8")) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise BadScenario(f"cannot read config {path}: {str(e).splitlines()[0]}") from None
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        first = e.errors()[0]
+        raise BadScenario(f"{path}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    import logging
+    import signal
+    import sys
+    import threading
+    import time
+
+    from bagit.common.bus import Keys, bus_config_from_args, open_session, parse_bus_config
+    from bagit.common.errors import BusError
+    from bagit.services.planner.node import PlannerNode, PlannerServiceConfig
+
+    if args.duration is not None and not args.duration > 0:
+        raise BusError(f"--duration must be positive, got {args.duration}")
+    cfg = load_config(args.config, PlannerServiceConfig)
+    if args.publish_hz is not None:
+        cfg = cfg.model_copy(update={"publish_hz": PlannerServiceConfig(publish_hz=args.publish_hz).publish_hz})
+    bus = bus_config_from_args(args, parse_bus_config(cfg.bus))
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    stop = threading.Event()
+    main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    t0 = time.monotonic()
+    runs: dict[str, str] = {}
+    try:
+        session = open_session(bus)
+        try:
+            node = PlannerNode(session, Keys(bus.rig), cfg, on_state=lambda s: runs.__setitem__(s.run_id, s.stage) if s.run_id else None)
+            print(f"bagit planner: coordinating rig {bus.rig} (run/control, run/state); Ctrl-C to stop", file=sys.stderr, flush=True)
+            stop.wait(args.duration)
+            last = node.state
+            node.close()
+        finally:
+            session.close()
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return {"success": True, "rig": bus.rig, "uptime_s": time.monotonic() - t0, "runs": runs, "last_state": last.model_dump(mode="json", exclude={"scenario_doc"})}
+
+
+def human(r: dict[str, Any]) -> str:
+    return f"planner stopped after {r['uptime_s']:.1f} s; {len(r['runs'])} run(s): " + ", ".join(f"{k} {v}" for k, v in r["runs"].items())

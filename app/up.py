@@ -1,0 +1,332 @@
+"""`bagit up`: the whole rig on one machine, every service its own process, on loopback.
+
+The composition root of the distributed rig. It writes, in a scratch folder, a Zenoh config
+(peers on 127.0.0.1, multicast scouting off, 1 s lease, every peer connected to the hub session
+this process listens with) and a rig YAML (free ports for the simulated CR5s), then starts the
+services as child processes (`python -m bagit.cli <service> ...`), streams their output with
+`[service]` prefixes, waits for each one's liveliness token, and can start a run on run/control
+and wait for its end.
+
+Children: each in its own session (process group) and with the parent-death signal set (Linux
+PR_SET_PDEATHSIG), so `stop()` (on Ctrl-C, SIGTERM or the end of the run) takes down every
+process a service started, and a SIGKILLed `bagit up` leaves no orphans either. A child that
+dies while the rig is up is restarted after `restart_delay_s` (what systemd's Restart= does on a
+real rig), up to `max_restarts` times; `status()` (and the --status-file) gives the child PIDs so
+tests can kill one.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, TextIO
+
+from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, open_session, request_run_control
+from bagit.common.errors import BusError
+from bagit.common.messages import RunControl, RunControlReply, RunState
+from bagit.common.rig import RigConfig
+
+SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboard")
+FINAL = ("done", "failed", "aborted")
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 free right now (the OS's pick)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def free_ports(n: int) -> list[int]:
+    """n distinct free ports (all held open until picked, so none repeats)."""
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.bind(("127.0.0.1", 0))
+            socks.append(s)
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+def zenoh_config(hub: str, lease_ms: int = 1000) -> dict[str, Any]:
+    """The children's Zenoh config: peers on loopback, connected to the hub, no multicast."""
+    return {
+        "mode": "peer",
+        "connect": {"endpoints": [hub]},
+        "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
+        "scouting": {"multicast": {"enabled": False}, "delay": 0},
+        "transport": {"link": {"tx": {"lease": lease_ms, "keep_alive": 4}}},
+    }
+
+
+def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
+    os.setsid()
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class UpOptions:
+    scenario: str | None = None
+    world: str = "exp02"  # the world the simulator starts with when no scenario is given
+    controller: str | None = None
+    planner: str | None = None
+    seed: int = 0
+    rig: str = "sim"
+    services: tuple[str, ...] = SERVICES
+    record: Path | None = None
+    fps: float = 10.0
+    dashboard_port: int = 0
+    workdir: Path | None = None
+    status_file: Path | None = None
+    ready_timeout_s: float = 180.0
+    restart_delay_s: float = 1.0
+    max_restarts: int = 5
+    extra_args: dict[str, list[str]] = field(default_factory=dict)
+
+
+@dataclass
+class Child:
+    name: str
+    argv: list[str]
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    exit_codes: list[int] = field(default_factory=list)
+
+
+class Up:
+    """The rig's processes and the hub session (see the module docstring)."""
+
+    def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None) -> None:
+        self.opts = opts
+        self.log = log
+        self.on_line = on_line
+        self._own_dir = opts.workdir is None
+        self.dir = Path(tempfile.mkdtemp(prefix="bagit-up-")) if opts.workdir is None else Path(opts.workdir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.keys = Keys(opts.rig)
+        self.children: dict[str, Child] = {}
+        self._stopping = threading.Event()
+        self._print_lock = threading.Lock()
+        self.session: Any = None
+        self.watcher: LivelinessWatcher | None = None
+        self.run_state: LatestCache | None = None
+        self.hub = ""
+        self.dashboard_url: str | None = None
+        self._supervisor: threading.Thread | None = None
+
+    # -- set-up ----------------------------------------------------------------------------------
+
+    def say(self, text: str, who: str = "up") -> None:
+        with self._print_lock:
+            print(f"[{who}] {text}", file=self.log, flush=True)
+        if self.on_line is not None:
+            self.on_line(who, text)
+
+    def _write_configs(self) -> tuple[Path, Path]:
+        hub_port, *cr5 = free_ports(5)
+        self.hub = f"tcp/127.0.0.1:{hub_port}"
+        zpath = self.dir / "zenoh.json5"
+        zpath.write_text(json.dumps(zenoh_config(self.hub), indent=2), encoding="utf-8")
+        rig = RigConfig(name=self.opts.rig)
+        arms = {
+            "left": rig.arms["left"].model_copy(update={"dashboard_port": cr5[0], "feedback_port": cr5[1]}),
+            "right": rig.arms["right"].model_copy(update={"dashboard_port": cr5[2], "feedback_port": cr5[3]}),
+        }
+        rig = rig.model_copy(update={"arms": arms})
+        rpath = self.dir / "rig.yaml"
+        rpath.write_text(rig.to_yaml(), encoding="utf-8")
+        return zpath, rpath
+
+    def _argv(self, name: str, zpath: Path, rpath: Path) -> list[str]:
+        o = self.opts
+        bus = ["--rig", o.rig, "--zenoh-config", str(zpath)]
+        if name == "sim":
+            args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--fps", f"{o.fps:g}", "--seed", str(o.seed)]
+        elif name == "dashboard":
+            port = o.dashboard_port or free_port()
+            self.dashboard_url = f"http://127.0.0.1:{port}"
+            args = ["dashboard", "--port", str(port), "--rig-config", str(rpath)]
+        elif name == "recorder":
+            args = ["recorder", "--dir", str(o.record or "recordings")]
+        elif name in ("arm-driver", "perception", "controller"):
+            args = [name, "--rig-config", str(rpath)]
+        else:
+            args = [name]
+        return args + bus + o.extra_args.get(name, [])
+
+    def start(self) -> None:
+        """Write the configs, open the hub, start every service."""
+        from bagit.cli import build_parser
+
+        _, modules = build_parser()
+        names = list(self.opts.services) + (["recorder"] if self.opts.record is not None and "recorder" not in self.opts.services else [])
+        missing = [n for n in names if n not in modules]
+        if missing:
+            raise BusError(f"no `bagit {missing[0]}` command in this build: cannot start the {missing[0]} service")
+        zpath, rpath = self._write_configs()
+        self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub]))
+        self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
+        self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
+        for n in names:
+            self.children[n] = Child(n, self._argv(n, zpath, rpath))
+        for c in self.children.values():
+            self._spawn(c)
+        self._supervisor = threading.Thread(target=self._supervise, name="up-supervisor", daemon=True)
+        self._supervisor.start()
+
+    def _spawn(self, c: Child) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "osmesa"),
+                   PYOPENGL_PLATFORM=os.environ.get("PYOPENGL_PLATFORM", "osmesa"))
+        c.proc = subprocess.Popen(
+            [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, env=env, preexec_fn=_child_setup, text=True, errors="replace", bufsize=1,
+        )
+        threading.Thread(target=self._pump, args=(c.name, c.proc), name=f"log-{c.name}", daemon=True).start()
+        self.say(f"started {c.name} (pid {c.proc.pid})")
+        self._write_status()
+
+    def _pump(self, name: str, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        own = f"[{name}] "
+        for line in proc.stdout:
+            line = line.rstrip("\n")
+            self.say(line[len(own):] if line.startswith(own) else line, who=name)
+
+    def _on_alive(self, service: str, alive: bool) -> None:
+        self.say(f"service {service} {'up' if alive else 'gone'}")
+
+    def _supervise(self) -> None:
+        while not self._stopping.wait(0.2):
+            for c in list(self.children.values()):
+                if c.proc is None or c.proc.poll() is None:
+                    continue
+                code = c.proc.returncode
+                c.exit_codes.append(code)
+                if c.restarts >= self.opts.max_restarts:
+                    self.say(f"{c.name} exited with {code}; not restarted ({c.restarts} restarts already)")
+                    c.proc = None
+                    continue
+                self.say(f"{c.name} exited with {code}; restarting in {self.opts.restart_delay_s:g} s")
+                c.proc = None
+                if self._stopping.wait(self.opts.restart_delay_s):
+                    return
+                c.restarts += 1
+                self._spawn(c)
+
+    # -- status ----------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "pid": os.getpid(),
+            "rig": self.opts.rig,
+            "connect": self.hub,
+            "zenoh_config": str(self.dir / "zenoh.json5"),
+            "rig_config": str(self.dir / "rig.yaml"),
+            "dashboard_url": self.dashboard_url,
+            "children": {n: (c.proc.pid if c.proc is not None and c.proc.poll() is None else None) for n, c in self.children.items()},
+            "restarts": {n: c.restarts for n, c in self.children.items()},
+        }
+
+    def _write_status(self) -> None:
+        """The status as JSON in the workdir (and the --status-file), rewritten at every (re)start of a child."""
+        for path in (self.dir / "status.json", self.opts.status_file):
+            if path is not None:
+                tmp = Path(str(path) + ".tmp")
+                tmp.write_text(json.dumps(self.status()), encoding="utf-8")
+                tmp.replace(path)
+
+    def wait_ready(self, timeout: float | None = None, stop: threading.Event | None = None) -> list[str]:
+        """Wait for every service's liveliness token; returns the ones still missing (empty: all up)."""
+        assert self.watcher is not None
+        deadline = time.monotonic() + (timeout if timeout is not None else self.opts.ready_timeout_s)
+        want = set(self.children)
+        while True:
+            missing = sorted(want - self.watcher.alive())
+            if not missing or time.monotonic() > deadline or (stop is not None and stop.is_set()):
+                return missing
+            dead = [n for n in missing if self.children[n].restarts >= self.opts.max_restarts and self.children[n].proc is None]
+            if dead:
+                return missing
+            time.sleep(0.1)
+
+    # -- runs ------------------------------------------------------------------------------------
+
+    def start_run(self, scenario: str, timeout: float = 10.0) -> RunControlReply:
+        o = self.opts
+        req = RunControl(action="start", scenario=scenario, controller=o.controller, planner=o.planner, seed=o.seed)
+        return request_run_control(self.session, self.keys, req, timeout=timeout)
+
+    def wait_run(self, run_id: str, stop: threading.Event, timeout: float | None = None) -> RunState | None:
+        """Follow run/state until run `run_id` ends (done, failed, aborted); None if stopped first."""
+        assert self.run_state is not None
+        deadline = None if timeout is None else time.monotonic() + timeout
+        last_stage = None
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            s = self.run_state.get()
+            if s is None or s.run_id != run_id:
+                stop.wait(0.1)
+                continue
+            if s.stage != last_stage:
+                last_stage = s.stage
+                self.say(f"run {run_id}: {s.stage}" + (f" ({s.reason})" if s.reason else ""))
+            if s.stage in FINAL:
+                return s
+            stop.wait(0.1)
+        return None
+
+    # -- tear-down -------------------------------------------------------------------------------
+
+    def stop(self, grace_s: float = 10.0) -> dict[str, int | None]:
+        """SIGTERM every child's process group, SIGKILL what is left after `grace_s`; their exit codes."""
+        self._stopping.set()
+        if self._supervisor is not None:
+            self._supervisor.join(timeout=2.0)
+        procs = {n: c.proc for n, c in self.children.items() if c.proc is not None}
+        for p in procs.values():
+            _signal_group(p, signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        codes: dict[str, int | None] = {}
+        for n, p in procs.items():
+            try:
+                codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.say(f"{n} did not stop in {grace_s:g} s: killed")
+                _signal_group(p, signal.SIGKILL)
+                codes[n] = p.wait(timeout=5)
+            _signal_group(p, signal.SIGKILL)  # anything the service started and left behind
+        for x in (self.run_state, self.watcher):
+            if x is not None:
+                x.close()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        return codes
+
+    def __enter__(self) -> "Up":
+        return self
+
+    def __exit__(self, *_: Any) -> None:
+        self.stop()
+
+
+def _signal_group(p: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(p.pid, sig)  # the child is its own process group's leader (setsid)
+    except (ProcessLookupError, PermissionError):
+        pass

@@ -1,0 +1,380 @@
+"""The run coordinator: the rig's run state machine, with no transport in it.
+
+    idle -> perceiving -> goal -> planning -> pre-bagging -> bagging -> done | failed | aborted
+
+Events go in (`start`/`stop`/`reset` requests, a new SOI, a planning outcome, controller status,
+a service appearing or disappearing, a clock `tick`), and the coordinator answers with its
+`state` (a RunState) and a list of `Effect`s for the node to carry out (plan in the background,
+publish the goal and the path). Every method takes `now` (wall-clock seconds, the clock the
+messages are stamped with), so tests drive it with a fake clock and the node with time.time().
+
+Why pure: the rules (one run at a time, which SOI counts as g0, when a silent controller fails a
+run) are the part that must be right; the Zenoh node around it is thin and only wires them up.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any, Callable, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from bagit.common.errors import BagItError, BadScenario
+from bagit.common.geometry import closed_polyline_length
+from bagit.common.messages import ControllerStatus, Goal, Path, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.params import MethodParams
+from bagit.common.scenario import Scenario
+
+ACTIVE = ("perceiving", "goal", "planning", "pre-bagging", "bagging")
+FINAL = ("done", "failed", "aborted")
+CONTROLLERS = ("mpc", "ibvs", "ssvs")
+
+
+class CoordinatorConfig(BaseModel):
+    """Timing rules of the coordinator (the `coordinator:` section of the planner's config)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    settle_s: float = Field(0.5, ge=0.0, le=30.0, description="g0 only from an SOI whose frame is this much newer than the start")
+    perceive_timeout_s: float = Field(30.0, gt=0, le=600, description="no fresh SOI by then: the run fails")
+    plan_time_budget_s: float = Field(10.0, gt=0, le=600, description="the planner's time budget")
+    status_timeout_s: float = Field(3.0, gt=0, le=60, description="controller status silent this long during servoing: failed")
+    first_status_timeout_s: float = Field(15.0, gt=0, le=120, description="no controller status this long after the path: failed")
+    run_time_limit_s: float = Field(180.0, gt=0, le=3600, description="servoing (pre-bagging + bagging) longer than this: failed")
+    required_services: list[str] = Field(
+        default_factory=lambda: ["controller", "arm-driver"],
+        description="a run fails at once when one of these disappears while it servos",
+    )
+    perception_service: str = "perception"
+    perception_grace_s: float = Field(5.0, ge=0, le=120, description="perception may be gone this long before the run fails")
+    controllers: list[str] = Field(default_factory=lambda: list(CONTROLLERS))
+    default_controller: str = "mpc"
+    default_planner: str = "cbirrt"
+
+
+@dataclass
+class PlanJob:
+    """What the node hands to `compute_plan` in the background for run `run_id`."""
+
+    run_id: str
+    scenario: Scenario
+    g0: np.ndarray  # (n_x, 3)
+    planner: str
+    seed: int
+    time_budget_s: float
+
+
+@dataclass
+class PlanOutcome:
+    """`compute_plan`'s answer: goal and path messages, or the stage and reason it failed at."""
+
+    run_id: str
+    goal: Goal | None = None
+    path: Path | None = None
+    failed_stage: Literal["goal", "planning"] | None = None
+    reason: str | None = None
+    time_s: float = 0.0
+
+
+@dataclass
+class Effect:
+    """Something the node must do: `plan` (run compute_plan(job) in the background), `publish_goal`, `publish_path`."""
+
+    kind: Literal["plan", "publish_goal", "publish_path"]
+    job: PlanJob | None = None
+    message: Goal | Path | None = None
+
+
+def compute_plan(job: PlanJob, on_goal: Callable[[Goal], None] | None = None) -> PlanOutcome:
+    """Goal (bagging ellipse, g†, g*) and SOI path from g0: the planner's real algorithms.
+
+    `on_goal(goal)` is called as soon as the goal is known, before the (longer) path search.
+    Never raises for bad input: an infeasible goal or a failed search comes back with the reason.
+    """
+    from bagit.services.planner import bagging_soi, collision_model, plan_path
+
+    t0 = time.perf_counter()
+    sc, p = job.scenario, job.scenario.params
+    g0 = np.asarray(job.g0, dtype=float)
+    try:
+        if g0.ndim != 2 or g0.shape[1] != 3 or len(g0) < 4 or not np.all(np.isfinite(g0)):
+            raise BadScenario(f"g0 must be (n >= 4, 3) and finite, got shape {g0.shape}")
+        R = sc.bag.rim_perimeter or closed_polyline_length(g0)
+        goal = bagging_soi(sc.object.bottom_vertices(), R, len(g0), p, lambda_d=sc.lambda_d(), g0=g0)
+    except BagItError as e:
+        return PlanOutcome(job.run_id, failed_stage="goal", reason=f"goal: {e}", time_s=time.perf_counter() - t0)
+    goal_msg = goal.to_message(job.run_id, object_height=float(sc.object.effective_height()))
+    if on_goal is not None:
+        on_goal(goal_msg)
+    try:
+        coll = collision_model(sc, goal.up, p.planner_clearance_m, goal.g_dagger)
+        res = plan_path(g0, goal, coll, R, p, job.planner, job.seed, job.time_budget_s)
+    except BagItError as e:
+        return PlanOutcome(job.run_id, goal=goal_msg, failed_stage="planning", reason=f"planning: {e}", time_s=time.perf_counter() - t0)
+    if not res.success:
+        return PlanOutcome(job.run_id, goal=goal_msg, failed_stage="planning", reason=f"planning: {res.reason}", time_s=res.time_s)
+    return PlanOutcome(job.run_id, goal=goal_msg, path=res.to_message(job.run_id), time_s=res.time_s)
+
+
+def new_run_id(now: float) -> str:
+    """Sortable and unique: UTC time of the start plus 6 random hex digits."""
+    return time.strftime("%Y%m%d-%H%M%S", time.gmtime(now)) + "-" + uuid.uuid4().hex[:6]
+
+
+@dataclass
+class _Run:
+    run_id: str
+    scenario: Scenario
+    scenario_name: str
+    doc: dict[str, Any]
+    controller: str
+    planner: str
+    seed: int
+    overrides: dict[str, Any]
+    t_start: float
+    t_servo: float | None = None
+    t_last_status: float | None = None
+    planning_time_s: float = 0.0
+    path_nodes: int = 0
+    perception_gone_at: float | None = None
+    last_status: ControllerStatus | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class Coordinator:
+    """One run at a time per rig (see the module docstring). Not thread-safe: the node serialises calls."""
+
+    def __init__(self, config: CoordinatorConfig | None = None, now: float | None = None) -> None:
+        self.cfg = config or CoordinatorConfig()
+        self.run: _Run | None = None
+        self.state = RunState(stage="idle", stamp=time.time() if now is None else now)
+        self.alive: set[str] = set()
+        self.changed = True  # the node publishes the state when set, then clears it
+
+    # -- helpers -------------------------------------------------------------------------------
+
+    @property
+    def active(self) -> bool:
+        return self.state.stage in ACTIVE
+
+    def _set(self, now: float, **fields: Any) -> None:
+        r = self.run
+        base = dict(
+            run_id=r.run_id if r else None,
+            scenario=r.scenario_name if r else None,
+            scenario_doc=r.doc if r else None,
+            controller=r.controller if r else None,
+            planner=r.planner if r else None,
+            seed=r.seed if r else None,
+            params=r.overrides if r else {},
+            stage=self.state.stage,
+            progress=self.state.progress,
+            reason=self.state.reason,
+            result=self.state.result,
+        )
+        base.update(fields)
+        base["elapsed_s"] = max(0.0, now - r.t_start) if r else 0.0
+        self.state = RunState(stamp=now, **base)
+        self.changed = True
+
+    def _finish(self, now: float, stage: Literal["done", "failed", "aborted"], reason: str | None, result: dict[str, Any] | None = None) -> None:
+        r = self.run
+        res = dict(result or {})
+        if r is not None:
+            res.setdefault("success", stage == "done")
+            res.setdefault("stage_reached", self.state.stage)
+            res.update(
+                scenario=r.scenario_name, controller=r.controller, planner=r.planner, seed=r.seed,
+                planning_time_s=round(r.planning_time_s, 4), path_nodes=r.path_nodes, wall_s=round(now - r.t_start, 3),
+            )
+            if reason:
+                res.setdefault("reason", reason)
+        self._set(now, stage=stage, reason=reason, result=res)
+
+    def tick_state(self, now: float) -> RunState:
+        """The state to republish periodically, with elapsed time brought up to `now` while a run is active."""
+        if self.active:
+            self._set(now)
+            self.changed = False
+        return self.state
+
+    # -- requests ------------------------------------------------------------------------------
+
+    def handle(self, req: RunControl, now: float) -> tuple[RunControlReply, list[Effect]]:
+        """Answer a run/control request."""
+        if req.action == "start":
+            return self.start(req, now), []
+        if req.action == "stop":
+            return self.stop(now), []
+        return self.reset(now), []
+
+    def start(self, req: RunControl, now: float) -> RunControlReply:
+        if self.active:
+            r = self.run
+            return RunControlReply(accepted=False, run_id=r.run_id if r else None,
+                                   reason=f"a run is in progress (run {r.run_id if r else '?'}, stage {self.state.stage}); stop it first")
+        try:
+            scenario, name = self._scenario(req)
+            merged = {**scenario.params.model_dump(exclude_unset=True), **(req.params or {})}
+            try:
+                params = MethodParams.model_validate(merged)
+            except ValidationError as e:
+                first = e.errors()[0]
+                raise BadScenario(f"params.{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+            scenario = scenario.model_copy(update={"params": params})
+            controller = req.controller or self.cfg.default_controller
+            if controller not in self.cfg.controllers:
+                raise BadScenario(f"unknown controller {controller!r}; choose from {', '.join(self.cfg.controllers)}")
+            from bagit.services.planner.rrt import PLANNERS
+
+            planner = req.planner or self.cfg.default_planner
+            if planner not in PLANNERS:
+                raise BadScenario(f"unknown planner {planner!r}; choose from {', '.join(sorted(PLANNERS))}")
+            seed = int(req.seed or 0)
+            if seed < 0:
+                raise BadScenario(f"seed must be >= 0, got {seed}")
+        except BagItError as e:
+            return RunControlReply(accepted=False, reason=str(e).splitlines()[0])
+        doc = scenario.model_dump(mode="json", exclude_none=True)
+        self.run = _Run(new_run_id(now), scenario, name, doc, controller, planner, seed, dict(req.params or {}), now)
+        self._set(now, stage="perceiving", progress=0.0, reason=None, result=None)
+        return RunControlReply(accepted=True, run_id=self.run.run_id)
+
+    def _scenario(self, req: RunControl) -> tuple[Scenario, str]:
+        if req.scenario_doc is not None:
+            sc = Scenario.from_dict(req.scenario_doc, "scenario_doc")
+            return sc, req.scenario or sc.name
+        if not req.scenario:
+            raise BadScenario("start needs a scenario (a bundled name or a scenario_doc)")
+        from bagit.scenarios import find_scenario
+
+        path = find_scenario(req.scenario)
+        return Scenario.from_file(path), path.stem
+
+    def stop(self, now: float) -> RunControlReply:
+        if not self.active:
+            return RunControlReply(accepted=False, run_id=self.state.run_id, reason=f"no run in progress (stage {self.state.stage})")
+        self._finish(now, "aborted", "stopped by the operator")
+        return RunControlReply(accepted=True, run_id=self.state.run_id)
+
+    def reset(self, now: float) -> RunControlReply:
+        """Abort any run, then back to idle (the dashboard's Reset)."""
+        run_id = self.state.run_id
+        if self.active:
+            self._finish(now, "aborted", "reset by the operator")
+        self.run = None
+        self.state = RunState(stage="idle", stamp=now)
+        self.changed = True
+        return RunControlReply(accepted=True, run_id=run_id)
+
+    # -- data ----------------------------------------------------------------------------------
+
+    def on_soi(self, soi: SoiState, now: float) -> list[Effect]:
+        """In `perceiving`, a fresh SOI becomes g0: stage goal, and a plan job for the node."""
+        r = self.run
+        if r is None or self.state.stage != "perceiving":
+            return []
+        frame_t = soi.source_stamp or soi.stamp
+        if frame_t < r.t_start + self.cfg.settle_s:
+            return []  # from a frame of before the start (or of the world before its reset)
+        n_x = r.scenario.bag.n_x
+        if len(soi.rim) != n_x:
+            return []  # perception not yet reconfigured for this run's n_x
+        self._set(now, stage="goal", progress=0.0)
+        job = PlanJob(r.run_id, r.scenario, np.array(soi.rim, dtype=float), r.planner, r.seed, self.cfg.plan_time_budget_s)
+        return [Effect("plan", job=job)]
+
+    def on_goal(self, goal: Goal, now: float) -> list[Effect]:
+        """The goal is known (compute_plan's on_goal): publish it, stage planning."""
+        r = self.run
+        if r is None or goal.run_id != r.run_id or self.state.stage != "goal":
+            return []
+        r.extra["goal_published"] = True
+        self._set(now, stage="planning")
+        return [Effect("publish_goal", message=goal)]
+
+    def on_plan(self, out: PlanOutcome, now: float) -> list[Effect]:
+        """The planning outcome: publish goal and path and go to pre-bagging, or fail with the reason."""
+        r = self.run
+        if r is None or out.run_id != r.run_id or self.state.stage not in ("goal", "planning"):
+            return []  # a run that was stopped meanwhile
+        r.planning_time_s = out.time_s
+        effects: list[Effect] = []
+        if out.goal is not None and not r.extra.get("goal_published"):
+            effects.append(Effect("publish_goal", message=out.goal))
+        if out.failed_stage is not None or out.path is None:
+            self._set(now, stage=out.failed_stage or "planning")
+            self._finish(now, "failed", out.reason or "planning failed")
+            return effects
+        r.path_nodes = int(len(out.path.nodes))
+        r.t_servo = now
+        effects.append(Effect("publish_path", message=out.path))
+        self._set(now, stage="pre-bagging", progress=0.0)
+        return effects
+
+    def on_status(self, st: ControllerStatus, now: float) -> None:
+        """Follow the controller: its stage and progress; done ends the run."""
+        r = self.run
+        if r is None or st.run_id != r.run_id or self.state.stage not in ("pre-bagging", "bagging"):
+            return
+        r.t_last_status = now
+        r.last_status = st
+        if st.stage in ("failed", "aborted"):
+            self._finish(now, "failed", f"controller: {st.reason or st.stage}")
+            return
+        if st.done:
+            result = {
+                "error_to_goal_m": st.error_to_goal,
+                "duration_s": round(now - (r.t_servo or now), 3),
+                "ticks": st.seq,
+            }
+            self._set(now, progress=1.0)
+            self._finish(now, "done", None, result)
+            return
+        stage = st.stage if st.stage in ("pre-bagging", "bagging") else self.state.stage
+        if stage != self.state.stage or abs(st.progress - self.state.progress) > 1e-9:
+            self._set(now, stage=stage, progress=float(st.progress))
+
+    def on_liveliness(self, service: str, alive: bool, now: float) -> None:
+        """Services appearing and disappearing; a required one gone while servoing fails the run."""
+        (self.alive.add if alive else self.alive.discard)(service)
+        r = self.run
+        if r is None or not self.active:
+            return
+        if service == self.cfg.perception_service:
+            r.perception_gone_at = None if alive else now
+            return
+        if not alive and service in self.cfg.required_services and self.state.stage in ("pre-bagging", "bagging"):
+            self._finish(now, "failed", f"the {service} service is gone (liveliness lost during {self.state.stage})")
+
+    def tick(self, now: float) -> None:
+        """Timeouts: no fresh SOI, a silent controller, the run's time limit, perception gone too long."""
+        r = self.run
+        if r is None or not self.active:
+            return
+        stage = self.state.stage
+        if stage == "perceiving" and now - r.t_start > self.cfg.perceive_timeout_s:
+            who = "" if self.cfg.perception_service in self.alive else f" (the {self.cfg.perception_service} service is not up)"
+            self._finish(now, "failed", f"no fresh SOI from perception within {self.cfg.perceive_timeout_s:g} s{who}")
+            return
+        if stage in ("pre-bagging", "bagging"):
+            t_servo = r.t_servo or now
+            missing = [s for s in self.cfg.required_services if s not in self.alive]
+            if missing and now - t_servo > self.cfg.status_timeout_s:
+                self._finish(now, "failed", f"the {missing[0]} service is not up")
+                return
+            if r.t_last_status is None:
+                if now - t_servo > self.cfg.first_status_timeout_s:
+                    self._finish(now, "failed", f"no controller status for this run within {self.cfg.first_status_timeout_s:g} s of the path")
+                    return
+            elif now - r.t_last_status > self.cfg.status_timeout_s:
+                self._finish(now, "failed", f"controller status silent for {now - r.t_last_status:.1f} s (> {self.cfg.status_timeout_s:g} s)")
+                return
+            if now - t_servo > self.cfg.run_time_limit_s:
+                self._finish(now, "failed", f"time limit of {self.cfg.run_time_limit_s:g} s reached in {stage}")
+                return
+        if r.perception_gone_at is not None and now - r.perception_gone_at > self.cfg.perception_grace_s:
+            self._finish(now, "failed", f"the {self.cfg.perception_service} service is gone (for {now - r.perception_gone_at:.1f} s)")

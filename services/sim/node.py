@@ -1,0 +1,182 @@
+"""The simulator on Zenoh: the services' camera, and the world reset between runs.
+
+`SimNode.run()` paces the simulated rig (bagit.services.sim.rig_sim.SimRig, its CR5s on TCP) to
+the wall clock and publishes an RgbdFrame on camera/rgbd `fps` times per simulated second,
+stamped with the wall-clock time the image was taken (so perception and control can judge its
+age). If the machine cannot keep up, simulated time runs slower than the wall clock: frames then
+come less often per wall second, and the node says its real-time factor on stderr and in
+sim/truth.
+
+Between runs the world follows run/state: a new run id in `perceiving` with a scenario_doc
+rebuilds the world for that scenario and seed, re-places the simulated CR5s at its start (their
+TCP servers and clients stay), lets the bag settle, and only then publishes frames again, so no
+frame of the old world is stamped after the reset.
+
+Ground truth goes on sim/truth (tests and benchmarks only; no service subscribes to it).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+
+from bagit.common.bus import Keys, Publisher, Subscriber, declare_alive
+from bagit.common.errors import BagItError
+from bagit.common.messages import RgbdFrame, RunState, SimTruth
+from bagit.common.scenario import Scenario
+from bagit.services.sim.rig_sim import SimRig
+
+SERVICE_NAME = "sim"
+
+
+class SimNodeConfig(BaseModel):
+    """Rates of the simulator node."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    speed: float = Field(1.0, gt=0, le=1000, description="simulated seconds per wall second (when the machine keeps up)")
+    fps: float = Field(10.0, gt=0, le=120, description="camera frames per simulated second (0 < fps <= the camera's rate)")
+    camera: bool = True
+    chunk_s: float = Field(0.02, gt=0, le=0.2, description="simulated seconds stepped between checks")
+    settle_s: float = Field(1.0, ge=0, le=10, description="simulated seconds the bag hangs still after a reset, no frames")
+    truth_hz: float = Field(2.0, gt=0, le=50)
+    report_every_s: float = Field(5.0, gt=0, description="how often the real-time factor is printed (wall seconds)")
+
+
+@dataclass
+class SimStats:
+    sim_s: float = 0.0
+    wall_s: float = 0.0
+    realtime_factor: float = 0.0
+    frames: int = 0
+    resets: int = 0
+
+
+class SimNode:
+    """A SimRig on the bus (see the module docstring). `run()` blocks until `stop` is set."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        rig: SimRig,
+        config: SimNodeConfig | None = None,
+        scenario_name: str | None = None,
+        say: Callable[[str], None] = print,
+    ) -> None:
+        self.cfg = config or SimNodeConfig()
+        self.rig = rig
+        self.keys = keys
+        self.say = say
+        self.scenario_name = scenario_name
+        self.run_id: str | None = None
+        self.stats = SimStats()
+        self._rtf_window = 1.0
+        self._lock = threading.Lock()
+        self._pending: tuple[str, dict[str, Any], int, str | None] | None = None
+        self._seen_runs: set[str] = set()
+        self._camera_paused: str | None = None
+        self._frame_pub = Publisher(session, keys.camera_rgbd, RgbdFrame)
+        self._truth_pub = Publisher(session, keys.sim_truth, SimTruth)
+        self._state_sub = Subscriber(session, keys.run_state, RunState, self._on_state)
+        self._token = declare_alive(session, keys, SERVICE_NAME)
+
+    def _on_state(self, s: RunState) -> None:
+        if s.stage != "perceiving" or not s.run_id or s.scenario_doc is None:
+            return
+        with self._lock:
+            if s.run_id in self._seen_runs:
+                return
+            self._seen_runs.add(s.run_id)
+            self._pending = (s.run_id, s.scenario_doc, int(s.seed or 0), s.scenario)
+
+    def _reset(self, run_id: str, doc: dict[str, Any], seed: int, name: str | None) -> None:
+        t0 = time.monotonic()
+        try:
+            scenario = Scenario.from_dict(doc, "run/state scenario_doc")
+            self.rig.reset(scenario, seed)
+        except (BagItError, ValueError) as e:
+            # frames of the old world would be taken for this run's: publish none until a good reset
+            self._camera_paused = f"run {run_id}: cannot build its world: {e}"
+            self.say(f"ERROR: {self._camera_paused}; camera paused")
+            return
+        self.rig.step(self.cfg.settle_s) if self.cfg.settle_s > 0 else None
+        self._camera_paused = None
+        self.run_id = run_id
+        self.scenario_name = name or scenario.name
+        self.stats.resets += 1
+        self.say(f"run {run_id}: world reset to {self.scenario_name} (seed {seed}) in {time.monotonic() - t0:.2f} s")
+
+    def _publish_truth(self) -> None:
+        gt = self.rig.ground_truth()
+        self._truth_pub.put(SimTruth(
+            run_id=self.run_id, scenario=self.scenario_name, sim_time=self.rig.time, realtime_factor=self._rtf_window,
+            frames=self.stats.frames, rim=gt.rim, passed_through=bool(gt.passed_through),
+            max_penetration_m=float(gt.max_penetration_m), clearance_m=float(min(gt.clearance_m, 1e3)),
+        ))
+
+    def run(self, stop: threading.Event, duration: float | None = None) -> SimStats:
+        """Step, render, publish and follow resets until `stop` (or `duration` simulated seconds)."""
+        cfg = self.cfg
+        t_sim0, t_wall0 = self.rig.time, time.monotonic()  # pacing origin, moved at each reset
+        sim_total, wall_start = 0.0, time.monotonic()
+        next_frame = self.rig.time
+        next_truth = next_report = time.monotonic()
+        win_sim, win_wall = self.rig.time, time.monotonic()
+        while not stop.is_set() and (duration is None or sim_total < duration - 1e-9):
+            with self._lock:
+                pending, self._pending = self._pending, None
+            if pending is not None:
+                self._reset(*pending)
+                t_sim0, t_wall0 = self.rig.time, time.monotonic()
+                next_frame = self.rig.time
+                win_sim, win_wall = self.rig.time, time.monotonic()
+                continue
+            before = self.rig.time
+            self.rig.step(cfg.chunk_s)
+            sim_total += self.rig.time - before
+            if cfg.camera and self._camera_paused is None and self.rig.time >= next_frame - 1e-9:
+                taken = time.time()
+                frame = self.rig.render_rgbd(self.stats.frames)
+                frame.stamp = taken  # wall clock of the image, not simulated time
+                self._frame_pub.put(frame)
+                self.stats.frames += 1
+                next_frame += 1.0 / cfg.fps
+                if next_frame < self.rig.time:  # behind: skip frames rather than bunch them up
+                    next_frame = self.rig.time + 1.0 / cfg.fps
+            now = time.monotonic()
+            if now >= next_truth:
+                next_truth = now + 1.0 / cfg.truth_hz
+                try:
+                    self._publish_truth()
+                except Exception as e:  # noqa: BLE001 - truth is for tests; never stop the rig for it
+                    self.say(f"ground truth not published: {type(e).__name__}: {e}")
+            if now >= next_report:
+                if now - win_wall > 0.5:
+                    self._rtf_window = (self.rig.time - win_sim) / (now - win_wall)
+                    win_sim, win_wall = self.rig.time, now
+                if self._rtf_window < 0.95 * cfg.speed:
+                    self.say(f"behind real time: x{self._rtf_window:.2f} (asked x{cfg.speed:g}); {self.stats.frames} frames so far")
+                next_report = now + cfg.report_every_s
+            ahead = (self.rig.time - t_sim0) / cfg.speed - (time.monotonic() - t_wall0)
+            if ahead > 0:
+                stop.wait(ahead)
+            elif ahead < -1.0:
+                t_sim0, t_wall0 = self.rig.time, time.monotonic()  # never race to catch up a backlog
+        wall = time.monotonic() - wall_start
+        self.stats.sim_s, self.stats.wall_s = sim_total, wall
+        self.stats.realtime_factor = sim_total / wall if wall > 0 else 0.0
+        return self.stats
+
+    def close(self) -> None:
+        for x in (self._state_sub, self._frame_pub, self._truth_pub):
+            x.close()
+        try:
+            self._token.undeclare()
+        except zenoh.ZError:
+            pass

@@ -1,0 +1,218 @@
+"""`bagit up`: every service its own process on loopback.
+
+Process hygiene (SIGTERM stops every child, a SIGKILLed `bagit up` leaves no orphans, a dead child
+is restarted) runs on a subset of the services. The full simulated run and the fault tests need
+every service's command (perception, controller, arm driver) and are skipped, saying so, in a
+build without them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bus_support import wait_until
+
+from bagit.cli import build_parser
+
+pytestmark = pytest.mark.slow
+
+ENV = dict(os.environ, MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa", PYTHONUNBUFFERED="1")
+_, MODULES = build_parser()
+ALL = ("sim", "perception", "planner", "controller", "arm-driver")
+needs_all = pytest.mark.skipif(
+    any(s not in MODULES for s in ALL), reason=f"this build lacks {[s for s in ALL if s not in MODULES]} (the services' commands)"
+)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie is dead too
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _up(tmp_path: Path, *args: str) -> tuple[subprocess.Popen, Path]:
+    status = tmp_path / "status.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bagit.cli", "up", "--status-file", str(status), "--workdir", str(tmp_path / "work"), *args],
+        stdout=subprocess.PIPE, stderr=open(tmp_path / "up.log", "w"), env=ENV, text=True,
+    )
+    return proc, status
+
+
+def _status(path: Path, want: tuple[str, ...], timeout: float = 90) -> dict:
+    def ready() -> bool:
+        try:
+            d = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return False
+        return all(d["children"].get(s) for s in want)
+
+    assert wait_until(ready, timeout, 0.1), f"children {want} not started: {path}"
+    return json.loads(path.read_text())
+
+
+def _log(tmp_path: Path) -> str:
+    return (tmp_path / "up.log").read_text(errors="replace")
+
+
+def test_sigterm_stops_every_child_and_sigkill_leaves_no_orphans(tmp_path):
+    proc, status = _up(tmp_path, "--services", "sim,planner")
+    try:
+        d = _status(status, ("sim", "planner"))
+        pids = list(d["children"].values())
+        assert wait_until(lambda: "all services up" in _log(tmp_path), 120, 0.2), _log(tmp_path)
+        assert "[planner]" in _log(tmp_path) and "[sim]" in _log(tmp_path)  # prefixed child output
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60) == 0
+        assert not any(_alive(p) for p in pids), _log(tmp_path)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    proc, status = _up(tmp_path, "--services", "sim,planner")
+    d = _status(status, ("sim", "planner"))
+    pids = list(d["children"].values())
+    proc.kill()  # no chance to clean up: the children's parent-death signal must do it
+    proc.wait(10)
+    assert wait_until(lambda: not any(_alive(p) for p in pids), 30, 0.1), "orphans left behind"
+
+
+def test_a_dead_child_is_restarted_and_its_new_pid_published(tmp_path):
+    proc, status = _up(tmp_path, "--services", "planner")
+    try:
+        d = _status(status, ("planner",))
+        old = d["children"]["planner"]
+        assert wait_until(lambda: "all services up" in _log(tmp_path), 120, 0.2), _log(tmp_path)
+        os.kill(old, signal.SIGKILL)
+
+        def restarted() -> bool:
+            d = json.loads(status.read_text())
+            return d["restarts"]["planner"] == 1 and d["children"]["planner"] not in (None, old)
+
+        assert wait_until(restarted, 60, 0.2), _log(tmp_path)
+        assert wait_until(lambda: _log(tmp_path).count("service planner up") >= 2, 60, 0.2), _log(tmp_path)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
+
+
+def test_bad_input_is_a_one_line_error(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "bagit.cli", "up", "no-such-scenario"], capture_output=True, text=True, env=ENV, timeout=60)
+    assert r.returncode == 2 and "no scenario" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = subprocess.run([sys.executable, "-m", "bagit.cli", "up", "--exit-when-done"], capture_output=True, text=True, env=ENV, timeout=60)
+    assert r.returncode == 2 and "needs a SCENARIO" in r.stderr
+
+
+@needs_all
+def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "170"],
+        capture_output=True, text=True, env=ENV, timeout=200,
+    )
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert r.returncode == 0 and out["success"] and out["stage"] == "done", (out, r.stderr[-3000:])
+    res = out["result"]
+    assert res["path_nodes"] > 2 and res["ticks"] > 0 and res["error_to_goal_m"] is not None
+    assert time.monotonic() - t0 < 200
+
+
+@needs_all
+def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_restart_runs_again(tmp_path):
+    from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, open_session, request_run_control
+    from bagit.common.messages import ArmState, Command, RunControl, RunState
+
+    proc, status = _up(tmp_path, "--no-dashboard")
+    session = None
+    try:
+        d = _status(status, ALL)
+        assert wait_until(lambda: "all services up" in _log(tmp_path), 150, 0.2), _log(tmp_path)
+        session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
+        keys = Keys(d["rig"])
+        state = LatestCache(session, keys.run_state, RunState)
+        arms = LatestCache(session, keys.arm_state_any, ArmState)
+        cmds: list[tuple[float, Command]] = []
+        Subscriber(session, keys.controller_cmd, Command, lambda c: cmds.append((time.monotonic(), c)))
+        rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
+        assert rep.accepted, rep.reason
+        run1 = rep.run_id
+        # mid-run: servoing, the arms moving
+        assert wait_until(lambda: (s := state.get()) is not None and s.run_id == run1 and s.stage in ("pre-bagging", "bagging") and s.progress > 0.05, 120, 0.1), state.get()
+        assert wait_until(lambda: len(cmds) > 10, 30, 0.05)
+        os.kill(d["children"]["controller"], signal.SIGKILL)
+        t_kill = time.monotonic()
+        # commands stop
+        time.sleep(0.5)
+        assert not [c for t, c in cmds if t > t_kill + 0.3], "commands after the controller died"
+        # the arms hold: no joint moves after 250 ms
+        qs: dict[str, list[tuple[float, np.ndarray, float]]] = {"left": [], "right": []}
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            for k, (m, t) in arms.items().items():
+                qs[m.arm].append((t, m.q.copy(), m.tool_speed))
+            time.sleep(0.02)
+        for arm, samples in qs.items():
+            late = [(q, v) for t, q, v in samples if t > t_kill + 0.25]
+            assert late, f"no {arm} arm state after the kill"
+            assert max(v for _, v in late) < 1e-3, f"{arm} arm still moving {max(v for _, v in late):.4f} m/s 250 ms after"
+            q0 = late[0][0]
+            assert max(np.abs(q - q0).max() for q, _ in late) < 1e-4
+        # the run fails with the reason, within about a second of liveliness
+        assert wait_until(lambda: state.get().stage == "failed", 10, 0.05), state.get()
+        assert "controller" in state.get().reason
+        # restarted by bagit up; the next run succeeds
+        assert wait_until(lambda: json.loads(status.read_text())["restarts"]["controller"] == 1, 30, 0.2)
+        assert wait_until(lambda: _log(tmp_path).count("service controller up") >= 2, 90, 0.2), _log(tmp_path)[-3000:]
+        rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
+        assert rep.accepted, rep.reason
+        assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("done", "failed", "aborted"), 170, 0.2)
+        assert state.get().stage == "done", state.get()
+    finally:
+        if session is not None:
+            session.close()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
+
+
+@needs_all
+def test_killing_perception_makes_the_controller_hold_on_stale_soi(tmp_path):
+    from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, open_session, request_run_control
+    from bagit.common.messages import Command, RunControl, RunState
+
+    proc, status = _up(tmp_path, "--no-dashboard")
+    session = None
+    try:
+        d = _status(status, ALL)
+        assert wait_until(lambda: "all services up" in _log(tmp_path), 150, 0.2), _log(tmp_path)
+        session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
+        keys = Keys(d["rig"])
+        state = LatestCache(session, keys.run_state, RunState)
+        cmds: list[tuple[float, Command]] = []
+        Subscriber(session, keys.controller_cmd, Command, lambda c: cmds.append((time.monotonic(), c)))
+        rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
+        assert rep.accepted, rep.reason
+        assert wait_until(lambda: (s := state.get()) is not None and s.run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), 120, 0.1)
+        assert wait_until(lambda: any(c.mode == "servo" for _, c in cmds), 30, 0.05)
+        os.kill(d["children"]["perception"], signal.SIGKILL)
+        t_kill = time.monotonic()
+        assert wait_until(lambda: any(t > t_kill and c.mode == "hold" for t, c in cmds), 10, 0.05), cmds[-3:]
+        hold = next(c for t, c in cmds if t > t_kill and c.mode == "hold")
+        assert hold.reason and ("stale" in hold.reason or "SOI" in hold.reason) and not np.any(hold.u)
+    finally:
+        if session is not None:
+            session.close()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
