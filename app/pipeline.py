@@ -14,11 +14,12 @@ from typing import Any, Callable
 import numpy as np
 from matplotlib.path import Path as MplPath
 
-from bagit.common.errors import BagItError
+from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import closed_polyline_length, transform_points
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.controller import ShapeServo
+from bagit.services.controller.servo import NUMERIC_ERRORS
 from bagit.services.controller.synthetic import apply_increment
 from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
 from bagit.services.perception.rgbd import solid_rim_segmenter
@@ -102,7 +103,10 @@ def run_bagging(
 
     # How the rim looks is a property of the bag the rig is set up for, not ground truth.
     segmenter = red_rim_mask if scenario.bag.kind == "red-edged" else solid_rim_segmenter(scenario.bag.color)
-    world.step(SETTLE_S)
+    try:
+        world.step(SETTLE_S)
+    except SimulationFailed as e:
+        return finish(False, "settling", f"simulator: {e}")
     grippers = world.mount_home_poses()
     seq = 0
     progress("perceiving: g0 from the camera")
@@ -124,8 +128,13 @@ def run_bagging(
     servo = ShapeServo(controller, p, plan.path, plan.dagger_index, R)
     x, ticks, stage = g0, 0, "pre-bagging"
     limit = servo.u_max
+    holding: str | None = None  # why the controller holds the arms, while it does
     while world.time - SETTLE_S < time_limit_s:
-        out = servo.step(x, world.time, grippers, source_stamp=world.time)
+        try:
+            out = servo.step(x, world.time, grippers, source_stamp=world.time)
+        except (BagItError, *NUMERIC_ERRORS) as e:  # the controller holds on these itself; a last net
+            return finish(False, stage, f"controller: {e}", plan_t=plan.time_s, ticks=ticks, nodes=len(plan.path))
+        holding = out.reason if out.mode == "hold" else None
         if np.any(np.abs(out.u) > limit + 1e-12) or not np.all(np.isfinite(out.u)):
             return finish(False, stage, "the controller commanded outside the arm limits", ticks=ticks)
         if out.stage != stage and out.mode == "servo":
@@ -139,8 +148,11 @@ def run_bagging(
         if out.done:
             break
         grippers = apply_increment(grippers, out.u)
-        world.set_mount_targets(grippers)
-        world.step(dt)
+        try:
+            world.set_mount_targets(grippers)
+            world.step(dt)
+        except SimulationFailed as e:
+            return finish(False, stage, f"simulator: {e}", plan_t=plan.time_s, ticks=ticks, nodes=len(plan.path))
         ticks += 1
         seq += 1
         try:
@@ -155,4 +167,6 @@ def run_bagging(
         ok, reason = False, f"time limit of {time_limit_s:.0f} s reached"
     elif not out.done and ok:
         reason = None  # enclosed at the time limit counts only if done; keep the judge's verdict otherwise
+    if not ok and holding:
+        reason = f"{reason}; the controller was holding: {holding}"
     return finish(ok, "done" if ok else stage, reason, err_cm, plan.time_s, ticks, len(plan.path))
