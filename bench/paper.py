@@ -87,8 +87,13 @@ def planning_summary(records: list[dict[str, Any]]) -> dict[str, dict[str, dict[
 # ---------------------------------------------------------------- bagging SOI (section VII-A)
 
 
-def measure_placements(n: int, seed: int = 0) -> list[dict[str, Any]]:
-    """n random placements cycling over the twelve shapes of `bench.goal`, tilted up to 20 degrees."""
+SCALE_RANGE = (0.75, 1.6)  # each placement's size against bench.goal's outline (the largest do not fit the bag)
+
+
+def measure_placements(n: int, seed: int = 0, scale_range: tuple[float, float] = SCALE_RANGE) -> list[dict[str, Any]]:
+    """n random placements cycling over the twelve shapes of `bench.goal`, tilted up to 20 degrees, turned
+    and moved at random, and scaled by a random factor in `scale_range`: the goal is computed in the
+    bottom frame, so pose alone would give each shape the same c1 every time."""
     from bagit.bench.goal import R, shapes
     from bagit.services.planner import bagging_soi
 
@@ -98,12 +103,13 @@ def measure_placements(n: int, seed: int = 0) -> list[dict[str, Any]]:
     records = []
     for k in range(n):
         name = names[k % len(names)]
-        xy = outlines[name]
+        scale = float(rng.uniform(*scale_range))
+        xy = outlines[name] * scale
         rpy = [rng.uniform(-0.35, 0.35), rng.uniform(-0.35, 0.35), rng.uniform(-np.pi, np.pi)]
         Rm = rpy_to_matrix(rpy)
         v = np.column_stack([xy, np.zeros(len(xy))]) @ Rm.T + rng.uniform([-0.1, -0.1, 0.4], [0.1, 0.1, 0.6])
         tilt = float(np.degrees(np.arccos(np.clip(Rm[2, 2], -1, 1))))
-        rec: dict[str, Any] = {"shape": name, "tilt_deg": round(tilt, 2)}
+        rec: dict[str, Any] = {"shape": name, "tilt_deg": round(tilt, 2), "scale": round(scale, 4)}
         t0 = time.perf_counter()
         try:
             g = bagging_soi(v, R, 32)
@@ -137,6 +143,7 @@ def placement_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
         "placements": len(records),
         "shapes": len(per_shape),
         "valid": len(ok),
+        "infeasible": sorted({r["reason"].split(";")[0] for r in records if not r["valid"]})[:3],
         "all": stats(ok),
         "tilted_over_10deg": stats([r for r in ok if r["tilt_deg"] > 10]),
         "per_shape": per_shape,

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from bagit.bench import paper_data as P
+from bagit.bench.paper import SCALE_RANGE
 
 NOT_RUN = "not run"
 
@@ -105,8 +106,10 @@ def soi_section(r: dict[str, Any]) -> list[str]:
     a, t = s["all"], s["tilted_over_10deg"]
     f = lambda v, p=3: "—" if v is None else f"{v:.{p}f}"  # noqa: E731
     lines = [
-        f"{s['placements']} placements of {s['shapes']} bottom shapes (tilted up to 20°, turned at random; "
-        f"R = 0.68 m, n_x = 32): {s['valid']} valid goals; median {f(s['time_ms_median'], 2)} ms per goal.",
+        f"{s['placements']} placements of {s['shapes']} bottom shapes (`bench/goal.py`'s outlines scaled by a random "
+        f"factor in [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}], tilted up to 20°, turned and moved at random; R = 0.68 m, n_x = 32): "
+        f"{s['valid']} valid goals, the other {s['placements'] - s['valid']} too large for the bag (InfeasibleGoal); "
+        f"median {f(s['time_ms_median'], 2)} ms per goal.",
         "",
         "| | mean c1 (max F_e) | mean c2 (m) | mean c3 (abs(d_e·d_v)) | placements |",
         "|---|---|---|---|---|",
@@ -169,7 +172,8 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         "c1 is the largest F_e of V's vertices in the bagging ellipse, so it measures how much of the ellipse the "
         "object's bottom fills: it depends on the objects' size against the rim (R = 0.68 m), which the paper does "
-        "not give for its 12 shapes. Our goal solver reaches L = R exactly with the ellipse centred on V and "
+        "not give for its 12 shapes, and not on their pose (the ellipse is found in the bottom frame F_m), hence the "
+        "random sizes. Our goal solver reaches L = R exactly with the ellipse centred on V and "
         "parallel to its principal axis (see `services/planner/goal.py`), so c2 = 0 and c3 = 1 whenever the bag "
         "is large enough; the paper's numerical optimiser stops near those values (0.005 m, 0.9978).",
         "",
