@@ -27,6 +27,7 @@ from bagit.services.planner import bagging_soi, collision_model, plan_path
 from bagit.services.sim.world import SimWorld
 
 SETTLE_S = 1.0  # let the hanging bag come to rest before the first frame
+WALL_LIMIT_S = 900.0  # a run taking longer than this in wall time is stopped (normal runs take 20-120 s)
 
 
 @dataclass
@@ -85,8 +86,12 @@ def run_bagging(
     time_limit_s: float = 40.0,
     rig: RigConfig | None = None,
     progress: Callable[[str], None] = lambda s: None,
+    wall_limit_s: float | None = WALL_LIMIT_S,
 ) -> RunResult:
-    """One simulated bagging run; every stage's failure ends it with a reason."""
+    """One simulated bagging run; every stage's failure ends it with a reason.
+
+    wall_limit_s: the run also ends (failed, with the reason) when it has taken this much wall time,
+    e.g. when MuJoCo's contact solver crawls on a bunched-up bag; None: no limit."""
     t_wall = time.perf_counter()
     p = scenario.params
     n_x = scenario.bag.n_x
@@ -155,6 +160,10 @@ def run_bagging(
             return finish(False, stage, f"simulator: {e}", plan_t=plan.time_s, ticks=ticks, nodes=len(plan.path))
         ticks += 1
         seq += 1
+        wall = time.perf_counter() - t_wall
+        if wall_limit_s is not None and wall > wall_limit_s:
+            return finish(False, stage, f"simulator: too slow, {wall:.0f} s of wall time for {world.time - SETTLE_S:.1f} s simulated "
+                          f"(limit {wall_limit_s:.0f} s; the contact solver crawls?)", plan_t=plan.time_s, ticks=ticks, nodes=len(plan.path))
         try:
             x = extract_soi(rim_cloud(world.render_rgbd(seq), segmenter), n_x, init=x)
         except BagItError:

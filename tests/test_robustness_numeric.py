@@ -170,3 +170,30 @@ def test_run_bagging_reports_a_simulator_failure_with_stage_and_reason(monkeypat
     assert not r.success
     assert r.stage_reached == "pre-bagging" and r.reason.startswith("simulator: ") and "unstable" in r.reason
     assert r.ticks == 4
+
+
+@pytest.mark.slow
+def test_run_bagging_stops_a_run_that_takes_too_long_in_wall_time():
+    from bagit.pipeline import run_bagging
+
+    s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
+    r = run_bagging(s, "mpc", "cbirrt", seed=0, time_limit_s=5.0, wall_limit_s=0.0)
+    assert not r.success and r.ticks == 1 and "too slow" in r.reason and r.reason.startswith("simulator: ")
+
+
+def test_a_mujoco_fatal_error_is_a_simulation_failure(coffee, monkeypatch):
+    """As seen on obstacles-a seed 4: `mj_stackAlloc: out of memory` from the IPC contact solver."""
+    import mujoco
+
+    from bagit.services.sim import world as world_mod
+
+    w = world_mod.SimWorld(coffee, camera=False)
+
+    def overflow(m, d):
+        raise mujoco.FatalError("mj_stackAlloc: out of memory, stack overflow at ipc_efcPublish, line 536\n  max = 1")
+
+    monkeypatch.setattr(world_mod.mujoco, "mj_step", overflow)
+    with pytest.raises(SimulationFailed, match="mj_stackAlloc: out of memory"):
+        w.step(0.02)
+    assert "\n" not in w.failure
+    w.close()

@@ -149,7 +149,11 @@ class SimWorld:
         before = self._warning_counts()
         for k in range(n):
             self._advance_mounts(n - k)
-            mujoco.mj_step(self.model, self.data)
+            try:
+                mujoco.mj_step(self.model, self.data)
+            except mujoco.FatalError as e:  # e.g. the contact solver's arena overflowing on a bunched-up bag
+                self.failure = f"the simulation stopped at t = {self.time:.3f} s: MuJoCo: {str(e).splitlines()[0]}"
+                raise SimulationFailed(self.failure) from None
             verts = self.data.flexvert_xpos[self._vert_adr : self._vert_adr + self._nvert]
             # MuJoCo answers bad accelerations, positions or velocities by resetting the world and
             # carrying on; a reset or non-finite world must end the run, not feed it a teleported bag.
