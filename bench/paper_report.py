@@ -28,6 +28,11 @@ def _ratio_ok(ours: dict[str, Any], paper: tuple[int, ...] | None) -> str:
     return "yes" if ours["success"] * paper[1] >= paper[0] * ours["of"] else "**no**"
 
 
+def _load(r: dict[str, Any]) -> str:
+    la = r.get("planning_load_avg")
+    return f" (load average {la[0]:.1f} at the start, {la[3]:.1f} at the end, on {r['machine']['cores']} cores)" if la else ""
+
+
 def planning_table(r: dict[str, Any]) -> list[str]:
     lines = [
         "| scenario | planner | success (ours) | success (paper) | ≥ paper | time s, mean ± std (ours) | time s (paper) | median s (ours) |",
@@ -134,14 +139,15 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         f"Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, numpy {m['numpy']}; {m['when']}"
         + ("; **quick subset**" if r["quick"] else "")
-        + (f"; planning and placements reused from `{r['reused']}`" if r.get("reused") else "")
+        + (f"; planning runs reused from `{Path(r['reused']).name}` (measured {r['planning_measured']})" if r.get("reused") else "")
         + ".",
         "",
         "## Table II: planning",
         "",
         f"Each scenario planned from its g0 with {r['seeds']} seeds per planner (`cbirrt` is the paper's *Ours*); "
         f"time is wall-clock per whole path g0 → g† → g* (mean ± std over the successful plans), "
-        f"{r['planning_wall_s']:.0f} s for the whole table. exp11/12 (bound, tilted) and the obstacle layouts "
+        f"{r['planning_wall_s']:.0f} s for the whole table{_load(r)}. Each plan has a 10 s wall-time budget besides its "
+        "iteration limit, so on a loaded machine slow plans fail ('time budget') and times grow. exp11/12 (bound, tilted) and the obstacle layouts "
         "of Fig. 7(c) have no numbers in the paper.",
         "",
         *planning_table(r),
