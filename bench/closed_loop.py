@@ -7,7 +7,7 @@ appended to FILE as it finishes and runs already there are skipped: a sweep that
 resumes where it was. `bagit bench paper` reads such files (`--closed-loop FILE`).
 
     python -m bagit.bench.closed_loop [--quick] [--seeds N] [--controllers mpc,ibvs,ssvs] [--planners cbirrt]
-                                      [--only exp02,...] [--jsonl FILE] [--workers 1] [--timeout-s 900]
+                                      [--only exp02,...] [--seed-from S] [--jsonl FILE] [--workers 1] [--timeout-s 900]
 """
 
 from __future__ import annotations
@@ -86,6 +86,17 @@ def sweep(
                 f.write(json.dumps(rec) + "\n")
         print(json.dumps({k: rec.get(k) for k in ("scenario", "controller", "planner", "seed", "success", "stage_reached", "reason", "error_cm")}), flush=True)
 
+    try:
+        _drive(todo, running, ctx, record, workers, timeout_s, time_limit_s)
+    finally:  # stopped (Ctrl-C, an error): no worker outlives the sweep
+        for _, p, _, _ in running:
+            if p.is_alive():
+                p.kill()
+    return [out[k] for k in keys if k in out]
+
+
+def _drive(todo: list, running: list, ctx: Any, record: Any, workers: int, timeout_s: float, time_limit_s: float) -> None:
+    """Start workers while there is work and room, collect results, kill runs over `timeout_s`."""
     while todo or running:
         while todo and len(running) < max(1, workers):
             key = todo.pop(0)
@@ -114,7 +125,6 @@ def sweep(
             recv.close()
             running.remove(item)
         time.sleep(0.2)
-    return [out[k] for k in keys if k in out]
 
 
 def aggregate(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -146,13 +156,14 @@ def run(
     jsonl: Path | None = None,
     workers: int = 1,
     timeout_s: float = RUN_TIMEOUT_S,
+    seed_from: int = 0,
 ) -> dict:
     n = seeds or (1 if quick else 8)
     ctrls = controllers or (["mpc"] if quick else ["mpc", "ibvs", "ssvs"])
     scen = [p.stem for p in list_scenarios() if not only or any(p.stem.startswith(o) for o in only)]
     if quick and not only:
         scen = scen[:2]
-    keys = [(s, c, pl, seed) for s in scen for c in ctrls for pl in (planners or ["cbirrt"]) for seed in range(n)]
+    keys = [(s, c, pl, seed) for s in scen for c in ctrls for pl in (planners or ["cbirrt"]) for seed in range(seed_from, seed_from + n)]
     records = sweep(keys, jsonl, workers, timeout_s)
     return {"seeds": n, "rows": aggregate(records), "runs": records}
 
@@ -175,11 +186,12 @@ def main() -> None:
     ap.add_argument("--planners", default=None, help="e.g. cbirrt,ffg-rrt,ts-rrt (Table II's planner rows)")
     ap.add_argument("--only", default=None)
     ap.add_argument("--jsonl", type=Path, default=None, help="append each run here; runs already in it are skipped")
+    ap.add_argument("--seed-from", type=int, default=0, help="seeds seed_from .. seed_from + seeds - 1")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--timeout-s", type=float, default=RUN_TIMEOUT_S)
     a = ap.parse_args()
     split = lambda s: s.split(",") if s else None  # noqa: E731
-    r = run(a.quick, a.seeds, split(a.controllers), split(a.only), split(a.planners), a.jsonl, a.workers, a.timeout_s)
+    r = run(a.quick, a.seeds, split(a.controllers), split(a.only), split(a.planners), a.jsonl, a.workers, a.timeout_s, a.seed_from)
     print(table(r))
 
 

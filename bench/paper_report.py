@@ -139,7 +139,7 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         f"Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, numpy {m['numpy']}; {m['when']}"
         + ("; **quick subset**" if r["quick"] else "")
-        + (f"; planning runs reused from `{Path(r['reused']).name}` (measured {r['planning_measured']})" if r.get("reused") else "")
+        + (f"; planning runs measured {r['planning_measured']} and reused (`--reuse`)" if r.get("reused") else "")
         + ".",
         "",
         "## Table II: planning",
