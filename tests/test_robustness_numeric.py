@@ -146,6 +146,12 @@ def test_sim_raises_simulation_failed_when_the_state_goes_non_finite(coffee):
     w.restore_state(saved)
     w.step(0.02)  # a snapshot from before is fine again
     assert np.all(np.isfinite(w.bag_vertices()))
+    # a fabric flung off (finite but absurd: MuJoCo's own checks start at 1e10)
+    w.data.qvel[:] = 0.0
+    w.data.qpos[:] += 30.0  # every vertex 30 m off: the clamps yank it back and the solver overflows
+    with pytest.raises(SimulationFailed):
+        w.step(0.02)
+    assert any(k in w.failure for k in ("away", "MuJoCo warned", "MuJoCo: mj_stackAlloc")), w.failure
     w.close()
 
 
@@ -196,4 +202,14 @@ def test_a_mujoco_fatal_error_is_a_simulation_failure(coffee, monkeypatch):
     with pytest.raises(SimulationFailed, match="mj_stackAlloc: out of memory"):
         w.step(0.02)
     assert "\n" not in w.failure
+    w.close()
+
+
+def test_a_flung_off_fabric_is_a_simulation_failure(coffee, monkeypatch):
+    from bagit.services.sim import world as world_mod
+
+    w = world_mod.SimWorld(coffee, camera=False)
+    monkeypatch.setattr(world_mod, "FAR_M", 0.05)  # the start rim itself is farther than this from the origin
+    with pytest.raises(SimulationFailed, match="flew"):
+        w.step(0.004)
     w.close()

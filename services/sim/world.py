@@ -35,6 +35,7 @@ RIM_BESIDE_OBJECT_M = 0.15  # ... and this far beside it (towards +x, the camera
 MAX_MOUNT_SPEED_MPS = 1.5  # an arm's flange cannot move faster than this ...
 MAX_MOUNT_SPEED_RPS = 3.0  # ... nor turn faster
 # MuJoCo's warnings that the integration went unstable (each is followed by an automatic reset)
+FAR_M = 20.0  # a bag vertex this far from the world origin has been flung off by an unstable step
 INSTABILITY_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
 
 
@@ -158,7 +159,7 @@ class SimWorld:
             # MuJoCo answers bad accelerations, positions or velocities by resetting the world and
             # carrying on; a reset or non-finite world must end the run, not feed it a teleported bag.
             now = self._warning_counts()
-            if now != before or not (np.all(np.isfinite(verts)) and np.all(np.isfinite(self.data.qvel))):
+            if now != before or not (np.all(np.isfinite(verts)) and np.all(np.isfinite(self.data.qvel))) or np.abs(verts).max() > FAR_M:
                 self.failure = self._describe_failure(before, now)
                 raise SimulationFailed(self.failure)
             self._monitor.update(verts)
@@ -168,7 +169,13 @@ class SimWorld:
 
     def _describe_failure(self, before: tuple[int, ...], now: tuple[int, ...]) -> str:
         fired = [w.name.removeprefix("mjWARN_") for w, a, b in zip(INSTABILITY_WARNINGS, before, now) if b != a]
-        what = f"MuJoCo warned of {', '.join(fired)}" if fired else "the state became non-finite"
+        verts = self.bag_vertices()
+        if fired:
+            what = f"MuJoCo warned of {', '.join(fired)}"
+        elif np.all(np.isfinite(verts)) and np.abs(verts).max() > FAR_M:
+            what = f"a bag vertex flew {np.abs(verts).max():.0f} m away"
+        else:
+            what = "the state became non-finite"
         return f"the simulated fabric went unstable at t = {self.time:.3f} s ({what}; torn by the mounts?)"
 
     def _advance_mounts(self, remaining: int) -> None:
