@@ -88,6 +88,11 @@ def manipulation_table(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def manipulation_failures(r: dict[str, Any]) -> list[str]:
+    lines = [f"- {stem} / {method}: {why}" for stem, row in r["manipulation"].items() for method, c in row.items() for why in c["failures"]]
+    return lines or ["- none"]
+
+
 def table1(r: dict[str, Any]) -> list[str]:
     lines = ["| method | success | time s | error cm | source |", "|---|---|---|---|---|"]
     for name, (k, n, tm, ts, em, es) in P.TABLE1.items():
@@ -164,6 +169,10 @@ def markdown(r: dict[str, Any]) -> str:
         f"Experiments or methods without runs say *{NOT_RUN}*; k/n counts the n runs present (the paper ran 8 per cell).",
         "",
         *manipulation_table(r),
+        "",
+        "Closed-loop failures:",
+        "",
+        *manipulation_failures(r),
         "",
         "## Table I: comparison on Exp. 1",
         "",
