@@ -33,6 +33,7 @@ FABRIC_FRICTION = 0.5
 # its vertices. IPC resolves flex contacts with planes, spheres, capsules, boxes and meshes, so round
 # objects go in as fine convex meshes. The soft-contact parameters below apply only with IPC off.
 IPC = True
+ARENA = "128M"  # MuJoCo arena: contacts, constraints and solver stack
 CONTACT_SOLREF = "0.008 1"  # as stiff as the 4 ms step allows
 CONTACT_SOLIMP = "0.95 0.99 0.002"
 CLAMP_SOLREF = "0.008 1"
@@ -126,6 +127,7 @@ def build_mjcf(scenario: Scenario, rig: RigConfig, layout: BagLayout) -> str:
     rim_rgba = RIM_RGBA if scenario.bag.kind == "red-edged" else (*scenario.bag.color, 1.0)
     return f"""<mujoco model="bagit-rig">
   <compiler angle="radian"/>
+  <size memory="{ARENA}"/>  <!-- room for the contacts of a crumpled bag (IPC); the default arena overflows -->
   <option timestep="{TIMESTEP}" integrator="discrete" gravity="0 0 -9.81">{'<flag ipc="enable"/>' if IPC else ''}</option>
   <statistic extent="2" center="0 0 0.4"/>
   <visual>
