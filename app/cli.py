@@ -30,6 +30,8 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.camera",
     "bagit.commands.calibrate",
     "bagit.commands.bench",
+    "bagit.commands.controller",
+    "bagit.commands.arm_driver",
     "bagit.commands.router",
     "bagit.commands.dashboard",
     "bagit.commands.planner",

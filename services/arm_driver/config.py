@@ -46,3 +46,16 @@ class DriverConfig(BaseModel):
     max_failed_requests: int = Field(
         3, ge=1, le=100, description="this many motion requests in a row without a good reply is a fault"
     )
+
+
+class ArmDriverServiceConfig(BaseModel):
+    """`bagit arm-driver`'s config file (YAML): the rig config, the driver's settings, the state rate."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rig_config: str | None = Field(None, description="rig config YAML: the two CR5s' addresses and bases, the safety limits")
+    driver: DriverConfig = Field(default_factory=DriverConfig)
+    state_rate_hz: float | None = Field(
+        None, gt=0.0, le=1000.0, description="publish arm/<side>/state at most this often (None: every feedback packet)"
+    )
+    notice_s: float = Field(1.0, ge=0.0, le=60.0, description="an event (watchdog, clipping) shows in ArmState.error_reason this long")

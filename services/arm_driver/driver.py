@@ -254,6 +254,19 @@ class ArmDriver:
                 self.rejections[why] += 1
                 self.counters["rejected"] += 1
                 return False
+            if not self.pipe.moving:
+                # A new stream from rest starts at the MEASURED poses, never at the last commanded
+                # ones: while the arms held, someone may have jogged them (or a simulator reset its
+                # world), and streaming from a stale target would drive them back to it.
+                if not self._restart_from_measured():
+                    self.rejections["no_feedback"] += 1
+                    self.counters["rejected"] += 1
+                    return False
+                if self._fault is not None:
+                    self.rejections["fault"] += 1
+                    self.counters["rejected"] += 1
+                    return False
+                self.counters["reseeds"] += 1
             if seq is not None and self._last_seq is not None and seq <= self._last_seq:
                 self.counters["out_of_order"] += 1
             self._last_seq = seq if seq is not None else self._last_seq

@@ -1,0 +1,161 @@
+"""What every long-running service command shares: its config file, and its life on the bus.
+
+    cfg, bus = load_service_config(PerceptionConfig, args.config, overrides, args)
+    result = run_service("perception", bus, lambda session, keys: PerceptionNode(session, keys, cfg),
+                         duration=args.duration)
+
+A service config is a YAML file: the service's own pydantic model, plus an optional `bus:`
+section (a `BusConfig`: rig, mode, connect, listen, ...). Command-line flags override the file:
+service flags through `overrides` (a nested mapping, None values ignored), the Zenoh flags of
+`add_bus_arguments` over the `bus:` section.
+
+`run_service` opens the session, starts the node, declares `bagit/<rig>/alive/<service>` once
+the node is up (so liveliness means "ready"), and waits for SIGINT/SIGTERM, `--duration` or the
+node's own `stopped` event; then it undeclares the token, closes the node and the session, in
+that order, and returns the node's final status.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Protocol, TypeVar
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from bagit.common.bus import BusConfig, Keys, bus_config_from_args, declare_alive, open_session, parse_bus_config
+from bagit.common.errors import BadScenario, BusError
+
+C = TypeVar("C", bound=BaseModel)
+
+
+class ServiceNode(Protocol):
+    """What run_service needs of a node: a final status on close, and optionally a `stopped` event
+    the node sets when it cannot go on (then the command ends with `reason`)."""
+
+    def close(self) -> dict[str, Any]: ...
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """`base` with `over` laid on top, recursively for mappings; None in `over` leaves base as is."""
+    out = dict(base)
+    for k, v in over.items():
+        if v is None:
+            continue
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        elif isinstance(v, dict):
+            out[k] = deep_merge({}, v)
+        else:
+            out[k] = v
+    return out
+
+
+def read_yaml(path: str | Path | None) -> dict[str, Any]:
+    """A YAML mapping from `path` ({} for None); BadScenario naming the file otherwise."""
+    if path is None:
+        return {}
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as e:
+        raise BadScenario(f"cannot read config {p}: {str(e).splitlines()[0]}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise BadScenario(f"config {p} must be a mapping of settings, not {type(data).__name__}")
+    return data
+
+
+def validate_config(model: type[C], data: dict[str, Any], where: str = "config") -> C:
+    """`model` from `data`; BadScenario naming the first bad field otherwise."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        first = e.errors()[0]
+        loc = ".".join(map(str, first["loc"])) or model.__name__
+        raise BadScenario(f"{where}: {loc}: {first['msg'].removeprefix('Value error, ')}") from None
+
+
+def load_service_config(
+    model: type[C],
+    path: str | Path | None,
+    overrides: dict[str, Any],
+    args: Any,
+    default_rig: str | Callable[[C], str | None] | None = None,
+) -> tuple[C, BusConfig]:
+    """The service config (file, then flags) and the bus config (file's `bus:`, then the Zenoh flags).
+
+    `default_rig`: the rig name when neither the file nor `--rig` gives one (e.g. the rig config's),
+    or a function of the service config giving it.
+    """
+    data = read_yaml(path)
+    bus_data = data.pop("bus", None) or {}
+    if not isinstance(bus_data, dict):
+        raise BadScenario(f"config {path}: bus: must be a mapping")
+    where = f"config {path}" if path is not None else "settings"
+    cfg = validate_config(model, deep_merge(data, overrides), where)
+    if callable(default_rig):
+        default_rig = default_rig(cfg)
+    if default_rig is not None and "rig" not in bus_data:
+        bus_data = {**bus_data, "rig": default_rig}
+    base = parse_bus_config(bus_data)
+    return cfg, bus_config_from_args(args, base)
+
+
+def run_service(
+    name: str,
+    bus: BusConfig,
+    start: Callable[[Any, Keys], ServiceNode],
+    duration: float | None = None,
+    banner: Callable[[Any], str] | None = None,
+) -> dict[str, Any]:
+    """Run one service until a signal, `duration` seconds or the node's `stopped` event (see the module doc)."""
+    if duration is not None and not duration > 0:
+        raise BusError(f"--duration must be positive, got {duration}")
+    keys = Keys(bus.rig)
+    stop = threading.Event()
+    main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    t0 = time.monotonic()
+    status: dict[str, Any] = {}
+    stopped_by_node = False
+    try:
+        session = open_session(bus)
+        try:
+            node = start(session, keys)
+            try:
+                token = declare_alive(session, keys, name)
+                print(f"bagit {name}: {banner(node) if banner else 'running'} (rig {bus.rig}); Ctrl-C to stop",
+                      file=sys.stderr, flush=True)
+                node_stop = getattr(node, "stopped", None)
+                deadline = None if duration is None else t0 + duration
+                while not stop.is_set():
+                    left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+                    if left <= 0:
+                        break
+                    if node_stop is not None and node_stop.is_set():
+                        stopped_by_node = True
+                        break
+                    stop.wait(left)
+                try:
+                    token.undeclare()
+                except Exception:  # noqa: BLE001 - the session may already be gone
+                    pass
+            finally:
+                status = node.close() or {}
+        finally:
+            session.close()
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    out: dict[str, Any] = {"success": True, "service": name, "rig": bus.rig, "uptime_s": time.monotonic() - t0,
+                           "interrupted": stop.is_set(), **status}
+    if stopped_by_node:
+        out["success"] = False
+        out["reason"] = out.get("reason") or getattr(node, "stop_reason", None) or f"{name} stopped"
+    return out

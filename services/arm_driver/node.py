@@ -1,0 +1,173 @@
+"""The arm driver on Zenoh: the only module of the arm driver that imports zenoh.
+
+    node = ArmDriverNode(session, keys, ArmDriver(rig, DriverConfig()), state_rate_hz=None)
+    ...                                   # controller/cmd -> submit, estop -> latch / reset
+    node.close()                          # smooth stop, hold, DisableRobot, disconnect
+
+In: `controller/cmd` (each Command to `ArmDriver.submit`: servo increments, or hold) and `estop`
+(engage latches EmergencyStop on both controllers; engage=False resets it). Out: `arm/<side>/state`
+from each feedback packet (or at most `state_rate_hz`), with the driver's own condition laid over
+the controller's: `estopped` while the latch holds, `error` and `error_reason` while a driver
+fault (or a lost link) stops the arms, and for `notice_s` after a watchdog stop, a clipped
+target or a refused command, that event as `error_reason` (with `error` False). Every driver
+event is also written to stderr (repeats of the same event at most every 5 s).
+
+The bring-up happens before anything is subscribed: commands that arrive before the arms are
+enabled are never queued. When commands stop arriving the driver's watchdog holds the arms.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from typing import Any, Callable
+
+import zenoh  # noqa: F401 - the node is where the service meets the bus
+
+from bagit.common.bus import Keys, Publisher, Subscriber
+from bagit.common.errors import BagItError
+from bagit.common.messages import ArmState, Command, EStop
+from bagit.common.rig import ARMS
+from bagit.services.arm_driver.driver import ArmDriver
+
+REPEAT_S = 5.0  # the same event is printed again at most this often
+
+
+def stderr_report(text: str) -> None:
+    print(f"bagit arm-driver: {text}", file=sys.stderr, flush=True)
+
+
+class ArmDriverNode:
+    """Wires an ArmDriver to the rig's bus (see the module doc). Starts the driver (bring-up)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        driver: ArmDriver,
+        state_rate_hz: float | None = None,
+        notice_s: float = 1.0,
+        report: Callable[[str], None] = stderr_report,
+    ) -> None:
+        self.keys = keys
+        self.driver = driver
+        self.report = report
+        self.notice_s = notice_s
+        self.min_interval = 0.0 if not state_rate_hz else 1.0 / state_rate_hz
+        self._last_pub = {a: -1e9 for a in ARMS}
+        self._lock = threading.Lock()
+        self._notice: tuple[float, str] | None = None
+        self._printed: dict[str, tuple[float, str]] = {}
+        self._clipped_seen = 0
+        self.published = {a: 0 for a in ARMS}
+        self.commands = 0
+        self.refused = 0
+        self.estops = 0
+        self._pubs = {a: Publisher(session, keys.arm_state(a), ArmState) for a in ARMS}
+        driver.on_state = self._on_state
+        driver.on_event = self._on_event
+        driver.start()  # ProtocolError: a controller is unreachable or refuses; nothing declared yet
+        self._estop_sub = Subscriber(session, keys.estop, EStop, self._on_estop)
+        self._cmd_sub = Subscriber(session, keys.controller_cmd, Command, self._on_command)
+
+    # -- in ----------------------------------------------------------------------------------------
+
+    def _on_command(self, cmd: Command) -> None:
+        ok = self.driver.submit(cmd)
+        with self._lock:
+            self.commands += 1
+            if not ok:
+                self.refused += 1
+        if not ok:
+            why = ", ".join(f"{k} {v}" for k, v in self.driver.rejections.items())
+            self._on_event("refused", f"command {cmd.seq} refused (so far: {why})")
+        clipped = self.driver.counters.get("clipped", 0)
+        if clipped != self._clipped_seen:
+            self._clipped_seen = clipped
+            self._on_event("clipped", "; ".join(self.driver.last_violations) or "target clipped")
+
+    def _on_estop(self, msg: EStop) -> None:
+        with self._lock:
+            self.estops += 1
+        try:
+            self.driver.handle_estop(msg)
+        except BagItError as e:
+            self._on_event("estop", f"reset refused, the e-stop stays latched: {e}")
+        except Exception as e:  # noqa: BLE001 - a reset that fails must not take the node down
+            self._on_event("estop", f"reset failed, the e-stop stays latched: {type(e).__name__}: {e}")
+
+    # -- out ---------------------------------------------------------------------------------------
+
+    def _on_event(self, kind: str, detail: str) -> None:
+        now = time.monotonic()
+        text = f"{kind}: {detail}"
+        with self._lock:
+            if kind not in ("started", "closed", "estop_reset", "fault_cleared", "reconnected"):
+                self._notice = (now, text)
+            last = self._printed.get(kind)
+            due = last is None or last[1] != text or now - last[0] >= REPEAT_S
+            if due:
+                self._printed[kind] = (now, text)
+        if due:
+            self.report(text)
+
+    def _on_state(self, state: ArmState) -> None:
+        now = time.monotonic()
+        if now - self._last_pub[state.arm] < self.min_interval:
+            return
+        self._last_pub[state.arm] = now
+        overlay = self._overlay(now)
+        if overlay:
+            if state.error_reason:
+                overlay.pop("error_reason", None)  # the controller's own error comes first
+            state = state.model_copy(update=overlay)
+        try:
+            self._pubs[state.arm].put(state)
+            self.published[state.arm] += 1
+        except Exception as e:  # noqa: BLE001 - the feedback thread must survive a closed session
+            self._on_event("publish", f"arm/{state.arm}/state: {type(e).__name__}: {e}")
+
+    def _overlay(self, now: float) -> dict[str, Any]:
+        """What the driver adds to the controller's report: fault, lost link, recent event."""
+        d = self.driver
+        fault = d._fault  # noqa: SLF001 - read without the lock: a string swapped atomically
+        links = dict(d._links_down)  # noqa: SLF001
+        if fault is not None:
+            return {"error": True, "error_reason": f"driver fault: {fault}"}
+        if links:
+            return {"error": True, "error_reason": "link lost: " + "; ".join(f"{a}: {w}" for a, w in links.items())}
+        with self._lock:
+            notice = self._notice
+        if notice is not None and now - notice[0] <= self.notice_s:
+            return {"error_reason": notice[1]}
+        return {}
+
+    def status(self) -> dict[str, Any]:
+        st = self.driver.status()
+        with self._lock:
+            return {
+                "mode": st["mode"],
+                "estop": st["estop"],
+                "fault": st["fault"],
+                "commands": self.commands,
+                "refused": self.refused,
+                "estops_received": self.estops,
+                "states_published": dict(self.published),
+                "driver_counters": st["counters"],
+                "violations": st["violations"],
+            }
+
+    def close(self) -> dict[str, Any]:
+        """Stop listening, bring the arms to rest, disable them, disconnect; the final status."""
+        for s in (self._cmd_sub, self._estop_sub):
+            s.close()
+        try:
+            self.driver.close()
+        except Exception as e:  # noqa: BLE001 - report, and still close the publishers
+            self.report(f"shutdown: {type(e).__name__}: {e}")
+        out = self.status()
+        self.driver.on_state = None
+        for p in self._pubs.values():
+            p.close()
+        return out

@@ -1,0 +1,181 @@
+"""The controller service on Zenoh with in-process peers: a synthetic deformable rim (its equations
+unknown to the controller) stands in for the bag, the camera and the arms, publishing SoiState and
+ArmState; the node servos it to the goal along the path, holds with a reason within a tick of the
+SOI going stale, stops on the run's end, and survives an exception in the control law."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+from bus_support import session_pair, wait_until
+
+from bagit.common.bus import Keys, Publisher, Subscriber
+from bagit.common.geometry import matrix_to_rpy
+from bagit.common.messages import ArmState, Command, ControllerStatus, Path, RunState, SoiState
+from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
+from bagit.services.controller.synthetic import SyntheticRim, apply_increment
+
+U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
+FAST = {"max_linear_speed_mps": 0.15, "max_angular_speed_rps": 0.9, "control_rate_hz": 60.0}
+
+
+class Plant:
+    """The bag, camera and arms: applies each command to the synthetic rim and publishes the SOI it
+    then has (a new seq each time) and both arms' states."""
+
+    def __init__(self, session, keys, model: SyntheticRim):
+        self.m = model
+        self.g = model.home()
+        self.keys = keys
+        self.soi_on = True
+        self.seq = 0
+        self.last_soi_t = 0.0
+        self.cmds: list[tuple[float, Command]] = []
+        self._lock = threading.Lock()
+        self.soi = Publisher(session, keys.perception_soi, SoiState)
+        self.arm = {a: Publisher(session, keys.arm_state(a), ArmState) for a in ("left", "right")}
+        self.sub = Subscriber(session, keys.controller_cmd, Command, self._on_cmd)
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._heartbeat, daemon=True)
+        self._t.start()
+
+    def _publish(self) -> None:
+        for a in ("left", "right"):
+            T = self.g[a]
+            self.arm[a].put(ArmState(arm=a, q=np.zeros(6), qd=np.zeros(6), tool_pose=np.r_[T[:3, 3], matrix_to_rpy(T[:3, :3])], enabled=True))
+        if self.soi_on:
+            self.seq += 1
+            now = time.time()
+            self.soi.put(SoiState(seq=self.seq, source_stamp=now, rim=self.m.rim(self.g)))
+            self.last_soi_t = time.monotonic()
+
+    def _on_cmd(self, cmd: Command) -> None:
+        with self._lock:
+            self.cmds.append((time.monotonic(), cmd))
+            if cmd.mode == "servo":
+                self.g = apply_increment(self.g, cmd.u)
+            self._publish()
+
+    def _heartbeat(self) -> None:
+        while not self._stop.wait(0.05):
+            with self._lock:
+                if not self.cmds or time.monotonic() - self.cmds[-1][0] > 0.2:
+                    self._publish()  # until commands flow (and after they stop)
+                else:
+                    for a in ("left", "right"):  # arm states keep coming whatever the controller does
+                        T = self.g[a]
+                        self.arm[a].put(ArmState(arm=a, q=np.zeros(6), qd=np.zeros(6),
+                                                 tool_pose=np.r_[T[:3, 3], matrix_to_rpy(T[:3, :3])], enabled=True))
+
+    def close(self):
+        self._stop.set()
+        self._t.join()
+        self.sub.close()
+
+
+class RunPublisher:
+    def __init__(self, session, keys, state: RunState):
+        self.pub = Publisher(session, keys.run_state, RunState)
+        self.state = state
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self):
+        while not self._stop.wait(0.1):
+            self.pub.put(self.state)
+
+    def close(self):
+        self._stop.set()
+        self._t.join()
+
+
+@pytest.fixture
+def loop(request):
+    rig = "ct" + "".join(c for c in request.node.name if c.isalnum())[-30:]
+    gen = session_pair(rig)
+    a, b = next(gen)
+    keys = Keys(rig)
+    made = []
+
+    def make(cfg=None, n_x=16, n_nodes=6, dagger=4):
+        m = SyntheticRim(n_x)
+        nodes = np.stack([m.rim(apply_increment(m.home(), U_GOAL * s)) for s in np.linspace(0, 1, n_nodes)])
+        reports: list[str] = []
+        node = ControllerNode(a, keys, cfg or ControllerServiceConfig(), report=reports.append)
+        node.reports = reports
+        plant = Plant(b, keys, m)
+        statuses: list[ControllerStatus] = []
+        Subscriber(b, keys.controller_status, ControllerStatus, statuses.append)
+        run = RunPublisher(b, keys, RunState(run_id="r1", stage="pre-bagging", controller="mpc", params=FAST))
+        path_pub = Publisher(b, keys.planner_path, Path)
+        assert wait_until(lambda: path_pub.matched and plant.soi.matched, 5.0)
+        time.sleep(0.2)
+        path_pub.put(Path(run_id="r1", nodes=nodes, dagger_index=dagger))
+        made.append((node, plant, run))
+        return node, plant, run, statuses, nodes
+
+    yield make
+    for node, plant, run in made:
+        run.close()
+        node.close()
+        plant.close()
+    gen.close()
+
+
+def test_the_controller_service_servos_a_synthetic_rim_to_the_goal_over_zenoh(loop):
+    node, plant, run, statuses, nodes = loop()
+    assert wait_until(lambda: any(s.done for s in statuses), 60.0), (node.status(), statuses[-1:] )
+    final = plant.m.rim(plant.g)
+    err = np.sqrt(np.mean(np.sum((final - nodes[-1]) ** 2, axis=1)))
+    assert err < 2 * 0.008, err  # truly at g*, judged on the rim itself
+    modes = [s.mode for s in statuses if s.run_id == "r1"]
+    assert "explore" in modes and "servo" in modes
+    done = next(s for s in statuses if s.done)
+    assert done.progress == 1.0 and done.stage == "bagging" and done.error_to_goal <= 0.008
+    servo = [c for _, c in plant.cmds if c.mode == "servo"]
+    assert len(servo) > 50 and all(c.run_id == "r1" and abs(c.dt - 1 / 60) < 1e-9 for c in servo)
+    assert [c.seq for _, c in plant.cmds] == sorted(c.seq for _, c in plant.cmds)  # reliable, in order
+    n = len(plant.cmds)
+    time.sleep(0.3)
+    assert len(plant.cmds) == n  # done: servoing stopped
+    assert node.status()["runs_done"][0]["run_id"] == "r1"
+
+
+def test_stale_soi_holds_within_a_tick_of_the_age_limit_and_the_run_end_stops_servoing(loop):
+    node, plant, run, statuses, _ = loop(ControllerServiceConfig(soi_max_age_s=0.3))
+    assert wait_until(lambda: sum(c.mode == "servo" for _, c in plant.cmds) >= 20, 20.0)
+    plant.soi_on = False  # perception dies
+    t_last = plant.last_soi_t
+    assert wait_until(lambda: any(c.mode == "hold" and "stale" in (c.reason or "") for _, c in plant.cmds), 3.0)
+    t_hold, hold = next((t, c) for t, c in plant.cmds if c.mode == "hold" and "stale" in (c.reason or ""))
+    assert np.all(hold.u == 0) and hold.run_id == "r1"
+    assert 0.3 <= t_hold - t_last <= 0.3 + 1 / 60 + 0.1, t_hold - t_last  # within a tick (+ scheduling)
+    assert not any(c.mode == "servo" for t, c in plant.cmds if t > t_hold)
+    assert wait_until(lambda: any(s.mode == "hold" and "stale" in (s.reason or "") for s in statuses), 1.0)
+    # the run is aborted: one hold with the reason, then silence
+    run.state = RunState(run_id="r1", stage="aborted", reason="operator stop")
+    assert wait_until(lambda: any("run aborted" in (c.reason or "") for _, c in plant.cmds), 2.0)
+    time.sleep(0.2)
+    n = len(plant.cmds)
+    time.sleep(0.3)
+    assert len(plant.cmds) == n
+
+
+def test_an_exception_in_the_control_law_holds_with_the_reason_and_the_loop_survives(loop):
+    node, plant, run, statuses, _ = loop()
+    assert wait_until(lambda: node._run is not None and node._run.controller.jacobian is not None, 20.0)
+    ctrl = node._run.controller
+    law = ctrl._law
+
+    def broken(*a, **k):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    ctrl._law = broken
+    assert wait_until(lambda: any("LinAlgError" in (s.reason or "") for s in statuses), 2.0)
+    t_err = time.monotonic()
+    assert any(c.mode == "hold" and "LinAlgError" in (c.reason or "") for _, c in plant.cmds)
+    ctrl._law = law
+    assert wait_until(lambda: any(c.mode == "servo" for t, c in plant.cmds if t > t_err + 0.05), 3.0)  # back to servoing
+    assert node._thread.is_alive() and node.counters["errors"] >= 1
