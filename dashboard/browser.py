@@ -7,8 +7,10 @@ can insist on none. Playwright is a development dependency, imported only here.
 
 from __future__ import annotations
 
+import re
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +68,51 @@ class BrowserPage:
 
     def click_button(self, name: str) -> None:
         self.page.get_by_role("button", name=name, exact=True).click()
+
+    def settle(self, seconds: float = 1.5) -> None:
+        """Let the browser draw what the server sent (a screenshot right after a change may miss it)."""
+        self.page.wait_for_timeout(seconds * 1000)
+
+    def toggle_layer(self, label: str) -> None:
+        """Click a layer's checkbox in the View folder (opening the folder when it is closed)."""
+        box = self.page.get_by_label(label, exact=True)
+        if not box.is_visible():
+            self.page.get_by_text("View", exact=True).click()
+        box.click()
+
+    def select(self, label: str, option: str) -> None:
+        """Pick `option` in the dropdown labelled `label` (e.g. the panel's Scenario picker)."""
+        self.page.get_by_label(label, exact=True).click()
+        self.page.get_by_role("option", name=option, exact=True).click()
+
+    def options(self, label: str) -> list[str]:
+        """The options of the dropdown labelled `label` (opens it, reads them, closes it again)."""
+        self.page.get_by_label(label, exact=True).click()
+        opts = self.page.get_by_role("option")
+        opts.first.wait_for(timeout=10_000)
+        out = [opts.nth(i).inner_text().strip() for i in range(opts.count())]
+        self.page.keyboard.press("Escape")
+        return out
+
+    def panel_text(self, marker: str = "Stage:") -> str:
+        """The text of the panel paragraph holding `marker` (the run state: run id, stage, reason, e-stop)."""
+        p = self.page.locator("p", has_text=marker).first
+        return p.inner_text(timeout=10_000) if p.count() else ""
+
+    def stage(self) -> str | None:
+        """The run's stage as the panel shows it (`**Stage:** done · 100 % · ...`), None before it shows one."""
+        m = re.search(r"Stage:\s*([a-z-]+)", self.panel_text("Stage:"))
+        return m.group(1) if m else None
+
+    def wait_stage(self, stages: str | tuple[str, ...], timeout_s: float = 60.0, poll_s: float = 0.25) -> str | None:
+        """Poll the panel until its stage is one of `stages`; the last stage seen (check it)."""
+        want = (stages,) if isinstance(stages, str) else tuple(stages)
+        deadline = time.monotonic() + timeout_s
+        seen = self.stage()
+        while seen not in want and time.monotonic() < deadline:
+            self.page.wait_for_timeout(poll_s * 1000)
+            seen = self.stage()
+        return seen
 
     def screenshot(self, path: str | Path) -> Path:
         p = Path(path)
