@@ -30,6 +30,7 @@ COMMAND_MODULES: list[str] = [
     "bagit.commands.camera",
     "bagit.commands.calibrate",
     "bagit.commands.bench",
+    "bagit.commands.perception",
     "bagit.commands.controller",
     "bagit.commands.arm_driver",
     "bagit.commands.router",

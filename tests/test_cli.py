@@ -82,3 +82,26 @@ def test_too_large_object_exits_2_with_the_needed_perimeter(tmp_path):
     doc.write_text("name: big\nobject: {shape: {type: box, size: [0.4, 0.3, 0.1], position: [0, 0, 0.5]}}\nbag: {rim_perimeter: 0.68}\n")
     res = run_cli("goal", str(doc))
     assert res.returncode == 2 and "at least" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_the_service_example_configs_load():
+    """deploy/{perception,controller,arm-driver}.yaml validate against the services' config models."""
+    import argparse
+    from pathlib import Path
+
+    from bagit.commands._service import load_service_config
+    from bagit.common.errors import BagItError
+    from bagit.services.arm_driver.config import ArmDriverServiceConfig
+    from bagit.services.controller.node import ControllerServiceConfig
+    from bagit.services.perception.node import PerceptionServiceConfig
+
+    deploy = Path(__file__).resolve().parents[1] / "deploy"
+    args = argparse.Namespace(rig="lab")
+    p, bus = load_service_config(PerceptionServiceConfig, deploy / "perception.yaml", {"n_x": 24}, args)
+    assert p.source.kind == "realsense" and p.n_x == 24 and bus.rig == "lab"
+    c, _ = load_service_config(ControllerServiceConfig, deploy / "controller.yaml", {"soi_max_age_s": 0.4}, args)
+    assert c.soi_max_age_s == 0.4 and c.controller is None
+    a, _ = load_service_config(ArmDriverServiceConfig, deploy / "arm-driver.yaml", {"driver": {"servo_command": "servoj"}}, args)
+    assert a.driver.servo_command == "servoj" and a.driver.feedback_timeout_s == 0.2 and a.rig_config == "rig.yaml"
+    with pytest.raises(BagItError, match="soi_max_age_s"):
+        load_service_config(ControllerServiceConfig, deploy / "controller.yaml", {"soi_max_age_s": -1}, args)

@@ -35,7 +35,8 @@ C = TypeVar("C", bound=BaseModel)
 
 class ServiceNode(Protocol):
     """What run_service needs of a node: a final status on close, and optionally a `stopped` event
-    the node sets when it cannot go on (then the command ends with `reason`)."""
+    the node sets when it has nothing more to do (`stop_ok` True, e.g. the end of a recording) or
+    cannot go on (`stop_ok` False: the command fails with `stop_reason`)."""
 
     def close(self) -> dict[str, Any]: ...
 
@@ -156,6 +157,8 @@ def run_service(
     out: dict[str, Any] = {"success": True, "service": name, "rig": bus.rig, "uptime_s": time.monotonic() - t0,
                            "interrupted": stop.is_set(), **status}
     if stopped_by_node:
-        out["success"] = False
-        out["reason"] = out.get("reason") or getattr(node, "stop_reason", None) or f"{name} stopped"
+        out["stopped_by"] = getattr(node, "stop_reason", None) or f"{name} stopped"
+        if not getattr(node, "stop_ok", False):  # e.g. a camera that failed; a recording's end is fine
+            out["success"] = False
+            out["reason"] = out.get("reason") or out["stopped_by"]
     return out

@@ -1,0 +1,285 @@
+"""Perception on Zenoh: the only module of perception that imports zenoh.
+
+    node = PerceptionNode(session, keys, PerceptionServiceConfig(source=SourceConfig(kind="zenoh")))
+    node.close()
+
+Frames come from the configured source: `zenoh` (camera/rgbd), `realsense` or `realsense-file`
+(`sources.open_source`, read on a thread of their own). Newest wins: a frame that arrives while
+the previous one is still being processed replaces the one waiting, and is counted as dropped;
+nothing queues, so the SOI is never late by more than one frame's work.
+
+Per frame: the rim cloud (the bag's segmenter: red-edged, or solid with its colour), then
+`extract_soi` warm-started from the previous SOI; when that fails, or the rim jumped further than
+`max_jump_m` from the previous one, it starts again cold (point 0 nearest the left gripper when
+arm/left/state is fresh). Out: `SoiState` on perception/soi (seq, source_stamp = the frame's
+stamp, solve_ms, the share of rim-cloud points within `inlier_m` of the SOI) and, at most
+`cloud_rate_hz`, a down-sampled coloured `PointCloud` of the scene on perception/cloud.
+n_x and the bag (kind, colour) come from the config, else from the current run's scenario
+(run/state's scenario_doc), else 32 and red-edged. A bad frame is counted with its reason and
+reported on stderr (rate-limited); it never stops the node.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from typing import Any, Callable, Literal
+
+import numpy as np
+import zenoh  # noqa: F401 - the node is where the service meets the bus
+from pydantic import BaseModel, ConfigDict, Field
+
+from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
+from bagit.common.errors import BagItError
+from bagit.common.geometry import points_to_polyline_distance, transform_points
+from bagit.common.messages import ArmState, PointCloud, RgbdFrame, RunState, SoiState
+from bagit.common.scenario import Scenario
+from bagit.services.perception.rgbd import back_project, red_rim_mask, rim_cloud, solid_rim_segmenter
+from bagit.services.perception.soi import SoiParams, extract_soi
+from bagit.services.perception.sources import SourceConfig, open_source
+
+REPORT_EVERY_S = 5.0
+
+
+class PerceptionServiceConfig(BaseModel):
+    """`bagit perception`'s config file (YAML)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    source: SourceConfig = Field(default_factory=SourceConfig)
+    rig_config: str | None = Field(None, description="rig config YAML: camera extrinsics for realsense sources (default: built-in rig)")
+    n_x: int | None = Field(None, ge=4, le=512, description="SOI points; None: the run's scenario, else 32")
+    bag_kind: Literal["red-edged", "solid"] | None = Field(None, description="None: the run's scenario, else red-edged")
+    bag_color: tuple[float, float, float] | None = Field(None, description="solid bag colour, RGB 0..1; None: the run's scenario")
+    max_jump_m: float = Field(0.05, gt=0.0, le=1.0, description="a warm SOI further than this from the last one: refit cold")
+    inlier_m: float = Field(0.015, gt=0.0, le=0.2, description="rim-cloud points this close to the SOI count as inliers")
+    cloud_rate_hz: float = Field(10.0, ge=0.0, le=60.0, description="perception/cloud at most this often (0: never)")
+    cloud_max_points: int = Field(20000, ge=100, le=500_000)
+    hint_max_age_s: float = Field(1.0, gt=0.0, description="a left-arm state older than this is not used as start hint")
+    soi: SoiParams = Field(default_factory=SoiParams)
+
+
+def stderr_report(text: str) -> None:
+    print(f"bagit perception: {text}", file=sys.stderr, flush=True)
+
+
+def scene_cloud(frame: RgbdFrame, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """A down-sampled coloured cloud of the whole frame: points `(n, 3)` float32 world, colours `(n, 3)` uint8."""
+    h, w = frame.depth.shape
+    valid = frame.depth > 0
+    n = int(valid.sum())
+    stride = max(1, int(np.ceil(np.sqrt(n / max_points)))) if n > max_points else 1
+    mask = np.zeros_like(valid)
+    mask[::stride, ::stride] = valid[::stride, ::stride]
+    depth_m = frame.depth.astype(np.float64) * frame.camera.depth_scale
+    pts = transform_points(frame.camera.extrinsics(), back_project(depth_m, frame.camera, mask))
+    cols = frame.color[mask]
+    return pts[:max_points].astype(np.float32), np.ascontiguousarray(cols[:max_points], dtype=np.uint8)
+
+
+class PerceptionNode:
+    """RGB-D frames in, SOI and display cloud out (see the module doc)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        cfg: PerceptionServiceConfig | None = None,
+        T_world_camera: np.ndarray | None = None,
+        report: Callable[[str], None] = stderr_report,
+    ) -> None:
+        self.cfg = cfg or PerceptionServiceConfig()
+        self.keys = keys
+        self.report = report
+        self._cond = threading.Condition()
+        self._pending: RgbdFrame | None = None
+        self._stop = threading.Event()
+        self.stopped = threading.Event()  # set when a recording ends or the camera fails
+        self.stop_ok = False
+        self.stop_reason: str | None = None
+        self.counters = {"frames": 0, "processed": 0, "dropped": 0, "bad": 0, "cold": 0, "published": 0, "clouds": 0}
+        self.last_bad: str | None = None
+        self._last_report = {"bad": -1e9}
+        self._prev: np.ndarray | None = None
+        self._run_id: str | None = None
+        self._scenario: Scenario | None = None
+        self._last_cloud = -1e9
+        self.solve_ms: list[float] = []
+        # the source first: no camera is an error before anything is declared
+        self._source = open_source(self.cfg.source, T_world_camera)
+        self._soi_pub = Publisher(session, keys.perception_soi, SoiState)
+        self._cloud_pub = Publisher(session, keys.perception_cloud, PointCloud)
+        self._arm = LatestCache(session, keys.arm_state("left"), ArmState)
+        self._subs = [Subscriber(session, keys.run_state, RunState, self._on_run_state)]
+        if self._source is None:
+            self._subs.append(Subscriber(session, keys.camera_rgbd, RgbdFrame, self._offer))
+        self._threads = [threading.Thread(target=self._work, name="perception-worker", daemon=True)]
+        if self._source is not None:
+            self._threads.append(threading.Thread(target=self._read, name="perception-reader", daemon=True))
+        for t in self._threads:
+            t.start()
+
+    # -- in ----------------------------------------------------------------------------------------
+
+    def _offer(self, frame: RgbdFrame) -> None:
+        """Newest wins: a frame still waiting is replaced (and counted as dropped)."""
+        with self._cond:
+            self.counters["frames"] += 1
+            if self._pending is not None:
+                self.counters["dropped"] += 1
+            self._pending = frame
+            self._cond.notify()
+
+    def _read(self) -> None:
+        src = self._source
+        try:
+            while not self._stop.is_set():
+                frame = src.read()
+                if frame is None:
+                    self._finish(True, f"end of recording {self.cfg.source.path}")
+                    return
+                self._offer(frame)
+        except Exception as e:  # noqa: BLE001 - a camera that fails ends the service with the reason
+            self._finish(False, f"camera: {type(e).__name__}: {e}")
+
+    def _finish(self, ok: bool, reason: str) -> None:
+        # let the worker finish the frame in hand first
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            with self._cond:
+                if self._pending is None and not self._busy:
+                    break
+            time.sleep(0.01)
+        self.stop_ok, self.stop_reason = ok, reason
+        self.report(reason)
+        self.stopped.set()
+
+    _busy = False
+
+    def _on_run_state(self, msg: RunState) -> None:
+        if msg.run_id == self._run_id:
+            return
+        scen = None
+        if msg.scenario_doc is not None:
+            try:
+                scen = Scenario.model_validate(msg.scenario_doc)
+            except Exception as e:  # noqa: BLE001
+                self.report(f"run {msg.run_id}: scenario not readable, using the config's bag: {str(e).splitlines()[0]}")
+        with self._cond:
+            self._run_id, self._scenario = msg.run_id, scen
+            self._prev = None  # a new run: start cold
+
+    # -- work --------------------------------------------------------------------------------------
+
+    def _bag(self) -> tuple[int, str, tuple[float, float, float]]:
+        s = self._scenario
+        n_x = self.cfg.n_x or (s.bag.n_x if s is not None else 32)
+        kind = self.cfg.bag_kind or (s.bag.kind if s is not None else "red-edged")
+        color = self.cfg.bag_color or (tuple(s.bag.color) if s is not None else (0.15, 0.35, 0.75))
+        return n_x, kind, color
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            with self._cond:
+                while self._pending is None and not self._stop.is_set():
+                    self._cond.wait(0.1)
+                if self._stop.is_set():
+                    return
+                frame, self._pending = self._pending, None
+                self._busy = True
+            try:
+                self._process(frame)
+            except Exception as e:  # noqa: BLE001 - a bad frame is counted and reported, never a crash
+                self._bad(frame, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+            finally:
+                with self._cond:
+                    self._busy = False
+
+    def _hint(self) -> np.ndarray | None:
+        item = self._arm.get_with_time()
+        if item is None or time.monotonic() - item[1] > self.cfg.hint_max_age_s:
+            return None
+        p = np.asarray(item[0].tool_pose[:3], dtype=float)
+        return p if np.all(np.isfinite(p)) else None
+
+    def _process(self, frame: RgbdFrame) -> None:
+        t0 = time.perf_counter()
+        n_x, kind, color = self._bag()
+        segmenter = red_rim_mask if kind == "red-edged" else solid_rim_segmenter(color)
+        self.counters["processed"] += 1
+        self._maybe_cloud(frame)
+        try:
+            cloud = rim_cloud(frame, segmenter)
+        except BagItError as e:
+            self._bad(frame, str(e))
+            return
+        prev = self._prev if self._prev is not None and self._prev.shape == (n_x, 3) else None
+        rim = None
+        if prev is not None:
+            try:
+                rim = extract_soi(cloud, n_x, init=prev, params=self.cfg.soi)
+                if float(np.linalg.norm(rim - prev, axis=1).max()) > self.cfg.max_jump_m:
+                    rim = None  # jumped: start again cold
+            except BagItError:
+                rim = None
+        if rim is None:
+            self.counters["cold"] += 1
+            try:
+                rim = extract_soi(cloud, n_x, start_hint=self._hint(), params=self.cfg.soi)
+            except BagItError as e:
+                self._prev = None
+                self._bad(frame, f"no SOI: {e}")
+                return
+        self._prev = rim
+        inl = float(np.mean(points_to_polyline_distance(cloud, rim) <= self.cfg.inlier_m)) if len(cloud) else 0.0
+        ms = (time.perf_counter() - t0) * 1000.0
+        self.solve_ms.append(ms)
+        del self.solve_ms[:-1000]
+        self._soi_pub.put(SoiState(seq=frame.seq, source_stamp=frame.stamp, rim=rim, n_points=len(cloud),
+                                   inlier_fraction=inl, solve_ms=ms))
+        self.counters["published"] += 1
+
+    def _maybe_cloud(self, frame: RgbdFrame) -> None:
+        rate = self.cfg.cloud_rate_hz
+        now = time.monotonic()
+        if rate <= 0 or now - self._last_cloud < 1.0 / rate:
+            return
+        self._last_cloud = now
+        try:
+            pts, cols = scene_cloud(frame, self.cfg.cloud_max_points)
+        except Exception:  # noqa: BLE001 - the display cloud is optional; the SOI path reports the frame
+            return
+        self._cloud_pub.put(PointCloud(seq=frame.seq, stamp=frame.stamp, points=pts, colors=cols))
+        self.counters["clouds"] += 1
+
+    def _bad(self, frame: RgbdFrame, reason: str) -> None:
+        self.counters["bad"] += 1
+        self.last_bad = f"frame {frame.seq}: {reason}"
+        now = time.monotonic()
+        if now - self._last_report["bad"] >= REPORT_EVERY_S:
+            self._last_report["bad"] = now
+            self.report(f"bad frame ({self.counters['bad']} so far): {self.last_bad}")
+
+    # -- out ---------------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        ms = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
+        return {"source": self.cfg.source.kind, "counters": dict(self.counters), "last_bad": self.last_bad,
+                "solve_ms": {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95))},
+                "reason": None if self.stop_ok else self.stop_reason}
+
+    def close(self) -> dict[str, Any]:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        for s in self._subs:
+            s.close()
+        for t in self._threads:
+            t.join(timeout=10.0)
+        if self._source is not None:
+            self._source.close()
+        self._arm.close()
+        self._soi_pub.close()
+        self._cloud_pub.close()
+        return self.status()
