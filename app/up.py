@@ -164,7 +164,7 @@ class Up:
             args = ["dashboard", "--port", str(port), "--rig-config", str(rpath)]
         elif name == "recorder":
             args = ["recorder", "--dir", str(o.record or "recordings")]
-        elif name in ("arm-driver", "perception", "controller"):
+        elif name in ("arm-driver", "perception"):  # the controller needs no rig config: it works in the world frame
             args = [name, "--rig-config", str(rpath)]
         else:
             args = [name]
