@@ -1,7 +1,7 @@
 """A dashboard URL opened in Debian's headless Chromium, driven by Playwright (tests, benchmarks).
 
 Uses the system browser (/usr/bin/chromium, `apt-get install chromium`), never a downloaded one,
-with a fresh profile per page. Console errors and uncaught page errors are collected, so a check
+with a fresh profile per page; `max_fps` caps the page's animation frames (see _cap_fps_script). Console errors and uncaught page errors are collected, so a check
 can insist on none. Playwright is a development dependency, imported only here.
 """
 
@@ -35,7 +35,7 @@ def chromium_available() -> bool:
 class BrowserPage:
     """One headless Chromium page on `url`; `errors` collects console errors and page errors."""
 
-    def __init__(self, url: str, viewport: tuple[int, int] = (1400, 900)) -> None:
+    def __init__(self, url: str, viewport: tuple[int, int] = (1400, 900), max_fps: float | None = None) -> None:
         from playwright.sync_api import sync_playwright
 
         self.url = url
@@ -50,6 +50,8 @@ class BrowserPage:
                 viewport={"width": viewport[0], "height": viewport[1]},
             )
             self.page = self.context.new_page()
+            if max_fps is not None:
+                self.page.add_init_script(_cap_fps_script(max_fps))
             self.page.on("console", self._on_console)
             self.page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
             self.page.goto(url)
@@ -146,6 +148,22 @@ class BrowserPage:
 
     def __exit__(self, *_: Any) -> None:
         self.close()
+
+
+def _cap_fps_script(max_fps: float) -> str:
+    """JS run before the page's own: requestAnimationFrame fires at most `max_fps` times a second.
+
+    Software WebGL redraws the 3-D view on every animation frame (about 0.6 of a core for a still
+    scene); on a small machine shared with the simulated rig a capped frame rate leaves the CPU to
+    the rig. What is drawn is unchanged, only how often."""
+    if not max_fps > 0:
+        raise ValueError(f"max_fps must be positive, got {max_fps}")
+    period_ms = 1000.0 / max_fps
+    return (
+        "(() => { const raf = window.requestAnimationFrame.bind(window); let last = 0;"
+        f" window.requestAnimationFrame = (cb) => {{ const wait = Math.max(0, last + {period_ms:.1f} - performance.now());"
+        " return raf((t) => setTimeout(() => { last = performance.now(); cb(performance.now()); }, wait)); }; })();"
+    )
 
 
 def count_color(img: np.ndarray, rgb: tuple[int, int, int] | np.ndarray, tol: int = 40) -> int:

@@ -98,7 +98,8 @@ def rig(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def browser(rig):
-    b = BrowserPage(rig.url)
+    # a smaller view and 5 frames/s: software WebGL then takes ~0.1 core instead of ~0.8, left to the rig
+    b = BrowserPage(rig.url, viewport=(1000, 650), max_fps=5)
     try:
         b.wait_text("Stage:", 60.0)
         yield b
