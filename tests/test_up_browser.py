@@ -166,7 +166,8 @@ def test_page_loads_and_shows_the_cloud_and_the_soi(rig, browser):
 def test_start_in_the_panel_runs_a_paper_scenario_to_done(rig, browser):
     b = browser
     run_id = _start_in_panel(b, rig, SCENARIO)
-    assert wait_until(lambda: _finished(rig, run_id), 170.0, 0.5), (rig.run_state.get(), rig.log())
+    # ~30 s on a quiet 2-core machine; the simulator slows down (and the run with it) under load
+    assert wait_until(lambda: _finished(rig, run_id), 400.0, 0.5), (rig.run_state.get(), rig.log())
     s = rig.run_state.get()
     assert s.stage == "done", (s.stage, s.reason, rig.log())
     # the panel reports it, from the page
