@@ -116,6 +116,23 @@ class BrowserPage:
             seen = self.stage()
         return seen
 
+    def dismiss_notifications(self) -> int:
+        """Close the page's pop-up notifications (e.g. viser's "software WebGL" warning), so a
+        screenshot shows the scene; how many were closed."""
+        buttons = self.page.locator(".mantine-Notification-closeButton")
+        n = buttons.count()
+        for i in reversed(range(n)):
+            try:
+                buttons.nth(i).click(timeout=2000)
+            except Exception:  # noqa: BLE001 - one that closed by itself meanwhile
+                pass
+        return n
+
+    def table_rows(self) -> list[list[str]]:
+        """Every table row of the page (the health and history tables) as its cells' texts."""
+        rows = self.page.locator("tr")
+        return [[c.strip() for c in rows.nth(i).locator("td").all_inner_texts()] for i in range(rows.count())]
+
     def screenshot(self, path: str | Path) -> Path:
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)

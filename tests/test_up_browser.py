@@ -142,6 +142,7 @@ def test_page_loads_and_shows_the_cloud_and_the_soi(rig, browser):
         on = b.canvas_pixels()
         soi_on = count_color(on, style.SOI, tol=30)
     assert soi_on > 100, f"SOI not visible: {soi_on} SOI-red pixels"
+    b.dismiss_notifications()
     b.screenshot(ARTIFACTS / "up-scene.png")
     b.toggle_layer("point cloud")
     b.settle()
@@ -158,8 +159,15 @@ def test_page_loads_and_shows_the_cloud_and_the_soi(rig, browser):
     back = b.canvas_pixels()
     assert int(np.any(np.abs(back.astype(int) - neither.astype(int)) > 40, axis=2).sum()) > cloud_px / 3
     assert count_color(back, style.SOI, tol=30) > soi_on / 2
-    # the picker lists the bundled scenarios; the health table knows every service
+    # the picker lists the bundled scenarios; the health table shows every service up, with the
+    # perception streams arriving
     assert {"exp01-coffee-box", SCENARIO, "obstacles-a-coffee-box"} <= set(b.options("Scenario"))
+
+    def health() -> dict[str, list[str]]:
+        return {r[0]: r for r in b.table_rows() if len(r) == 4}
+
+    assert wait_until(lambda: all(health().get(s, ["", ""])[1] == "up" for s in ALL), 15.0, 0.5), health()
+    assert "perception/soi" in health()["perception"][3]
     assert b.errors == [], b.errors
 
 
@@ -173,6 +181,7 @@ def test_start_in_the_panel_runs_a_paper_scenario_to_done(rig, browser):
     # the panel reports it, from the page
     assert b.wait_stage("done", 15.0) == "done", b.panel_text()
     assert run_id in b.panel_text()
+    b.dismiss_notifications()
     b.settle(1.0)
     b.screenshot(ARTIFACTS / "up-done.png")
     assert s.result["ticks"] > 0 and s.result["path_nodes"] > 2
@@ -211,6 +220,7 @@ def test_estop_in_a_second_run_stops_the_arms_and_the_panel_says_so(rig, browser
     b.wait_text("arms stopped", 10.0)
     assert b.wait_stage("aborted", 10.0) == "aborted", b.panel_text()
     assert "emergency stop" in b.panel_text()
+    b.dismiss_notifications()
     b.settle(0.5)
     b.screenshot(ARTIFACTS / "up-estop.png")
     assert time.monotonic() - t_start < 170
