@@ -183,6 +183,16 @@ def _cap_fps_script(max_fps: float) -> str:
     )
 
 
+def color_mask(img: np.ndarray, rgb: tuple[int, int, int] | np.ndarray, tol: int = 40) -> np.ndarray:
+    """`(H, W)` bool: the pixels of `img (H, W, 3)` within `tol` of `rgb` in every channel."""
+    return np.all(np.abs(img.astype(int) - np.asarray(rgb, dtype=int)) <= tol, axis=2)
+
+
 def count_color(img: np.ndarray, rgb: tuple[int, int, int] | np.ndarray, tol: int = 40) -> int:
     """Pixels of `img (H, W, 3)` within `tol` of `rgb` in every channel."""
-    return int(np.all(np.abs(img.astype(int) - np.asarray(rgb, dtype=int)) <= tol, axis=2).sum())
+    return int(color_mask(img, rgb, tol).sum())
+
+
+def changed_pixels(a: np.ndarray, b: np.ndarray, tol: int = 40) -> int:
+    """Pixels where two `(H, W, 3)` images differ by more than `tol` in some channel."""
+    return int(np.any(np.abs(a.astype(int) - b.astype(int)) > tol, axis=2).sum())
