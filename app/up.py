@@ -33,10 +33,13 @@ from typing import Any, Callable, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, open_session, request_run_control
 from bagit.common.errors import BusError
-from bagit.common.messages import RunControl, RunControlReply, RunState
+from bagit.common.messages import RunControl, RunControlReply, RunState, SimTruth
 from bagit.common.rig import RigConfig
 
 SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboard")
+# A service that needs another one up before it can start (the arm driver connects to the CR5s the
+# simulator serves; on a real rig the controllers are already up).
+AFTER = {"arm-driver": "sim"}
 FINAL = ("done", "failed", "aborted")
 
 
@@ -107,6 +110,7 @@ class Child:
     proc: subprocess.Popen | None = None
     restarts: int = 0
     exit_codes: list[int] = field(default_factory=list)
+    waiting_for: str | None = None  # started once this service's liveliness token is up
 
 
 class Up:
@@ -126,6 +130,7 @@ class Up:
         self.session: Any = None
         self.watcher: LivelinessWatcher | None = None
         self.run_state: LatestCache | None = None
+        self.truth: LatestCache | None = None  # the simulator's ground truth, to judge a run (never given to a service)
         self.hub = ""
         self.dashboard_url: str | None = None
         self._supervisor: threading.Thread | None = None
@@ -164,8 +169,10 @@ class Up:
             args = ["dashboard", "--port", str(port), "--rig-config", str(rpath)]
         elif name == "recorder":
             args = ["recorder", "--dir", str(o.record or "recordings")]
-        elif name in ("arm-driver", "perception"):  # the controller needs no rig config: it works in the world frame
+        elif name in ("arm-driver", "perception"):
             args = [name, "--rig-config", str(rpath)]
+        elif name == "controller":
+            args = [name, "--rate", f"{o.fps:g}"]  # one tick per camera frame, each command spread over the frame period
         else:
             args = [name]
         return args + bus + o.extra_args.get(name, [])
@@ -183,10 +190,13 @@ class Up:
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub]))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
+        if "sim" in names:
+            self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth)
         for n in names:
-            self.children[n] = Child(n, self._argv(n, zpath, rpath))
+            self.children[n] = Child(n, self._argv(n, zpath, rpath), waiting_for=AFTER.get(n) if AFTER.get(n) in names else None)
         for c in self.children.values():
-            self._spawn(c)
+            if c.waiting_for is None:
+                self._spawn(c)
         self._supervisor = threading.Thread(target=self._supervise, name="up-supervisor", daemon=True)
         self._supervisor.start()
 
@@ -214,6 +224,9 @@ class Up:
     def _supervise(self) -> None:
         while not self._stopping.wait(0.2):
             for c in list(self.children.values()):
+                if c.waiting_for is not None and self.watcher is not None and c.waiting_for in self.watcher.alive():
+                    c.waiting_for = None
+                    self._spawn(c)
                 if c.proc is None or c.proc.poll() is None:
                     continue
                 code = c.proc.returncode
@@ -310,7 +323,7 @@ class Up:
                 _signal_group(p, signal.SIGKILL)
                 codes[n] = p.wait(timeout=5)
             _signal_group(p, signal.SIGKILL)  # anything the service started and left behind
-        for x in (self.run_state, self.watcher):
+        for x in (self.run_state, self.truth, self.watcher):
             if x is not None:
                 x.close()
         if self.session is not None:

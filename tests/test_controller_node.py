@@ -13,7 +13,7 @@ from bus_support import session_pair, wait_until
 from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.geometry import matrix_to_rpy
 from bagit.common.messages import ArmState, Command, ControllerStatus, Path, RunState, SoiState
-from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
+from bagit.services.controller.node import ControllerNode, ControllerServiceConfig, DT_MAX_S
 from bagit.services.controller.synthetic import SyntheticRim, apply_increment
 
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
@@ -135,7 +135,7 @@ def test_the_controller_service_servos_a_synthetic_rim_to_the_goal_over_zenoh(lo
     done = next(s for s in statuses if s.done)
     assert done.progress == 1.0 and done.stage == "bagging" and done.error_to_goal <= 0.008
     servo = [c for _, c in plant.cmds if c.mode == "servo"]
-    assert len(servo) > 50 and all(c.run_id == "r1" and abs(c.dt - 1 / 60) < 1e-9 for c in servo)
+    assert len(servo) > 50 and all(c.run_id == "r1" and 1 / 60 - 1e-9 <= c.dt <= DT_MAX_S for c in servo)
     assert [c.seq for _, c in plant.cmds] == sorted(c.seq for _, c in plant.cmds)  # reliable, in order
     time.sleep(0.2)  # the done tick's command may still be on its way (the status is best-effort, it can overtake)
     n = len(plant.cmds)

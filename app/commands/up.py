@@ -12,6 +12,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 NAME = "up"
 HELP = "bring the whole simulated rig up: sim, perception, planner, controller, arm driver, dashboard"
 
@@ -85,10 +87,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if state is None:
                 reason = "interrupted" if stop.is_set() else f"no end of run {run_id} within {args.timeout:g} s"
                 return {"success": False, "reason": reason, "run_id": run_id, "wall_s": time.monotonic() - t0}
+            truth = _judge_on_truth(up, state, stop)
+            ok = state.stage == "done" and (truth is None or truth["success"])
+            reason = state.reason if state.stage != "done" else (None if ok else truth["reason"])
             return {
-                "success": state.stage == "done", "run_id": run_id, "scenario": state.scenario, "stage": state.stage,
-                "reason": state.reason, "result": state.result, "elapsed_s": state.elapsed_s, "wall_s": time.monotonic() - t0,
-                "restarts": {n: c.restarts for n, c in up.children.items()},
+                "success": ok, "run_id": run_id, "scenario": state.scenario, "stage": state.stage,
+                "reason": reason, "result": state.result, "truth": truth, "elapsed_s": state.elapsed_s,
+                "wall_s": time.monotonic() - t0, "restarts": {n: c.restarts for n, c in up.children.items()},
             }
         up.say("up; Ctrl-C to stop everything")
         stop.wait()
@@ -98,6 +103,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         up.say("stopped: " + ", ".join(f"{n} {c}" for n, c in codes.items()))
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+def _judge_on_truth(up: Any, state: Any, stop: Any) -> dict[str, Any] | None:
+    """The run judged on the simulator's ground truth, as `bagit run` judges it: the true rim encloses
+    the object's outline at least lambda_d/2 above its bottom, the bag never passed through it.
+    None without a simulator (a real rig has no ground truth)."""
+    import time
+
+    from bagit.common.scenario import Scenario
+    from bagit.pipeline import judge
+    from bagit.services.planner.goal import bottom_frame
+
+    if up.truth is None or state.scenario_doc is None:
+        return None
+    deadline = time.monotonic() + 3.0
+    while (t := up.truth.get()) is None or t.run_id != state.run_id:
+        if time.monotonic() > deadline or stop.wait(0.05):
+            return {"success": False, "reason": "no ground truth from the simulator for this run"}
+    scenario = Scenario.model_validate(state.scenario_doc)
+    V = scenario.object.bottom_vertices()
+    ok, err_cm, reason = judge(np.asarray(t.rim), scenario, scenario.lambda_d(), bottom_frame(V)[:3, 2])
+    if t.passed_through:
+        ok, reason = False, "the bag passed through the object"
+    return {"success": ok, "reason": reason, "error_cm": err_cm, "passed_through": t.passed_through,
+            "max_penetration_mm": t.max_penetration_m * 1e3, "sim_time_s": t.sim_time, "realtime_factor": t.realtime_factor}
 
 
 def human(r: dict[str, Any]) -> str:

@@ -40,6 +40,7 @@ from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import CONTROLLERS, make_controller
 
 ACTIVE_STAGES = ("perceiving", "goal", "planning", "pre-bagging", "bagging")
+DT_MAX_S = 0.18  # a command's dt stays under the arm driver's 0.2 s watchdog
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 
 
@@ -74,6 +75,7 @@ class _Run:
         self.dt = 1.0 / rate_hz
         self.last_soi_seq: int | None = None
         self.last_soi_stamp: float | None = None
+        self.last_cmd_t: float | None = None  # monotonic time of the last servo command
         self.reset_done = False
         self.finished: str | None = None  # why servoing ended (done, the run's stage, e-stop)
 
@@ -276,7 +278,7 @@ class ControllerNode:
             self._hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", run)
             return
         self._seq += 1
-        cmd = out.to_command(run.dt, seq=self._seq, run_id=run.run_id)
+        cmd = out.to_command(self._command_dt(run), seq=self._seq, run_id=run.run_id)
         self._cmd.put(cmd)
         self.counters["servo" if cmd.mode == "servo" else "hold"] += 1
         self.last_reason = out.reason
@@ -288,6 +290,17 @@ class ControllerNode:
             run.finished = "done"
             self.runs_done.append({"run_id": run.run_id, "error_to_goal": _finite_or_none(out.error_to_goal), "ticks": c.ticks})
             self.report(f"run {run.run_id}: at g* (error {out.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)")
+
+    def _command_dt(self, run: _Run) -> float:
+        """Over how long the driver spreads this increment: the time since the last command (a tick
+        comes with each new SOI, so a slow camera gives longer, slower steps rather than a dash and
+        a stop), at least the control period and at most DT_MAX_S, under the driver's 0.2 s watchdog.
+        u is bounded per tick (C7 at the control rate), so a longer dt only ever means slower."""
+        now = time.monotonic()
+        last, run.last_cmd_t = run.last_cmd_t, now
+        if last is None:
+            return run.dt
+        return float(min(max(now - last, run.dt), max(DT_MAX_S, run.dt)))
 
     # -- out ---------------------------------------------------------------------------------------
 

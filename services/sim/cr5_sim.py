@@ -341,7 +341,11 @@ class SimulatedCR5:
     def _servo_to(self, q_goal: np.ndarray, t: float, aheadtime: float, gain: float) -> int:
         if self._active is not None or self._queue:
             return int(ErrorId.FAILED)  # a queued motion is running: servoing waits for it
-        speed = np.abs(q_goal - self._q_ref) / t
+        # The stream's speed: from the previous servo target (where the controller was told to be),
+        # not from the reference, which lags behind whenever the simulation runs slower than the
+        # wall clock the driver streams by.
+        prev = self._servo.goal if self._servo is not None else self._q_ref
+        speed = np.abs(q_goal - prev) / t
         j = int(np.argmax(speed))
         if speed[j] > cr5.JOINT_SPEED_LIMIT * 1.05:
             self._raise(overspeed_alarm(j))
