@@ -66,7 +66,17 @@ class Rig:
             raise
 
     def log(self) -> str:
-        return up_log(self.tmp)[-4000:]
+        """The log's tail, after what explains a slow or failed run: the simulator's real-time
+        factor and how often the controller held (and why)."""
+        text = up_log(self.tmp)
+        lines = text.splitlines()
+        rtf = [ln for ln in lines if "behind real time" in ln][-3:]
+        holds: dict[str, int] = {}
+        for ln in lines:
+            if "hold: " in ln and ln.startswith("[controller]"):
+                why = ln.split("hold: ", 1)[1].split("(")[0].strip()
+                holds[why] = holds.get(why, 0) + 1
+        return "\n".join([*rtf, f"controller holds: {holds}", "--- log tail ---", text[-3000:]])
 
     def arms_since(self, t: float) -> list:
         return [m for tr, m in list(self.arm_log) if tr >= t]
