@@ -14,11 +14,12 @@ from typing import Any, Callable
 import numpy as np
 from matplotlib.path import Path as MplPath
 
-from bagit.common.errors import BagItError
+from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import closed_polyline_length, transform_points
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.controller import ShapeServo
+from bagit.services.controller.servo import NUMERIC_ERRORS
 from bagit.services.controller.synthetic import apply_increment
 from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
 from bagit.services.perception.rgbd import solid_rim_segmenter
@@ -26,6 +27,7 @@ from bagit.services.planner import bagging_soi, collision_model, plan_path
 from bagit.services.sim.world import SimWorld
 
 SETTLE_S = 1.0  # let the hanging bag come to rest before the first frame
+WALL_LIMIT_S = 900.0  # a run taking longer than this in wall time is stopped (normal runs take 20-120 s)
 
 
 @dataclass
@@ -84,8 +86,12 @@ def run_bagging(
     time_limit_s: float = 40.0,
     rig: RigConfig | None = None,
     progress: Callable[[str], None] = lambda s: None,
+    wall_limit_s: float | None = WALL_LIMIT_S,
 ) -> RunResult:
-    """One simulated bagging run; every stage's failure ends it with a reason."""
+    """One simulated bagging run; every stage's failure ends it with a reason.
+
+    wall_limit_s: the run also ends (failed, with the reason) when it has taken this much wall time,
+    e.g. when MuJoCo's contact solver crawls on a bunched-up bag; None: no limit."""
     t_wall = time.perf_counter()
     p = scenario.params
     n_x = scenario.bag.n_x
@@ -102,7 +108,10 @@ def run_bagging(
 
     # How the rim looks is a property of the bag the rig is set up for, not ground truth.
     segmenter = red_rim_mask if scenario.bag.kind == "red-edged" else solid_rim_segmenter(scenario.bag.color)
-    world.step(SETTLE_S)
+    try:
+        world.step(SETTLE_S)
+    except SimulationFailed as e:
+        return finish(False, "settling", f"simulator: {e}")
     grippers = world.mount_home_poses()
     seq = 0
     progress("perceiving: g0 from the camera")
@@ -124,8 +133,13 @@ def run_bagging(
     servo = ShapeServo(controller, p, plan.path, plan.dagger_index, R)
     x, ticks, stage = g0, 0, "pre-bagging"
     limit = servo.u_max
+    holding: str | None = None  # why the controller holds the arms, while it does
     while world.time - SETTLE_S < time_limit_s:
-        out = servo.step(x, world.time, grippers, source_stamp=world.time)
+        try:
+            out = servo.step(x, world.time, grippers, source_stamp=world.time)
+        except (BagItError, *NUMERIC_ERRORS) as e:  # the controller holds on these itself; a last net
+            return finish(False, stage, f"controller: {e}", plan_t=plan.time_s, ticks=ticks, nodes=len(plan.path))
+        holding = out.reason if out.mode == "hold" else None
         if np.any(np.abs(out.u) > limit + 1e-12) or not np.all(np.isfinite(out.u)):
             return finish(False, stage, "the controller commanded outside the arm limits", ticks=ticks)
         if out.stage != stage and out.mode == "servo":
@@ -139,10 +153,17 @@ def run_bagging(
         if out.done:
             break
         grippers = apply_increment(grippers, out.u)
-        world.set_mount_targets(grippers)
-        world.step(dt)
+        try:
+            world.set_mount_targets(grippers)
+            world.step(dt)
+        except SimulationFailed as e:
+            return finish(False, stage, f"simulator: {e}", plan_t=plan.time_s, ticks=ticks, nodes=len(plan.path))
         ticks += 1
         seq += 1
+        wall = time.perf_counter() - t_wall
+        if wall_limit_s is not None and wall > wall_limit_s:
+            return finish(False, stage, f"simulator: too slow, {wall:.0f} s of wall time for {world.time - SETTLE_S:.1f} s simulated "
+                          f"(limit {wall_limit_s:.0f} s; the contact solver crawls?)", plan_t=plan.time_s, ticks=ticks, nodes=len(plan.path))
         try:
             x = extract_soi(rim_cloud(world.render_rgbd(seq), segmenter), n_x, init=x)
         except BagItError:
@@ -155,4 +176,6 @@ def run_bagging(
         ok, reason = False, f"time limit of {time_limit_s:.0f} s reached"
     elif not out.done and ok:
         reason = None  # enclosed at the time limit counts only if done; keep the judge's verdict otherwise
+    if not ok and holding:
+        reason = f"{reason}; the controller was holding: {holding}"
     return finish(ok, "done" if ok else stage, reason, err_cm, plan.time_s, ticks, len(plan.path))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -87,8 +88,13 @@ def planning_summary(records: list[dict[str, Any]]) -> dict[str, dict[str, dict[
 # ---------------------------------------------------------------- bagging SOI (section VII-A)
 
 
-def measure_placements(n: int, seed: int = 0) -> list[dict[str, Any]]:
-    """n random placements cycling over the twelve shapes of `bench.goal`, tilted up to 20 degrees."""
+SCALE_RANGE = (0.75, 1.6)  # each placement's size against bench.goal's outline (the largest do not fit the bag)
+
+
+def measure_placements(n: int, seed: int = 0, scale_range: tuple[float, float] = SCALE_RANGE) -> list[dict[str, Any]]:
+    """n random placements cycling over the twelve shapes of `bench.goal`, tilted up to 20 degrees, turned
+    and moved at random, and scaled by a random factor in `scale_range`: the goal is computed in the
+    bottom frame, so pose alone would give each shape the same c1 every time."""
     from bagit.bench.goal import R, shapes
     from bagit.services.planner import bagging_soi
 
@@ -98,12 +104,13 @@ def measure_placements(n: int, seed: int = 0) -> list[dict[str, Any]]:
     records = []
     for k in range(n):
         name = names[k % len(names)]
-        xy = outlines[name]
+        scale = float(rng.uniform(*scale_range))
+        xy = outlines[name] * scale
         rpy = [rng.uniform(-0.35, 0.35), rng.uniform(-0.35, 0.35), rng.uniform(-np.pi, np.pi)]
         Rm = rpy_to_matrix(rpy)
         v = np.column_stack([xy, np.zeros(len(xy))]) @ Rm.T + rng.uniform([-0.1, -0.1, 0.4], [0.1, 0.1, 0.6])
         tilt = float(np.degrees(np.arccos(np.clip(Rm[2, 2], -1, 1))))
-        rec: dict[str, Any] = {"shape": name, "tilt_deg": round(tilt, 2)}
+        rec: dict[str, Any] = {"shape": name, "tilt_deg": round(tilt, 2), "scale": round(scale, 4)}
         t0 = time.perf_counter()
         try:
             g = bagging_soi(v, R, 32)
@@ -137,6 +144,7 @@ def placement_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
         "placements": len(records),
         "shapes": len(per_shape),
         "valid": len(ok),
+        "infeasible": sorted({r["reason"].split(";")[0] for r in records if not r["valid"]})[:3],
         "all": stats(ok),
         "tilted_over_10deg": stats([r for r in ok if r["tilt_deg"] > 10]),
         "per_shape": per_shape,
@@ -240,7 +248,8 @@ def run(
     placements: int | None = None,
     figures: bool = True,
 ) -> dict[str, Any]:
-    """Measure (or reuse) planning and placements, read closed-loop runs, write paper.md/json and figures."""
+    """Measure (or reuse, from an earlier paper.json) the planning runs, measure the placements, read the
+    closed-loop runs, and write paper.md/json and the figures."""
     from bagit.bench.paper_report import markdown
 
     out = Path(out_dir) if out_dir else RESULTS_DIR
@@ -254,13 +263,14 @@ def run(
             old = json.loads(Path(reuse).read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"cannot reuse {reuse}: {e}") from None
-        if "planning_runs" not in old or "placement_runs" not in old:
-            raise ValueError(f"{reuse} is not a `bagit bench paper` result (no planning_runs / placement_runs)")
+        if not old.get("planning_runs"):
+            raise ValueError(f"{reuse} is not a `bagit bench paper` result (no planning_runs)")
+    load_start = os.getloadavg()
     t0 = time.perf_counter()
     paths = scenarios(quick)
     plan_runs = old.get("planning_runs") or measure_planning(paths, n_seeds)
     t_plan = time.perf_counter() - t0
-    place_runs = old.get("placement_runs") or measure_placements(n_place)
+    place_runs = measure_placements(n_place)  # cheap and seeded: always measured afresh
     cl_files = list(closed_loop) if closed_loop is not None else find_closed_loop(out)
     cl_runs, cl_rows = load_closed_loop(cl_files)
     result: dict[str, Any] = {
@@ -269,6 +279,9 @@ def run(
         "seeds": max((r["seed"] for r in plan_runs), default=-1) + 1,
         "reused": str(reuse) if reuse else None,
         "planning_wall_s": old.get("planning_wall_s", t_plan),
+        # planning times are wall-clock: the machine's load while they were taken (1, 5, 15 min averages)
+        "planning_measured": old.get("planning_measured") or (old["machine"]["when"] if old else None),
+        "planning_load_avg": old.get("planning_load_avg") if old else [round(v, 2) for v in (*load_start, *os.getloadavg())],
         "planning": planning_summary(plan_runs),
         "placements": placement_summary(place_runs),
         "manipulation": manipulation_summary(cl_runs, cl_rows),

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from bagit.bench import paper_data as P
+from bagit.bench.paper import SCALE_RANGE
 
 NOT_RUN = "not run"
 
@@ -25,6 +26,11 @@ def _ratio_ok(ours: dict[str, Any], paper: tuple[int, ...] | None) -> str:
     if paper is None:
         return "—"
     return "yes" if ours["success"] * paper[1] >= paper[0] * ours["of"] else "**no**"
+
+
+def _load(r: dict[str, Any]) -> str:
+    la = r.get("planning_load_avg")
+    return f" (load average {la[0]:.1f} at the start, {la[3]:.1f} at the end, on {r['machine']['cores']} cores)" if la else ""
 
 
 def planning_table(r: dict[str, Any]) -> list[str]:
@@ -82,6 +88,11 @@ def manipulation_table(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def manipulation_failures(r: dict[str, Any]) -> list[str]:
+    lines = [f"- {stem} / {method}: {why}" for stem, row in r["manipulation"].items() for method, c in row.items() for why in c["failures"]]
+    return lines or ["- none"]
+
+
 def table1(r: dict[str, Any]) -> list[str]:
     lines = ["| method | success | time s | error cm | source |", "|---|---|---|---|---|"]
     for name, (k, n, tm, ts, em, es) in P.TABLE1.items():
@@ -105,8 +116,10 @@ def soi_section(r: dict[str, Any]) -> list[str]:
     a, t = s["all"], s["tilted_over_10deg"]
     f = lambda v, p=3: "—" if v is None else f"{v:.{p}f}"  # noqa: E731
     lines = [
-        f"{s['placements']} placements of {s['shapes']} bottom shapes (tilted up to 20°, turned at random; "
-        f"R = 0.68 m, n_x = 32): {s['valid']} valid goals; median {f(s['time_ms_median'], 2)} ms per goal.",
+        f"{s['placements']} placements of {s['shapes']} bottom shapes (`bench/goal.py`'s outlines scaled by a random "
+        f"factor in [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}], tilted up to 20°, turned and moved at random; R = 0.68 m, n_x = 32): "
+        f"{s['valid']} valid goals, the other {s['placements'] - s['valid']} too large for the bag (InfeasibleGoal); "
+        f"median {f(s['time_ms_median'], 2)} ms per goal.",
         "",
         "| | mean c1 (max F_e) | mean c2 (m) | mean c3 (abs(d_e·d_v)) | placements |",
         "|---|---|---|---|---|",
@@ -131,14 +144,15 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         f"Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, numpy {m['numpy']}; {m['when']}"
         + ("; **quick subset**" if r["quick"] else "")
-        + (f"; planning and placements reused from `{r['reused']}`" if r.get("reused") else "")
+        + (f"; planning runs measured {r['planning_measured']} and reused (`--reuse`)" if r.get("reused") else "")
         + ".",
         "",
         "## Table II: planning",
         "",
         f"Each scenario planned from its g0 with {r['seeds']} seeds per planner (`cbirrt` is the paper's *Ours*); "
         f"time is wall-clock per whole path g0 → g† → g* (mean ± std over the successful plans), "
-        f"{r['planning_wall_s']:.0f} s for the whole table. exp11/12 (bound, tilted) and the obstacle layouts "
+        f"{r['planning_wall_s']:.0f} s for the whole table{_load(r)}. Each plan has a 10 s wall-time budget besides its "
+        "iteration limit, so on a loaded machine slow plans fail ('time budget') and times grow. exp11/12 (bound, tilted) and the obstacle layouts "
         "of Fig. 7(c) have no numbers in the paper.",
         "",
         *planning_table(r),
@@ -156,6 +170,10 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         *manipulation_table(r),
         "",
+        "Closed-loop failures:",
+        "",
+        *manipulation_failures(r),
+        "",
         "## Table I: comparison on Exp. 1",
         "",
         "ShakingBot, AutoBag and BimaManip. are not reimplemented here; our rows are the three controllers on exp01 in "
@@ -169,7 +187,8 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         "c1 is the largest F_e of V's vertices in the bagging ellipse, so it measures how much of the ellipse the "
         "object's bottom fills: it depends on the objects' size against the rim (R = 0.68 m), which the paper does "
-        "not give for its 12 shapes. Our goal solver reaches L = R exactly with the ellipse centred on V and "
+        "not give for its 12 shapes, and not on their pose (the ellipse is found in the bottom frame F_m), hence the "
+        "random sizes. Our goal solver reaches L = R exactly with the ellipse centred on V and "
         "parallel to its principal axis (see `services/planner/goal.py`), so c2 = 0 and c3 = 1 whenever the bag "
         "is large enough; the paper's numerical optimiser stops near those values (0.005 m, 0.9978).",
         "",

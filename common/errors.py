@@ -59,3 +59,16 @@ class CameraError(BagItError, RuntimeError):
 
 class MarkerNotFound(BagItError, LookupError):
     """No ArUco marker of a known object (or no calibration board) in the image."""
+
+
+class NumericalFailure(BagItError, ArithmeticError):
+    """A numerical routine (SVD, least squares, a linear solve) got non-finite or degenerate data.
+
+    numpy's LinAlgError ('SVD did not converge') is turned into this where it can happen, so every
+    stage can end or hold with a reason instead of crashing.
+    """
+
+
+class SimulationFailed(BagItError, RuntimeError):
+    """The physics simulation went unstable: non-finite state, or MuJoCo warned of bad accelerations,
+    positions or velocities (it would otherwise reset the world silently and carry on)."""

@@ -11,6 +11,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from bagit.common.errors import NumericalFailure
+
 
 def as_points(obj: object, error: type[Exception], what: str) -> np.ndarray:
     """`obj` as a float64 `(n, 3)` array, or `error` naming `what` is wrong (not numeric, wrong shape).
@@ -49,8 +51,13 @@ def farthest_point_sampling(points: np.ndarray, k: int, start: int = 0) -> np.nd
 def pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centroid `(d,)`, variances `(d,)` (descending) and axes `(d, d)` (rows) of `points (n, d)`."""
     pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or len(pts) == 0 or not np.all(np.isfinite(pts)):
+        raise NumericalFailure(f"PCA needs finite points (n, d), got {'non-finite values' if pts.size else 'none'} in shape {pts.shape}")
     centroid = pts.mean(axis=0)
-    _, s, vt = np.linalg.svd(pts - centroid, full_matrices=False)
+    try:
+        _, s, vt = np.linalg.svd(pts - centroid, full_matrices=False)
+    except np.linalg.LinAlgError as e:  # LAPACK can still fail on badly scaled data
+        raise NumericalFailure(f"PCA failed: {e}") from None
     var = s**2 / max(len(pts) - 1, 1)
     return centroid, var, vt
 

@@ -83,6 +83,7 @@ def test_reuse_keeps_runs_and_rejects_other_files(quick, tmp_path):
     out, r, _ = quick
     again = paper.run(quick=True, reuse=out / "paper.json", closed_loop=[], out_dir=tmp_path, figures=False)
     assert again["planning_runs"] == r["planning_runs"] and again["manipulation"] == {}
+    assert again["placements"]["all"]["c1_mean"] == pytest.approx(r["placements"]["all"]["c1_mean"])  # seeded
     assert "| exp01-coffee-box | mpc | not run |" in (tmp_path / "paper.md").read_text()
     bad = tmp_path / "other.json"
     bad.write_text('{"stages": {}}')

@@ -16,6 +16,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--planner", choices=["cbirrt", "ffg-rrt", "ts-rrt"], default="cbirrt")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--time-limit", type=float, default=40.0, help="simulated seconds before the run fails")
+    p.add_argument("--wall-limit", type=float, default=900.0, help="wall-clock seconds before the run is stopped as too slow")
     p.add_argument("--headless", action="store_true", help="no viewer (the only mode for now: runs are always headless)")
 
 
@@ -26,7 +27,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     s = Scenario.from_file(find_scenario(args.scenario))
     say = (lambda m: print(f"[run] {m}", file=sys.stderr, flush=True)) if args.json else (lambda m: print(f"[run] {m}", flush=True))
-    r = run_bagging(s, args.controller, args.planner, args.seed, args.time_limit, progress=say)
+    r = run_bagging(s, args.controller, args.planner, args.seed, args.time_limit, progress=say, wall_limit_s=args.wall_limit)
     out = r.to_dict()
     out["scenario"] = s.name
     return out

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bagit.common.errors import NumericalFailure
+
 from bagit.common.params import MethodParams
 from bagit.services.controller.servo import ServoBase, scale_into_box
 
@@ -20,7 +22,13 @@ PINV_RCOND = 1e-6
 def servo_law(J: np.ndarray, x: np.ndarray, target: np.ndarray, gain: float, u_max: np.ndarray) -> np.ndarray:
     """u = -gain Ĵ⁺ (x - target) `(12,)` for `J (3 n_x, 12)`, shrunk as a whole into C7 `u_max (12,)`
     (keeping its direction: clipping components one by one would turn it)."""
-    u = -gain * np.linalg.lstsq(J, x - target, rcond=PINV_RCOND)[0]
+    e = np.asarray(x, dtype=float) - np.asarray(target, dtype=float)
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(e))):
+        raise NumericalFailure("servo law: non-finite Jacobian or error")
+    try:
+        u = -gain * np.linalg.lstsq(J, e, rcond=PINV_RCOND)[0]
+    except np.linalg.LinAlgError as err:
+        raise NumericalFailure(f"servo law: pseudo-inverse of J failed: {err}") from None
     return scale_into_box(u, u_max)
 
 

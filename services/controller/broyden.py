@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bagit.common.errors import NumericalFailure
+
 MIN_STEP_NORM = 1e-4  # skip updates for ||u|| below this (m / rad per update)
 MAX_JACOBIAN_NORM = 50.0  # Frobenius bound on J (SOI metres per input unit)
 
@@ -89,7 +91,15 @@ def exploration_inputs(step_m: float = 0.004, step_rad: float = 0.04) -> np.ndar
 def jacobian_from_exploration(inputs: np.ndarray, changes: np.ndarray) -> np.ndarray:
     """Finite-difference J `(3 n_x, 12)` from exploratory inputs `(k, 12)` and the SOI changes `(k, 3 n_x)`
     they caused: the least-squares J with changes ~ inputs @ J^T."""
-    Jt, *_ = np.linalg.lstsq(np.asarray(inputs, float), np.asarray(changes, float), rcond=None)
+    U, S = np.asarray(inputs, float), np.asarray(changes, float)
+    if not (np.all(np.isfinite(U)) and np.all(np.isfinite(S))):
+        raise NumericalFailure("the exploration measured non-finite SOI changes: no Jacobian from them")
+    try:
+        Jt, *_ = np.linalg.lstsq(U, S, rcond=None)
+    except np.linalg.LinAlgError as e:
+        raise NumericalFailure(f"least squares for the exploration Jacobian failed: {e}") from None
+    if not np.all(np.isfinite(Jt)):
+        raise NumericalFailure("the exploration Jacobian is not finite")
     return Jt.T
 
 

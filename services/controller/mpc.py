@@ -176,7 +176,20 @@ class MpcSolver:
         zeros = np.zeros(12 * T)
         if not (np.all(np.isfinite(J)) and np.all(np.isfinite(x)) and np.all(np.isfinite(target))):
             return self._fail(zeros, t0, "non-finite model or SOI")
-        H, c = self.condensed(J, x, target, point_weight)
+        try:
+            return self._solve(J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, t0)
+        except (ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError) as e:
+            # PIQP's set-up or factorisation refusing the data: a failed tick (the arms hold), not a crash
+            self._solver = None  # set up afresh next tick
+            return self._fail(zeros, t0, f"solver error: {e}")
+
+    def _solve(self, J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, t0) -> MpcSolution:
+        T = self.T
+        zeros = np.zeros(12 * T)
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflowing model is caught just below
+            H, c = self.condensed(J, x, target, point_weight)
+        if not (np.all(np.isfinite(H)) and np.all(np.isfinite(c))):
+            return self._fail(zeros, t0, "non-finite QP data")
         ub = np.tile(np.asarray(u_max, dtype=float), T)
         lb = -ub
         has_g = sep_axis is not None
@@ -198,6 +211,8 @@ class MpcSolver:
         u_bar = np.asarray(self._solver.result.x, dtype=float).copy()
         iters = int(self._solver.result.info.iter)
         if status != piqp.PIQP_SOLVED or not np.all(np.isfinite(u_bar)):
+            if not np.all(np.isfinite(u_bar)):
+                self._solver = None  # a workspace holding NaN would poison the next tick's warm set-up
             return self._fail(zeros, t0, str(status), iters)
         u_bar = np.clip(u_bar, lb, ub)  # solver tolerance must never leak past C7
         sol = MpcSolution(u_bar[:12].copy(), u_bar, (time.perf_counter() - t0) * 1e3, str(status), iters, True)

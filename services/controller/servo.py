@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from bagit.common.errors import BadControlInput
+from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import Command
 from bagit.common.params import MethodParams
@@ -31,7 +31,10 @@ TAUT_MARGIN_M = 0.01
 SEP_RECOVER_M = 0.001  # outside the C6 band the grippers head back by at least this per tick
 BROYDEN_SCALED = True  # Broyden's update in units of each input's C7 limit (see BroydenJacobian)
 MIN_SCALED_STEP = 0.5  # ... and windows that moved less than half a full-speed tick are not learnt from
-GOAL_STALL_TICKS = 45  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
+GOAL_STALL_TICKS = 45
+# What a numerical routine raises on bad data (LinAlgError: e.g. 'SVD did not converge'); a tick that
+# meets one holds the arms with the reason.
+NUMERIC_ERRORS = (NumericalFailure, np.linalg.LinAlgError, FloatingPointError)  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
 
 
 @dataclass
@@ -217,17 +220,23 @@ class ServoBase:
             if u is not None:
                 self._u_prev = u
                 return self._out(u, "explore", None, x)
-            J0 = self.exploration.jacobian()
-            if BROYDEN_SCALED:
-                self.jacobian = BroydenJacobian(J0, self.p.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
-            else:
-                self.jacobian = BroydenJacobian(J0, self.p.epsilon)
+            try:
+                J0 = self.exploration.jacobian()
+                if BROYDEN_SCALED:
+                    self.jacobian = BroydenJacobian(J0, self.p.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
+                else:
+                    self.jacobian = BroydenJacobian(J0, self.p.epsilon)
+            except NUMERIC_ERRORS as e:
+                return self._hold(f"no Jacobian estimate from the exploration: {e}", x)
         idx = self.tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]
-        target = slide_to(goal, x).ravel()
-        u, solve_ms, why = self._law(self.jacobian.J, xf, target, gripper_poses)
+        try:
+            target = slide_to(goal, x).ravel()
+            u, solve_ms, why = self._law(self.jacobian.J, xf, target, gripper_poses)
+        except NUMERIC_ERRORS as e:  # hold with the reason; never let a numerical error out of a tick
+            return self._hold(f"the {self.name} law failed numerically: {e}", x)
         u = np.asarray(u, dtype=float).ravel()
         if why is None and (u.shape != (12,) or not np.all(np.isfinite(u))):
             why = "the control law gave a non-finite input"

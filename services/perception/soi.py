@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from bagit.common.errors import BadCloud
+from bagit.common.errors import BadCloud, NumericalFailure
 from bagit.common.geometry import align_cyclic, closed_polyline_length, pca, resample_closed
 from bagit.services.perception.cleanup import GATE_M, MAX_COORDINATE_M, clean_cloud, crop_near, gate_near, subsample, validate_cloud
 from bagit.services.perception.curve import ClosedCurve, following_phase, polar_fill
@@ -79,6 +79,17 @@ def extract_soi(
     n_x < 4, a bad init or start_hint, or a cloud in which no rim can be found.
     """
     raw = validate_cloud(points, n_x)
+    try:
+        soi = _extract(raw, n_x, init, start_hint, params)
+    except (NumericalFailure, np.linalg.LinAlgError, FloatingPointError) as e:
+        raise BadCloud(f"SOI extraction failed numerically on this cloud: {e}") from None
+    if not np.all(np.isfinite(soi)):  # never hand on a rim the fit could not place
+        raise BadCloud("SOI extraction gave non-finite points on this cloud")
+    return soi
+
+
+def _extract(raw: np.ndarray, n_x: int, init: object, start_hint: object, params: SoiParams) -> np.ndarray:
+    """extract_soi on a validated cloud `raw (n, 3)`."""
     k = max(int(n_x), params.min_components)
     prev = _checked(init, (n_x, 3), "init")
     hint = _checked(start_hint, (3,), "start_hint")

@@ -8,7 +8,7 @@ from os import PathLike
 
 import numpy as np
 
-from bagit.common.errors import BadCloud, BadScenario
+from bagit.common.errors import BadCloud, BadScenario, NumericalFailure
 from bagit.common.geometry import align_cyclic, as_points, closed_polyline_length
 from bagit.common.messages import Path
 from bagit.common.params import MethodParams
@@ -122,12 +122,18 @@ def plan_path(
     total_iters = 0
     pieces = []
     for a, b, stage in ((g0, gd, "pre-bagging"), (gd, gs, "bagging")):
-        raw, iters = search(space, a, b, params.planner_connect_eps_m, params.planner_max_iterations, deadline)
-        total_iters += iters
-        if raw is None:
-            why = "time budget" if time.perf_counter() > deadline else f"{params.planner_max_iterations} iterations"
-            return fail(f"{planner} found no {stage} path within its {why}", total_iters)
-        pieces.append(postprocess(space, raw))
+        try:
+            raw, iters = search(space, a, b, params.planner_connect_eps_m, params.planner_max_iterations, deadline)
+            total_iters += iters
+            if raw is None:
+                why = "time budget" if time.perf_counter() > deadline else f"{params.planner_max_iterations} iterations"
+                return fail(f"{planner} found no {stage} path within its {why}", total_iters)
+            piece = postprocess(space, raw)
+        except (NumericalFailure, np.linalg.LinAlgError, FloatingPointError) as e:
+            return fail(f"{planner} failed numerically in the {stage} search: {e}", total_iters)
+        if not all(np.all(np.isfinite(r)) for r in piece):
+            return fail(f"{planner} produced a non-finite {stage} path", total_iters)
+        pieces.append(piece)
     pre, bag = pieces
     path = np.stack(pre + bag[1:])
     path[0], path[len(pre) - 1], path[-1] = g0, gd, gs

@@ -86,7 +86,7 @@ def cbirrt(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max
     for it in range(1, max_iter + 1):
         if time.perf_counter() > deadline:
             return None, it
-        x_rand = space.sample(n)
+        x_rand = space.sample_regularized(n)
         a, b = trees if it % 2 else trees[::-1]
         ia = _extend(space, a, x_rand)
         if ia is None:
@@ -107,7 +107,7 @@ def _forward_search(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: f
     for it in range(1, max_iter + 1):
         if time.perf_counter() > deadline:
             return None, it
-        target = goal if space.rng.random() < GOAL_BIAS else space.sample(n)
+        target = goal if space.rng.random() < GOAL_BIAS else space.sample_regularized(n)
         i = extend(space, tree, target)
         if i is not None and max_step(tree.nodes[i], goal) <= eps and space.edge_ok(tree.nodes[i], goal):
             return tree.branch(i) + [goal], it

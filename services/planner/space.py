@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bagit.common.errors import NumericalFailure
 from bagit.common.geometry import align_cyclic, closed_polyline_length, ramanujan_perimeter
 from bagit.services.planner.collision import RimCollision
 
@@ -19,15 +20,21 @@ MAX_NODE_STEP_M = 0.05  # no rim point moves more than this between consecutive 
 FIT_OVERSAMPLE = 3  # n_y = this * n_x ellipse points in the Chamfer fit
 FIT_ROUNDS = 6  # nearest-assignment / reweighting rounds
 FIT_MIN_DIST_M = 1e-4  # IRLS weights 1 / max(d, this)
+SAMPLE_TRIES = 5  # fresh draws when one cannot be regularised
 
 
 def fit_ellipse_pca(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form start: centre `(3,)` and axes `A (3, 2)` of the ellipse c + A [cos t, sin t] through
     `x (n, 3)` taken in order, t_i = 2 pi i / n (a linear least-squares fit)."""
     n = len(x)
+    if n < 3 or not np.all(np.isfinite(x)):
+        raise NumericalFailure(f"ellipse fit needs at least 3 finite rim points, got {n} (finite: {bool(np.all(np.isfinite(x)))})")
     t = 2 * np.pi * np.arange(n) / n
     B = np.column_stack([np.ones(n), np.cos(t), np.sin(t)])  # (n, 3)
-    W = np.linalg.lstsq(B, x, rcond=None)[0].T  # (3, 3): [c, a_1, a_2]
+    try:
+        W = np.linalg.lstsq(B, x, rcond=None)[0].T  # (3, 3): [c, a_1, a_2]
+    except np.linalg.LinAlgError as e:
+        raise NumericalFailure(f"ellipse fit failed: {e}") from None
     return W[:, 0], W[:, 1:]
 
 
@@ -61,13 +68,21 @@ def fit_ellipse(
         P = np.vstack([x, x[i_of_y]])
         Bp = np.vstack([B[j_of_x], B])
         w = np.concatenate([w_x, w_y])[:, None]
-        W = np.linalg.solve((Bp * w).T @ Bp + 1e-12 * np.eye(3), (Bp * w).T @ P).T
+        try:
+            W = np.linalg.solve((Bp * w).T @ Bp + 1e-12 * np.eye(3), (Bp * w).T @ P).T
+        except np.linalg.LinAlgError as e:
+            raise NumericalFailure(f"Chamfer ellipse fit failed: {e}") from None
         if centre_limit is not None and np.linalg.norm(W[:, 0] - cbar) > centre_limit:
             off = W[:, 0] - cbar
             c = cbar + off * (centre_limit / np.linalg.norm(off))  # C5 active: centre on its bound
             Ba = Bp[:, 1:]
-            A = np.linalg.solve((Ba * w).T @ Ba + 1e-12 * np.eye(2), (Ba * w).T @ (P - c)).T
+            try:
+                A = np.linalg.solve((Ba * w).T @ Ba + 1e-12 * np.eye(2), (Ba * w).T @ (P - c)).T
+            except np.linalg.LinAlgError as e:
+                raise NumericalFailure(f"Chamfer ellipse fit (C5 active) failed: {e}") from None
             W = np.column_stack([c, A])
+    if not np.all(np.isfinite(W)):
+        raise NumericalFailure("the ellipse fit is not finite")
     return W[:, 0], W[:, 1:]
 
 
@@ -94,6 +109,8 @@ def regularize(x_rand: np.ndarray, lambda_4: float, lambda_5: float) -> np.ndarr
     c, A = fit_ellipse(x_rand, lambda_5)
     y = ellipse_rim(c, A, n)
     r_x, r_y = closed_polyline_length(x_rand), closed_polyline_length(y)
+    if not r_y > 1e-9:
+        raise NumericalFailure("the regularised ellipse collapsed to a point")
     ratio = r_x / r_y
     if abs(ratio - 1) > lambda_4:
         target = r_x / (1 + np.clip(ratio - 1, -lambda_4, lambda_4))  # R_y on C4's nearer bound
@@ -152,6 +169,16 @@ class SoiSpace:
         A = np.column_stack([u * scale, v * scale / q])
         x_rand = ellipse_rim(c, A, n, rng.uniform(0, 2 * np.pi)) + rng.normal(0, 0.003, (n, 3))
         return regularize(x_rand, self.lambda_4, self.lambda_5)
+
+    def sample_regularized(self, n: int, tries: int = SAMPLE_TRIES) -> np.ndarray:
+        """`sample`, drawing again when the regularisation fails numerically on a degenerate draw."""
+        last: Exception | None = None
+        for _ in range(tries):
+            try:
+                return self.sample(n)
+            except NumericalFailure as e:
+                last = e
+        raise NumericalFailure(f"{tries} samples in a row could not be regularised: {last}")
 
     def steer(self, frm: np.ndarray, to: np.ndarray, step: float | None = None) -> np.ndarray:
         """From `frm` towards `to` (aligned first) by at most `step` of any point's motion, projected."""

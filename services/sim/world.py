@@ -18,7 +18,7 @@ from dataclasses import dataclass  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bagit.common.errors import BadControlInput, BadScenario, SafetyViolation  # noqa: E402
+from bagit.common.errors import BadControlInput, BadScenario, SimulationFailed  # noqa: E402
 from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed  # noqa: E402
 from bagit.common.messages import RgbdFrame  # noqa: E402
 from bagit.common.rig import ARMS, RigConfig  # noqa: E402
@@ -34,6 +34,9 @@ RIM_BELOW_OBJECT_M = 0.12  # default start: the rim this far below the object's 
 RIM_BESIDE_OBJECT_M = 0.15  # ... and this far beside it (towards +x, the camera's side)
 MAX_MOUNT_SPEED_MPS = 1.5  # an arm's flange cannot move faster than this ...
 MAX_MOUNT_SPEED_RPS = 3.0  # ... nor turn faster
+# MuJoCo's warnings that the integration went unstable (each is followed by an automatic reset)
+FAR_M = 20.0  # a bag vertex this far from the world origin has been flung off by an unstable step
+INSTABILITY_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
 
 
 def _quat_of(R: np.ndarray) -> np.ndarray:
@@ -113,6 +116,7 @@ class SimWorld:
         self._camera_enabled = camera
         self._renderer: RgbdRenderer | None = None
         self.noise = DepthNoise()
+        self.failure: str | None = None  # why the physics went unstable (then step() refuses to go on)
         mujoco.mj_forward(self.model, self.data)
 
     def _check_start(self, scenario: Scenario) -> None:
@@ -138,16 +142,41 @@ class SimWorld:
         """Advance `dt` seconds of simulated time, in whole physics steps of TIMESTEP (at least one for dt > 0)."""
         if not np.isfinite(dt) or dt < 0 or dt > 3600:
             raise BadControlInput(f"step needs a finite dt in [0, 3600] s, got {dt}")
+        if self.failure is not None:
+            raise SimulationFailed(f"the simulation failed earlier and cannot go on: {self.failure}")
         n = int(round(dt / TIMESTEP))
         if n == 0 and dt > 0:
             n = 1
-        bad = int(self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
+        before = self._warning_counts()
         for k in range(n):
             self._advance_mounts(n - k)
-            mujoco.mj_step(self.model, self.data)
-            self._monitor.update(self.data.flexvert_xpos[self._vert_adr : self._vert_adr + self._nvert])
-        if int(self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number) != bad:
-            raise SafetyViolation(f"the simulated fabric diverged at t = {self.time:.3f} s (torn by the mounts?)")
+            try:
+                mujoco.mj_step(self.model, self.data)
+            except mujoco.FatalError as e:  # e.g. the contact solver's arena overflowing on a bunched-up bag
+                self.failure = f"the simulation stopped at t = {self.time:.3f} s: MuJoCo: {str(e).splitlines()[0]}"
+                raise SimulationFailed(self.failure) from None
+            verts = self.data.flexvert_xpos[self._vert_adr : self._vert_adr + self._nvert]
+            # MuJoCo answers bad accelerations, positions or velocities by resetting the world and
+            # carrying on; a reset or non-finite world must end the run, not feed it a teleported bag.
+            now = self._warning_counts()
+            if now != before or not (np.all(np.isfinite(verts)) and np.all(np.isfinite(self.data.qvel))) or np.abs(verts).max() > FAR_M:
+                self.failure = self._describe_failure(before, now)
+                raise SimulationFailed(self.failure)
+            self._monitor.update(verts)
+
+    def _warning_counts(self) -> tuple[int, ...]:
+        return tuple(int(self.data.warning[w].number) for w in INSTABILITY_WARNINGS)
+
+    def _describe_failure(self, before: tuple[int, ...], now: tuple[int, ...]) -> str:
+        fired = [w.name.removeprefix("mjWARN_") for w, a, b in zip(INSTABILITY_WARNINGS, before, now) if b != a]
+        verts = self.bag_vertices()
+        if fired:
+            what = f"MuJoCo warned of {', '.join(fired)}"
+        elif np.all(np.isfinite(verts)) and np.abs(verts).max() > FAR_M:
+            what = f"a bag vertex flew {np.abs(verts).max():.0f} m away"
+        else:
+            what = "the state became non-finite"
+        return f"the simulated fabric went unstable at t = {self.time:.3f} s ({what}; torn by the mounts?)"
 
     def _advance_mounts(self, remaining: int) -> None:
         """Move each mount 1/remaining of the way to its target, within the speed limits."""
@@ -181,6 +210,7 @@ class SimWorld:
         self._target_pos = {k: v.copy() for k, v in state.target_pos.items()}
         self._target_quat = {k: v.copy() for k, v in state.target_quat.items()}
         self._monitor.max_depth, self._monitor.passed = state.max_depth, state.passed
+        self.failure = None  # a snapshot is a world that was still stable
 
     def mount_home_poses(self) -> dict[str, np.ndarray]:
         """Where the mounts start: 'left'/'right' -> (4, 4) world <- mount (tool axis z into the bag)."""

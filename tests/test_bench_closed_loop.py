@@ -1,0 +1,24 @@
+"""The closed-loop sweep's machinery: a run per worker process, failures as records, JSONL resume."""
+
+from __future__ import annotations
+
+import json
+
+from bagit.bench import closed_loop
+from bagit.bench.paper import load_closed_loop, manipulation_summary
+
+
+def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):
+    out = tmp_path / "closed-loop.jsonl"
+    key = ("no-such-scenario", "mpc", "cbirrt", 0)
+    recs = closed_loop.sweep([key], out, timeout_s=300)
+    assert len(recs) == 1 and recs[0]["success"] is False
+    assert recs[0]["stage_reached"] == "error" and "no-such-scenario" in recs[0]["reason"]
+    lines = out.read_text().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0])["scenario"] == "no-such-scenario"
+    again = closed_loop.sweep([key], out)  # already there: not run again
+    assert again == recs and len(out.read_text().splitlines()) == 1
+    # bench paper reads the same file: 0/1 with the reason
+    runs, rows = load_closed_loop([out])
+    cell = manipulation_summary(runs, rows)["no-such-scenario"]["mpc"]
+    assert (cell["success"], cell["of"]) == (0, 1) and "error: " in cell["failures"][0]
