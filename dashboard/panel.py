@@ -434,7 +434,7 @@ class Panel:
             estop = dict(self._estop)
             arms = dict(self._arms)
         lines = []
-        if run is None:
+        if run is None or (run[0].run_id is None and run[0].stage == "idle"):  # the coordinator idle, no run (yet, or after Reset)
             lines.append("**Stage:** idle · no run yet")
         else:
             msg, received = run

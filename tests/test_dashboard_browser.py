@@ -58,21 +58,10 @@ def browser(dashboard_url):
         b.close()
 
 
-def _settle(b: BrowserPage, seconds: float = 1.5) -> None:
-    b.page.wait_for_timeout(seconds * 1000)
-
-
-def _toggle_layer(b: BrowserPage, label: str) -> None:
-    box = b.page.get_by_label(label, exact=True)
-    if not box.is_visible():
-        b.page.get_by_text("View", exact=True).click()
-    box.click()
-
-
 def test_page_loads_and_shows_the_cloud_and_the_soi(browser):
     b = browser
     b.wait_text("E-STOP")
-    _settle(b, 2.5)
+    b.settle(2.5)
     on = b.canvas_pixels()
     green_on = count_color(on, CLOUD_RGB, tol=45)
     soi_on = count_color(on, style.SOI, tol=30)
@@ -80,15 +69,15 @@ def test_page_loads_and_shows_the_cloud_and_the_soi(browser):
     assert soi_on > 100, f"SOI not visible: {soi_on} SOI-red pixels"
     b.screenshot(ARTIFACTS / "dashboard_scene.png")
     # the same pixels go when their layer is switched off in the View panel, and come back
-    _toggle_layer(b, "point cloud")
-    _toggle_layer(b, "SOI (live rim)")
-    _settle(b)
+    b.toggle_layer("point cloud")
+    b.toggle_layer("SOI (live rim)")
+    b.settle()
     off = b.canvas_pixels()
     assert count_color(off, CLOUD_RGB, tol=45) < green_on / 10
     assert count_color(off, style.SOI, tol=30) < soi_on / 2
-    _toggle_layer(b, "point cloud")
-    _toggle_layer(b, "SOI (live rim)")
-    _settle(b)
+    b.toggle_layer("point cloud")
+    b.toggle_layer("SOI (live rim)")
+    b.settle()
     assert count_color(b.canvas_pixels(), CLOUD_RGB, tol=45) > green_on / 2
     b.page.get_by_role("button", name="Reset camera view").click()
     assert b.errors == [], b.errors
@@ -122,14 +111,16 @@ def _coordinator(dash: Dashboard, link: FakeRunLink, scenario: str, run_id: str,
 def test_start_runs_a_paper_scenario_to_done(browser, dash, link):
     b = browser
     runs = link.runs
+    assert "exp01-coffee-box" in b.options("Scenario")
+    b.select("Scenario", "exp01-coffee-box")
     t = _coordinator(dash, link, "exp01-coffee-box", f"run-{runs + 1:03d}",
                      [("perceiving", 0.0), ("planning", 0.0), ("pre-bagging", 0.3), ("bagging", 0.8), ("done", 1.0)])
     b.click_button("Start")
     assert wait_until(lambda: len(link.named("start")) == 1, 10.0)
     assert link.named("start")[0][1] == "exp01-coffee-box"
-    b.page.get_by_text("Stage: done").first.wait_for(timeout=20_000)
+    assert b.wait_stage("done", 20.0) == "done", b.panel_text()
     t.join(5.0)
-    _settle(b, 1.0)
+    b.settle(1.0)
     b.screenshot(ARTIFACTS / "dashboard_done.png")
     b.page.get_by_text("History", exact=True).click()
     b.page.get_by_text(f"run-{runs + 1:03d}").first.wait_for(timeout=10_000)

@@ -234,3 +234,12 @@ def test_health_shows_services_rates_and_warns_when_one_goes_away(dash):
     dash.on_service("controller", True)
     dash.flush()
     assert dash.panel.warning_md.content == ""
+
+
+def test_an_idle_coordinator_without_a_run_shows_no_run_line(dash):
+    p = dash.panel
+    p.note_run_state(RunState(stage="idle"))
+    text = p.status_markdown()
+    assert "Stage:** idle · no run yet" in text and "**Run**" not in text
+    p.note_run_state(RunState(run_id="run-9", scenario="exp02-canned-pineapple", stage="perceiving"))
+    assert "`run-9`" in p.status_markdown()

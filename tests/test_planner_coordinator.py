@@ -231,3 +231,22 @@ def test_tick_state_advances_elapsed_only_while_active():
     assert c.tick_state(T0 + 4).elapsed_s == pytest.approx(4)
     c.stop(T0 + 5)
     assert c.tick_state(T0 + 9).elapsed_s == pytest.approx(5)
+
+
+def test_an_estop_aborts_the_run_and_refuses_starts_until_released():
+    c = started()
+    servoing(c)
+    c.on_estop(True, "dashboard", "E-STOP pressed", T0 + 3.0)
+    s = c.state
+    assert s.stage == "aborted" and "emergency stop" in s.reason and "dashboard" in s.reason
+    assert s.result["success"] is False and s.result["stage_reached"] == "pre-bagging"
+    rep = c.start(RunControl(action="start", scenario="exp02"), T0 + 4.0)
+    assert not rep.accepted and "e-stop is engaged" in rep.reason and "release it first" in rep.reason
+    assert c.state.stage == "aborted"
+    c.on_estop(False, "dashboard", None, T0 + 5.0)
+    assert c.start(RunControl(action="start", scenario="exp02"), T0 + 6.0).accepted
+    # an e-stop while idle only latches
+    c.reset(T0 + 7.0)
+    c.on_estop(True, "pendant", None, T0 + 8.0)
+    assert c.state.stage == "idle"
+    assert not c.start(RunControl(action="start", scenario="exp02"), T0 + 9.0).accepted

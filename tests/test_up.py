@@ -13,54 +13,14 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bus_support import wait_until
-
+from up_support import ALL, ENV, alive as _alive, start_up as _up, up_log as _log, wait_status as _status
 
 pytestmark = pytest.mark.slow
-
-ENV = dict(os.environ, MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa", PYTHONUNBUFFERED="1")
-ALL = ("sim", "perception", "planner", "controller", "arm-driver")
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie is dead too
-        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
-def _up(tmp_path: Path, *args: str) -> tuple[subprocess.Popen, Path]:
-    status = tmp_path / "status.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bagit.cli", "up", "--status-file", str(status), "--workdir", str(tmp_path / "work"), *args],
-        stdout=subprocess.PIPE, stderr=open(tmp_path / "up.log", "w"), env=ENV, text=True,
-    )
-    return proc, status
-
-
-def _status(path: Path, want: tuple[str, ...], timeout: float = 90) -> dict:
-    def ready() -> bool:
-        try:
-            d = json.loads(path.read_text())
-        except (OSError, ValueError):
-            return False
-        return all(d["children"].get(s) for s in want)
-
-    assert wait_until(ready, timeout, 0.1), f"children {want} not started: {path}"
-    return json.loads(path.read_text())
-
-
-def _log(tmp_path: Path) -> str:
-    return (tmp_path / "up.log").read_text(errors="replace")
 
 
 def test_sigterm_stops_every_child_and_sigkill_leaves_no_orphans(tmp_path):

@@ -3,7 +3,7 @@
     idle -> perceiving -> goal -> planning -> pre-bagging -> bagging -> done | failed | aborted
 
 Events go in (`start`/`stop`/`reset` requests, a new SOI, a planning outcome, controller status,
-a service appearing or disappearing, a clock `tick`), and the coordinator answers with its
+a service appearing or disappearing, an e-stop engaged or released, a clock `tick`), and the coordinator answers with its
 `state` (a RunState) and a list of `Effect`s for the node to carry out (plan in the background,
 publish the goal and the path). Every method takes `now` (wall-clock seconds, the clock the
 messages are stamped with), so tests drive it with a fake clock and the node with time.time().
@@ -152,6 +152,7 @@ class Coordinator:
         self.run: _Run | None = None
         self.state = RunState(stage="idle", stamp=time.time() if now is None else now)
         self.alive: set[str] = set()
+        self.estop: str | None = None  # why the e-stop is engaged (latched until released), else None
         self.changed = True  # the node publishes the state when set, then clears it
 
     # -- helpers -------------------------------------------------------------------------------
@@ -212,6 +213,8 @@ class Coordinator:
         return self.reset(now), []
 
     def start(self, req: RunControl, now: float) -> RunControlReply:
+        if self.estop is not None:
+            return RunControlReply(accepted=False, reason=f"the e-stop is engaged ({self.estop}); release it first")
         if self.active:
             r = self.run
             return RunControlReply(accepted=False, run_id=r.run_id if r else None,
@@ -269,6 +272,15 @@ class Coordinator:
         self.state = RunState(stage="idle", stamp=now)
         self.changed = True
         return RunControlReply(accepted=True, run_id=run_id)
+
+    def on_estop(self, engage: bool, source: str, reason: str | None, now: float) -> None:
+        """An e-stop aborts the running run (the arm driver stops the arms) and latches until released."""
+        if not engage:
+            self.estop = None
+            return
+        self.estop = f"by {source}" + (f": {reason}" if reason else "")
+        if self.active:
+            self._finish(now, "aborted", f"emergency stop {self.estop}")
 
     # -- data ----------------------------------------------------------------------------------
 

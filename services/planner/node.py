@@ -2,8 +2,8 @@
 
 It answers run/control, takes g0 from perception/soi, plans in a background thread (so a long
 search never holds up run/control or run/state), publishes planner/goal and planner/path, follows
-controller/status and the services' liveliness, and publishes run/state on every change and at
-`publish_hz`. All coordinator calls are serialised by one lock; publishing happens outside it.
+controller/status, the e-stop (which aborts the run and refuses starts until released) and the
+services' liveliness, and publishes run/state on every change and at `publish_hz`. All coordinator calls are serialised by one lock; publishing happens outside it.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from bagit.common.bus import (
     declare_alive,
     serve_run_control,
 )
-from bagit.common.messages import ControllerStatus, Goal, Path, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.messages import ControllerStatus, EStop, Goal, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, PlanJob, compute_plan
 
 log = logging.getLogger("bagit.planner")
@@ -69,6 +69,7 @@ class PlannerNode:
         self._subs = [
             Subscriber(session, keys.perception_soi, SoiState, self._on_soi),
             Subscriber(session, keys.controller_status, ControllerStatus, self._on_status),
+            Subscriber(session, keys.estop, EStop, self._on_estop),
         ]
         self._server = serve_run_control(session, keys, self._on_control)
         self._token = declare_alive(session, keys, SERVICE_NAME)
@@ -94,6 +95,12 @@ class PlannerNode:
     def _on_status(self, st: ControllerStatus) -> None:
         with self._lock:
             self.coord.on_status(st, self.clock())
+        self._after([])
+
+    def _on_estop(self, msg: EStop) -> None:
+        log.warning("e-stop %s by %s%s", "engaged" if msg.engage else "released", msg.source, f": {msg.reason}" if msg.reason else "")
+        with self._lock:
+            self.coord.on_estop(msg.engage, msg.source, msg.reason, self.clock())
         self._after([])
 
     def _on_alive(self, service: str, alive: bool) -> None:

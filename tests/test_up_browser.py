@@ -1,0 +1,238 @@
+"""The dashboard of `bagit up` in a real browser: Debian's headless Chromium driven by Playwright.
+
+`bagit up` runs WITHOUT a scenario (nothing moves until the browser presses Start) with every
+service in its own process on the simulator: sim, perception, planner (run coordinator),
+controller, arm driver and dashboard. The test reads the dashboard URL and the hub endpoint from
+the status file; an in-process Zenoh peer connected to the hub watches run/state and the arms'
+measured state (arm/*/state), which is how the E-STOP check knows the arms really stopped.
+Screenshots of the finished run and of the e-stopped one go to artifacts/.
+
+The tests run in order on one rig (module fixtures): the page and the scene, a paper scenario
+picked and started in the panel to `done`, then a second run e-stopped while the arms move.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from bagit.dashboard import style
+from bagit.dashboard.browser import BrowserPage, changed_pixels, chromium_available, color_mask, count_color
+from bus_support import wait_until
+from dashboard_support import ARTIFACTS
+from up_support import ALL, MISSING, start_up, up_log, wait_status
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.slow,
+    pytest.mark.skipif(not chromium_available(), reason="needs playwright and /usr/bin/chromium (apt-get install chromium)"),
+    pytest.mark.skipif(bool(MISSING), reason=f"this build lacks {MISSING} (the services' commands)"),
+]
+
+SCENARIO = "exp02-canned-pineapple"  # the CI scenario: ~16 s simulated
+FINAL = ("done", "failed", "aborted")
+MOVING_M_S = 2e-3  # a tool faster than this: the arm moves
+STOPPED_M_S = 1e-3  # tool speed of an arm at rest (m/s)
+STOPPED_RAD_S = 1e-3  # every joint slower than this (rad/s)
+
+
+class Rig:
+    """`bagit up` as a subprocess, and an in-process Zenoh peer on its hub watching the rig."""
+
+    def __init__(self, tmp_path) -> None:
+        from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, open_session
+        from bagit.common.messages import ArmState, PointCloud, RunState, SoiState
+
+        self.tmp = tmp_path
+        self.proc, status = start_up(tmp_path)
+        self.session = None
+        try:
+            d = wait_status(status, (*ALL, "dashboard"), timeout=120)
+            up = lambda: "all services up" in up_log(tmp_path) or self.proc.poll() is not None  # noqa: E731
+            assert wait_until(up, 240, 0.2) and self.proc.poll() is None, up_log(tmp_path)[-4000:]
+            self.url = d["dashboard_url"]
+            self.session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
+            keys = Keys(d["rig"])
+            self.run_state = LatestCache(self.session, keys.run_state, RunState)
+            self.cloud = LatestCache(self.session, keys.perception_cloud, PointCloud)
+            self.soi = LatestCache(self.session, keys.perception_soi, SoiState)
+            self.arm_log: list[tuple[float, ArmState]] = []  # (receive time, state), every arm state
+            self.sub = Subscriber(self.session, keys.arm_state_any, ArmState, lambda m: self.arm_log.append((time.monotonic(), m)))
+        except BaseException:
+            self.close()
+            raise
+
+    def log(self) -> str:
+        """The log's tail, after what explains a slow or failed run: the simulator's real-time
+        factor and how often the controller held (and why)."""
+        text = up_log(self.tmp)
+        lines = text.splitlines()
+        rtf = [ln for ln in lines if "behind real time" in ln][-3:]
+        holds: dict[str, int] = {}
+        for ln in lines:
+            if "hold: " in ln and ln.startswith("[controller]"):
+                why = ln.split("hold: ", 1)[1].split("(")[0].strip()
+                holds[why] = holds.get(why, 0) + 1
+        return "\n".join([*rtf, f"controller holds: {holds}", "--- log tail ---", text[-3000:]])
+
+    def arms_since(self, t: float) -> list:
+        return [m for tr, m in list(self.arm_log) if tr >= t]
+
+    def close(self) -> None:
+        try:
+            if self.session is not None:
+                for x in (self.sub, self.run_state, self.cloud, self.soi):
+                    x.close()
+                self.session.close()
+        finally:
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGTERM)
+                try:
+                    self.proc.wait(60)
+                except Exception:  # noqa: BLE001 - never leave the rig running
+                    self.proc.kill()
+                    self.proc.wait(10)
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    r = Rig(tmp_path_factory.mktemp("up-browser"))
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+@pytest.fixture(scope="module")
+def browser(rig):
+    # a smaller view and 5 frames/s: software WebGL then takes ~0.1 core instead of ~0.8, left to the rig
+    b = BrowserPage(rig.url, viewport=(1000, 650), max_fps=5)
+    try:
+        b.wait_text("Stage:", 60.0)
+        yield b
+    finally:
+        b.close()
+
+
+def _finished(rig: Rig, run_id: str) -> str | None:
+    s = rig.run_state.get()
+    return s.stage if s is not None and s.run_id == run_id and s.stage in FINAL else None
+
+
+def _start_in_panel(b: BrowserPage, rig: Rig, scenario: str) -> str:
+    """Pick `scenario` in the panel, press Start; the run id the coordinator gave it."""
+    before = rig.run_state.get()
+    b.select("Scenario", scenario)
+    b.click_button("Start")
+
+    def new_run() -> bool:
+        s = rig.run_state.get()
+        return s is not None and s.run_id is not None and (before is None or s.run_id != before.run_id) and s.stage not in FINAL
+
+    assert wait_until(new_run, 30.0, 0.1), (b.panel_text(), rig.run_state.get(), rig.log())
+    s = rig.run_state.get()
+    assert s.scenario == scenario
+    return s.run_id
+
+
+def test_page_loads_and_shows_the_cloud_and_the_soi(rig, browser):
+    b = browser
+    b.wait_text("E-STOP")
+    # perception is running on the simulator's frames before any run
+    assert wait_until(lambda: rig.cloud.get() is not None and rig.soi.get() is not None, 90.0, 0.2), rig.log()
+    # The live cloud takes its colours from the camera image, and other things in the scene share
+    # the SOI's red (the frames' x axes): each layer's pixels are those that go when it is
+    # switched off, and come back when it is switched on again.
+    assert wait_until(lambda: count_color(b.canvas_pixels(), style.SOI, tol=30) > 100, 30.0, 1.0), "no SOI-red pixels"
+    b.settle(1.0)
+    on = b.canvas_pixels()
+    b.dismiss_notifications()
+    b.screenshot(ARTIFACTS / "up-scene.png")
+    b.toggle_layer("point cloud")
+    b.settle()
+    no_cloud = b.canvas_pixels()
+    b.toggle_layer("SOI (live rim)")
+    b.settle()
+    neither = b.canvas_pixels()
+    cloud_px = changed_pixels(on, no_cloud)
+    assert cloud_px > 500, f"cloud not visible: switching it off changed {cloud_px} pixels"
+    soi_px = int((color_mask(no_cloud, style.SOI, 30) & ~color_mask(neither, style.SOI, 30)).sum())
+    assert soi_px > 100, f"SOI not visible: switching it off took {soi_px} SOI-red pixels away"
+    b.toggle_layer("point cloud")
+    b.toggle_layer("SOI (live rim)")
+    b.settle()
+    back = b.canvas_pixels()
+    assert changed_pixels(back, neither) > cloud_px / 3
+    assert int((color_mask(back, style.SOI, 30) & ~color_mask(neither, style.SOI, 30)).sum()) > soi_px / 2
+    # the picker lists the bundled scenarios; the health table shows every service up, with the
+    # perception streams arriving
+    assert {"exp01-coffee-box", SCENARIO, "obstacles-a-coffee-box"} <= set(b.options("Scenario"))
+
+    def health() -> dict[str, list[str]]:
+        return {r[0]: r for r in b.table_rows() if len(r) == 4}
+
+    assert wait_until(lambda: all(health().get(s, ["", ""])[1] == "up" for s in ALL), 15.0, 0.5), health()
+    assert "perception/soi" in health()["perception"][3]
+    assert b.errors == [], b.errors
+
+
+def test_start_in_the_panel_runs_a_paper_scenario_to_done(rig, browser):
+    b = browser
+    run_id = _start_in_panel(b, rig, SCENARIO)
+    # ~30 s on a quiet 2-core machine; the simulator slows down (and the run with it) under load
+    assert wait_until(lambda: _finished(rig, run_id), 400.0, 0.5), (rig.run_state.get(), rig.log())
+    s = rig.run_state.get()
+    assert s.stage == "done", (s.stage, s.reason, rig.log())
+    # the panel reports it, from the page
+    assert b.wait_stage("done", 15.0) == "done", b.panel_text()
+    assert run_id in b.panel_text()
+    b.dismiss_notifications()
+    b.settle(1.0)
+    b.screenshot(ARTIFACTS / "up-done.png")
+    assert s.result["ticks"] > 0 and s.result["path_nodes"] > 2
+    assert b.errors == [], b.errors
+
+
+def test_estop_in_a_second_run_stops_the_arms_and_the_panel_says_so(rig, browser):
+    b = browser
+    run_id = _start_in_panel(b, rig, SCENARIO)
+
+    def moving() -> bool:
+        s = rig.run_state.get()
+        return (s is not None and s.run_id == run_id and s.stage in ("pre-bagging", "bagging")
+                and any(m.tool_speed > MOVING_M_S for m in rig.arms_since(time.monotonic() - 0.3)))
+
+    assert wait_until(lambda: moving() or _finished(rig, run_id), 150.0, 0.05), (rig.run_state.get(), rig.log())
+    assert not _finished(rig, run_id), f"the run ended before the arms moved: {rig.run_state.get()}"
+    assert b.wait_stage(("pre-bagging", "bagging"), 10.0) in ("pre-bagging", "bagging"), b.panel_text()
+    t_click = time.monotonic()
+    b.click_button("E-STOP")
+    # the measured speed reaches zero within ~0.5 s and stays there
+    b.page.wait_for_timeout(2000)
+    late = rig.arms_since(t_click + 0.5)
+    for arm in ("left", "right"):
+        states = [m for m in late if m.arm == arm]
+        assert len(states) > 5, f"too few {arm} arm states after the e-stop ({len(states)})"
+        v = max(m.tool_speed for m in states)
+        qd = max(float(np.max(np.abs(m.qd))) for m in states)
+        assert v < STOPPED_M_S and qd < STOPPED_RAD_S, f"{arm} arm still moving 0.5 s after E-STOP: {v:.4f} m/s, {qd:.4f} rad/s"
+        assert all(m.estopped for m in states[-3:]), f"{arm} arm does not report the e-stop"
+    # the run is aborted with the reason, and the panel says so
+    assert wait_until(lambda: _finished(rig, run_id) == "aborted", 10.0, 0.1), rig.run_state.get()
+    assert "emergency stop" in rig.run_state.get().reason
+    b.wait_text("E-STOP ENGAGED", 10.0)
+    b.wait_text("arms stopped", 10.0)
+    assert b.wait_stage("aborted", 10.0) == "aborted", b.panel_text()
+    assert "emergency stop" in b.panel_text()
+    b.dismiss_notifications()
+    b.settle(0.5)
+    b.screenshot(ARTIFACTS / "up-estop.png")
+    # release and reset, so the rig is idle again for teardown (and the next run could start)
+    b.click_button("Release E-stop")
+    assert wait_until(lambda: all(not m.estopped for m in rig.arms_since(time.monotonic() - 0.3)) and rig.arms_since(time.monotonic() - 0.3), 15.0, 0.1)
+    b.click_button("Reset")
+    assert b.wait_stage("idle", 15.0) == "idle", b.panel_text()
+    assert b.errors == [], b.errors

@@ -1,0 +1,58 @@
+"""Helpers of the tests that run `bagit up` as a subprocess: start it with a status file, read the
+status (child PIDs, hub endpoint, dashboard URL), its log, and whether a PID is still alive."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from bus_support import wait_until
+
+from bagit.cli import build_parser
+
+ENV = dict(os.environ, MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa", PYTHONUNBUFFERED="1")
+_, MODULES = build_parser()
+ALL = ("sim", "perception", "planner", "controller", "arm-driver")
+MISSING = [s for s in ALL if s not in MODULES]  # service commands this build lacks
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie is dead too
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def start_up(tmp_path: Path, *args: str) -> tuple[subprocess.Popen, Path]:
+    """`bagit up ARGS` with a status file in tmp_path; its stderr (the services' log) in up.log."""
+    status = tmp_path / "status.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bagit.cli", "up", "--status-file", str(status), "--workdir", str(tmp_path / "work"), *args],
+        stdout=subprocess.PIPE, stderr=open(tmp_path / "up.log", "w"), env=ENV, text=True,
+    )
+    return proc, status
+
+
+def wait_status(path: Path, want: tuple[str, ...], timeout: float = 90) -> dict:
+    """The status file once every child in `want` has a PID."""
+
+    def ready() -> bool:
+        try:
+            d = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return False
+        return all(d["children"].get(s) for s in want)
+
+    assert wait_until(ready, timeout, 0.1), f"children {want} not started: {path}"
+    return json.loads(path.read_text())
+
+
+def up_log(tmp_path: Path) -> str:
+    return (tmp_path / "up.log").read_text(errors="replace")
