@@ -166,7 +166,7 @@ class Up:
         elif name == "dashboard":
             port = o.dashboard_port or free_port()
             self.dashboard_url = f"http://127.0.0.1:{port}"
-            args = ["dashboard", "--port", str(port), "--rig-config", str(rpath)]
+            args = ["dashboard", "--port", str(port), "--rig-config", str(rpath), "--scenario", o.scenario or o.world]
         elif name == "recorder":
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name in ("arm-driver", "perception"):

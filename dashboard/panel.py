@@ -68,6 +68,7 @@ class Panel:
         scenarios: list[FilePath],
         show_scenario: Callable[[Scenario], None],
         clock: Callable[[], float] = time.monotonic,
+        initial: str | None = None,
     ) -> None:
         self.server = server
         self.link = link
@@ -94,7 +95,9 @@ class Panel:
         self._shown: dict[str, Any] = {}
         self.estop_calls: list[float] = []  # monotonic times the E-STOP handler sent the stop
         self._build()
-        first = next(iter(self._bundled), None)
+        # The picker starts on the rig's scenario (an exact name or a unique prefix, e.g. `exp02`), else the first.
+        match = [k for k in self._bundled if initial is not None and (k == initial or k.startswith(initial))]
+        first = match[0] if len(match) == 1 else next(iter(self._bundled), None)
         if first is not None:
             self.select_scenario(first)
 

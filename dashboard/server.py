@@ -52,6 +52,7 @@ class DashboardConfig(BaseModel):
     host: str = Field("127.0.0.1", min_length=1, description="bind address; loopback unless widened explicitly")
     port: int = Field(8080, ge=0, le=65535, description="0 = any free port (tests)")
     max_cloud_points: int = Field(20000, ge=100, le=1_000_000, description="points of a cloud drawn at most")
+    scenario: str | None = Field(None, description="bundled scenario the picker starts on (the world the rig shows); default the first")
     cloud_hz: float = Field(10.0, gt=0, le=120)
     soi_hz: float = Field(30.0, gt=0, le=120)
     arm_hz: float = Field(30.0, gt=0, le=120)
@@ -110,6 +111,7 @@ class Dashboard:
             self.panel = Panel(
                 self.server, link, self.scene, history=self.history, health=self.health, errors=self.errors,
                 commands=self.commands, solve=self.solve, scenarios=scenarios, show_scenario=self.show_scenario, clock=clock,
+                initial=c.scenario,
             )
         except BaseException:
             with contextlib.redirect_stdout(sys.stderr):

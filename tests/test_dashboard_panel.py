@@ -243,3 +243,11 @@ def test_an_idle_coordinator_without_a_run_shows_no_run_line(dash):
     assert "Stage:** idle · no run yet" in text and "**Run**" not in text
     p.note_run_state(RunState(run_id="run-9", scenario="exp02-canned-pineapple", stage="perceiving"))
     assert "`run-9`" in p.status_markdown()
+
+
+def test_the_picker_starts_on_the_rigs_scenario(link):
+    """`bagit up exp02` shows exp02's object before any run, not the first bundled scenario's."""
+    with Dashboard(link, DashboardConfig(port=0, scenario="exp02"), start=False) as d:
+        assert str(d.panel.picker.value).startswith("exp02-")
+    with Dashboard(link, DashboardConfig(port=0, scenario="exp"), start=False) as d:  # ambiguous: the first
+        assert str(d.panel.picker.value).startswith("exp01-")

@@ -21,6 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="HTTP/websocket port (default 8080; 0 = any free port)")
     p.add_argument("--rig-config", metavar="YAML", help="rig config (arm bases, camera) used to draw the arms; default: the paper's set-up")
+    p.add_argument("--scenario", metavar="NAME", help="bundled scenario the picker starts on (name or unique prefix); default the first")
     p.add_argument("--max-cloud-points", type=int, default=20000, help="points of a cloud drawn at most (default 20000)")
     p.add_argument("--query-timeout", type=float, default=5.0, help="seconds to wait for run/control answers (default 5)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if not 0 < args.query_timeout <= 120:
         raise BusError(f"--query-timeout must be in (0, 120] s, got {args.query_timeout}")
     try:
-        cfg = DashboardConfig(host=args.host, port=args.port, max_cloud_points=args.max_cloud_points)
+        cfg = DashboardConfig(host=args.host, port=args.port, max_cloud_points=args.max_cloud_points, scenario=args.scenario)
     except ValidationError as e:
         first = e.errors()[0]
         raise BadScenario(f"--{str(first['loc'][0]).replace('_', '-')}: {first['msg']}") from None
