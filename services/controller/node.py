@@ -238,6 +238,14 @@ class ControllerNode:
             out[a] = pose_to_matrix(p[:3], p[3:])
         return out, None
 
+    def _arm_fault(self) -> str | None:
+        """An arm reporting an error other than a lost link (which the driver reconnects by itself)."""
+        for a in ("left", "right"):
+            item = self.arms.get_with_time(self.keys.arm_state(a))
+            if item is not None and item[0].error and not (item[0].error_reason or "").startswith("link lost"):
+                return f"the {a} arm reports an error: {item[0].error_reason or 'unknown'}"
+        return None
+
     def soi_age(self, soi: SoiState, received: float) -> float:
         """Seconds since the SOI's camera frame was taken (by arrival when stamped on another clock)."""
         by_arrival = time.monotonic() - received
@@ -261,6 +269,12 @@ class ControllerNode:
             return
         if arm_problem is not None:
             self._hold(arm_problem, run, step_none=True)
+            return
+        fault = self._arm_fault()
+        if fault is not None:
+            # a latched fault (the driver's or a controller's) will not clear by itself: the run has failed
+            self._end(run, fault)
+            self._publish_status(run.run_id, controller=run.name, mode="hold", stage="failed", reason=fault)
             return
         if soi.seq == run.last_soi_seq and soi.source_stamp == run.last_soi_stamp:
             self.counters["skipped"] += 1  # fresh but not new: nothing to learn from, nothing to send

@@ -31,10 +31,10 @@ TAUT_MARGIN_M = 0.01
 SEP_RECOVER_M = 0.001  # outside the C6 band the grippers head back by at least this per tick
 BROYDEN_SCALED = True  # Broyden's update in units of each input's C7 limit (see BroydenJacobian)
 MIN_SCALED_STEP = 0.5  # ... and windows that moved less than half a full-speed tick are not learnt from
-GOAL_STALL_TICKS = 45
+GOAL_STALL_TICKS = 45  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
 # What a numerical routine raises on bad data (LinAlgError: e.g. 'SVD did not converge'); a tick that
 # meets one holds the arms with the reason.
-NUMERIC_ERRORS = (NumericalFailure, np.linalg.LinAlgError, FloatingPointError)  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
+NUMERIC_ERRORS = (NumericalFailure, np.linalg.LinAlgError, FloatingPointError)
 
 
 @dataclass
