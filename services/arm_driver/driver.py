@@ -572,7 +572,9 @@ class ArmDriver:
             if q is None:
                 why = "out of the arm's reach"
             elif np.max(np.abs(q - seed)) > cr5.JOINT_SPEED_LIMIT * self.period * REACH_JOINT_SPEED_FRACTION:
-                why = "a joint would have to move faster than it can"  # near a singularity
+                j = int(np.argmax(np.abs(q - seed)))  # near a singularity
+                why = (f"a joint would have to move faster than it can (J{j + 1} {np.degrees(seed[j]):.1f} -> "
+                       f"{np.degrees(q[j]):.1f} deg in {self.period * 1e3:.0f} ms; joints {np.round(np.degrees(seed), 1).tolist()})")
             elif cr5.self_collision(q, np.asarray(self.rig.arms[arm].mount_offset, dtype=float)):
                 why = "puts the tool against the arm's own body"
             if why is not None:
