@@ -133,3 +133,38 @@ def test_the_freshest_detection_wins_and_stale_ones_are_ignored():
     c.on_object(detection(c, T0 + 1.5, shift=np.zeros(3)), T0 + 1.6)
     c.on_object(detection(c, T0 + 0.9), T0 + 1.7)  # older frame, arriving late
     assert c.run.detection.source_stamp == T0 + 1.5
+
+
+def test_the_planner_node_takes_the_object_from_perception_object_over_the_bus():
+    """Wiring: a detection on perception/object reaches the coordinator; a g0 waiting for it goes on."""
+    import time
+
+    from bus_support import session_pair, wait_until
+
+    from bagit.common.bus import Keys, LatestCache, Publisher, request_run_control
+    from bagit.common.messages import RunControl, RunState, SoiState
+    from bagit.services.planner.node import PlannerNode, PlannerServiceConfig
+
+    for a, b in session_pair("plobj"):
+        keys = Keys("plobj")
+        cfg = PlannerServiceConfig(coordinator=CoordinatorConfig(settle_s=0.1, marker_wait_s=30.0), publish_hz=5)
+        with PlannerNode(a, keys, cfg) as node:
+            watch = LatestCache(b, keys.run_state, RunState)
+            obj_pub = Publisher(b, keys.perception_object, ObjectDetection)
+            soi_pub = Publisher(b, keys.perception_soi, SoiState)
+            assert wait_until(lambda: obj_pub.matched and soi_pub.matched and watch.get() is not None, 5)
+            obj_pub.put(failure(time.time()))  # perception publishes detections: g0 will wait for one
+            assert wait_until(lambda: node.coord.objects_heard, 5)
+            rep = request_run_control(b, keys, RunControl(action="start", scenario="exp02"))
+            assert rep.accepted
+            sc = node.coord.run.scenario
+            time.sleep(0.15)  # past settle_s
+            soi_pub.put(SoiState(rim=sample_g0(sc), source_stamp=time.time()))
+            assert wait_until(lambda: node.coord.run.waiting_soi is not None, 5)
+            assert node.state.stage == "perceiving"
+            with node._lock:
+                det = detection(node.coord, time.time())
+            obj_pub.put(det)
+            assert wait_until(lambda: (s := watch.get()) is not None and s.stage in ("goal", "planning", "pre-bagging", "failed"), 10)
+            assert node.coord.run.extra["object"]["object_from"] == "marker"
+            request_run_control(b, keys, RunControl(action="stop"))
