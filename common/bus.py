@@ -45,6 +45,7 @@ from bagit.common.messages import (
     EStop,
     Goal,
     Message,
+    ObjectDetection,
     Path as PathMsg,
     PointCloud,
     RgbdFrame,
@@ -320,6 +321,8 @@ KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("camera/rgbd", RgbdFrame, STATE, "pub", "640x480 colour + depth, ~1.5 MB; a stale frame is useless"),
     KeySpec("perception/cloud", PointCloud, DISPLAY, "pub", "down-sampled cloud, for display only"),
     KeySpec("perception/soi", SoiState, STATE_HIGH, "pub", "rim estimate; the controller wants the newest"),
+    KeySpec("perception/object", ObjectDetection, STATE, "pub",
+            "marker id, object and its outline V in the world, ~1 Hz while a run perceives; the newest replaces the last"),
     KeySpec("planner/goal", Goal, RESULT, "pub", "g† and g* of a run: once per run, must arrive"),
     KeySpec("planner/path", PathMsg, RESULT, "pub", "SOI path of a run: once per run, must arrive"),
     KeySpec("controller/cmd", Command, COMMAND, "pub", "arm increments: none may be lost or reordered"),
@@ -347,6 +350,7 @@ class Keys:
         self.camera_rgbd = f"{p}/camera/rgbd"
         self.perception_cloud = f"{p}/perception/cloud"
         self.perception_soi = f"{p}/perception/soi"
+        self.perception_object = f"{p}/perception/object"
         self.planner_goal = f"{p}/planner/goal"
         self.planner_path = f"{p}/planner/path"
         self.controller_cmd = f"{p}/controller/cmd"

@@ -12,7 +12,7 @@ import time
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
 SCHEMA_VERSION = 1
 
@@ -298,7 +298,60 @@ class SimTruth(Message):
         return _check_points(v, "rim")
 
 
+class ObjectDetection(Message):
+    """Which object perception sees, and where, from the ArUco marker on it (as in the paper).
+
+    ok: the marker was found and its id is in the object library; then vertices `(n_v, 3)` is the
+    object's bottom outline V in the world, T_world_object `(4, 4)` world <- the object's bottom
+    frame, T_world_marker `(4, 4)` world <- marker, height its height (m). Otherwise `error` says
+    why (no marker in view, an id not in the library) and the arrays are None. source_stamp is the
+    frame's stamp; run_id the run perception was following when it looked."""
+
+    KIND: ClassVar[str] = "object"
+    seq: int = 0
+    source_stamp: float = 0.0
+    run_id: str | None = None
+    ok: bool = True
+    error: str | None = None
+    marker_id: int | None = None
+    name: str | None = None
+    vertices: ArrayF64 | None = None
+    T_world_object: ArrayF64 | None = None
+    T_world_marker: ArrayF64 | None = None
+    height: float | None = None
+    reprojection_px: float | None = None
+    depth_pixels: int = 0
+    others: list[int] = []
+    detect_ms: float = 0.0
+
+    @field_validator("vertices")
+    @classmethod
+    def _v(cls, v: np.ndarray | None) -> np.ndarray | None:
+        if v is not None:
+            _check_points(v, "vertices")
+            if len(v) < 3:
+                raise ValueError(f"vertices needs at least 3 points, got {len(v)}")
+        return v
+
+    @field_validator("T_world_object", "T_world_marker")
+    @classmethod
+    def _T(cls, v: np.ndarray | None) -> np.ndarray | None:
+        if v is not None and (v.shape != (4, 4) or not np.all(np.isfinite(v))):
+            raise ValueError(f"a transform must be a finite (4, 4), got {v.shape}")
+        return v
+
+    @model_validator(mode="after")
+    def _complete(self) -> "ObjectDetection":
+        if self.ok and (self.marker_id is None or self.vertices is None or self.T_world_object is None
+                        or self.height is None or not np.isfinite(self.height) or self.height <= 0):
+            raise ValueError("a detection with ok=True needs marker_id, vertices, T_world_object and a positive height")
+        if not self.ok and not self.error:
+            raise ValueError("a failed detection (ok=False) needs its error")
+        return self
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     m.KIND: m
-    for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ControllerStatus, ArmState, RunState, RunControl, RunControlReply, EStop, SimTruth)
+    for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ControllerStatus, ArmState, RunState, RunControl, RunControlReply, EStop, SimTruth,
+              ObjectDetection)
 }

@@ -70,6 +70,9 @@ def example_message(kind: str, rng: np.random.Generator | None = None) -> Messag
         "run_control": dict(action="start", scenario="exp01", params={"n_x": 32}, seed=3),
         "run_control_reply": dict(accepted=False, reason="a run is in progress"),
         "estop": dict(engage=True, source="dashboard", reason="operator"),
+        "object": dict(seq=4, source_stamp=12.4, run_id="r1", marker_id=1, name="coffee box", vertices=rng.normal(size=(4, 3)),
+                       T_world_object=np.eye(4), T_world_marker=np.eye(4), height=0.15, reprojection_px=0.1, depth_pixels=300,
+                       others=[7], detect_ms=18.0),
         "sim_truth": dict(run_id="r1", scenario="exp01", sim_time=3.5, realtime_factor=0.8, frames=35, rim=rim, clearance_m=0.02),
     }
     if kind not in ex:

@@ -142,7 +142,7 @@ def test_key_space():
 
 def test_qos_table_follows_the_policy():
     rows = {r.key: r for r in KEY_TABLE}
-    for key in ("camera/rgbd", "perception/cloud", "perception/soi", "arm/*/state", "run/state", "controller/status"):
+    for key in ("camera/rgbd", "perception/cloud", "perception/soi", "perception/object", "arm/*/state", "run/state", "controller/status"):
         q = rows[key].qos
         assert q.reliability == "best_effort" and q.congestion == "drop", key
     for key in ("controller/cmd", "run/control", "planner/goal", "planner/path"):

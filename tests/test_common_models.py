@@ -140,6 +140,7 @@ def _example(kind):
         "run_control": dict(action="start", scenario="exp01"),
         "run_control_reply": dict(accepted=False, reason="busy"),
         "estop": dict(source="test"),
+        "object": dict(marker_id=3, name="bin", vertices=arr[:4], T_world_object=np.eye(4), height=0.2),
         "sim_truth": dict(rim=arr, sim_time=1.0),
     }
     return MESSAGE_TYPES[kind](**ex[kind])
@@ -199,3 +200,19 @@ def test_error_hierarchy():
 
     assert issubclass(BadCloud, ValueError) and issubclass(InfeasibleGoal, ValueError)
     assert issubclass(BadCloud, BagItError) and issubclass(InfeasibleGoal, BagItError)
+
+
+def test_object_detection_failure_round_trips_and_incomplete_success_is_refused():
+    from bagit.common.messages import ObjectDetection
+
+    fail = ObjectDetection(ok=False, error="no ArUco marker in the image", others=[9], source_stamp=3.0)
+    back = wire.decode(wire.encode(fail), ObjectDetection)
+    assert back.ok is False and back.vertices is None and back.error == fail.error and back.others == [9]
+    with pytest.raises(ValueError, match="needs marker_id"):
+        ObjectDetection(marker_id=1, vertices=np.zeros((4, 3)), height=0.1)  # no T_world_object
+    with pytest.raises(ValueError, match="needs its error"):
+        ObjectDetection(ok=False)
+    with pytest.raises(ValueError):
+        ObjectDetection(marker_id=1, vertices=np.full((4, 3), np.nan), T_world_object=np.eye(4), height=0.1)
+    with pytest.raises(ValueError):
+        ObjectDetection(marker_id=1, vertices=np.zeros((4, 3)), T_world_object=np.eye(3), height=0.1)

@@ -20,6 +20,7 @@ that plane). The in-plane rotation stays the corners'.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
@@ -30,7 +31,7 @@ from scipy.ndimage import map_coordinates
 
 from bagit.common.errors import BadScenario, MarkerNotFound
 from bagit.common.geometry import invert_transform, make_transform, transform_points
-from bagit.common.messages import CameraInfo, RgbdFrame
+from bagit.common.messages import CameraInfo, ObjectDetection, RgbdFrame
 from bagit.common.scenario import MarkerSpec, Scenario
 
 MIN_DEPTH_PIXELS = 30  # fewer valid depth pixels on the marker: keep the corners-only pose
@@ -344,3 +345,20 @@ def locate_object(frame: RgbdFrame, library: ObjectLibrary, use_depth: bool = Tr
         what = f"markers {seen} are not in the library" if seen else "no ArUco marker in the image"
         raise MarkerNotFound(f"no known object in view: {what} (library ids {library.ids()}, dictionaries {library.dictionaries()})")
     return max(found, key=lambda e: cv2.contourArea(e.marker.corners.astype(np.float32)))
+
+
+def detect_object(frame: RgbdFrame, library: ObjectLibrary, run_id: str | None = None) -> ObjectDetection:
+    """`locate_object` as a perception/object message: the object found, or ok=False with the reason
+    (no marker, an id not in the library, no pose). Never raises for what the image holds."""
+    t0 = time.perf_counter()
+    common = dict(seq=frame.seq, source_stamp=frame.stamp, run_id=run_id)
+    try:
+        est = locate_object(frame, library)
+        return ObjectDetection(
+            ok=True, marker_id=est.marker_id, name=est.name, vertices=est.vertices, T_world_object=est.T_world_bottom,
+            T_world_marker=est.T_world_marker, height=est.height, reprojection_px=est.marker.reprojection_px,
+            depth_pixels=est.marker.depth_pixels, others=est.others, detect_ms=(time.perf_counter() - t0) * 1000.0, **common,
+        )
+    except (MarkerNotFound, cv2.error, np.linalg.LinAlgError, ValueError) as e:  # ValueError: also a non-finite pose
+        return ObjectDetection(ok=False, error=str(e).splitlines()[0] or type(e).__name__,
+                               detect_ms=(time.perf_counter() - t0) * 1000.0, **common)

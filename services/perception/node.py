@@ -17,6 +17,14 @@ stamp, solve_ms, the share of rim-cloud points within `inlier_m` of the SOI) and
 n_x and the bag (kind, colour) come from the config, else from the current run's scenario
 (run/state's scenario_doc), else 32 and red-edged. A bad frame is counted with its reason and
 reported on stderr (rate-limited); it never stops the node.
+
+Which object, and where (as in the paper): at most `marker_rate_hz` (and on the first frame of a
+new run taken `marker_settle_s` after its start) a frame also goes to the marker thread, which
+finds the ArUco marker, looks its id up in the object library (the bundled scenario files, or
+`object_library`, plus the run's own scenario object) and publishes an `ObjectDetection` on
+perception/object: the object's V in the world, or ok=False with the reason (no marker, an unknown
+id), counted and reported on stderr. Its own thread and its own newest-wins slot: the SOI path
+never waits for it.
 """
 
 from __future__ import annotations
@@ -33,8 +41,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.errors import BagItError
 from bagit.common.geometry import points_to_polyline_distance, transform_points
-from bagit.common.messages import ArmState, PointCloud, RgbdFrame, RunState, SoiState
+from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState
 from bagit.common.scenario import Scenario
+from bagit.services.perception.marker import LibraryObject, ObjectLibrary, detect_object
 from bagit.services.perception.rgbd import back_project, red_rim_mask, rim_cloud, solid_rim_segmenter
 from bagit.services.perception.soi import SoiParams, extract_soi
 from bagit.services.perception.sources import SourceConfig, open_source
@@ -58,6 +67,11 @@ class PerceptionServiceConfig(BaseModel):
     cloud_max_points: int = Field(20000, ge=100, le=500_000)
     hint_max_age_s: float = Field(1.0, gt=0.0, description="a left-arm state older than this is not used as start hint")
     soi: SoiParams = Field(default_factory=SoiParams)
+    object_source: Literal["marker", "off"] | None = Field(
+        None, description="marker: identify and place the object by its ArUco marker; off: never; None: marker when the library has markers")
+    object_library: list[str] | None = Field(None, description="scenario files whose objects (with markers) form the library; None: the bundled ones")
+    marker_rate_hz: float = Field(1.0, gt=0.0, le=30.0, description="marker detection at most this often")
+    marker_settle_s: float = Field(0.5, ge=0.0, le=30.0, description="a new run's first detection: on a frame this much newer than its start")
 
 
 def stderr_report(text: str) -> None:
@@ -98,9 +112,11 @@ class PerceptionNode:
         self.stopped = threading.Event()  # set when a recording ends or the camera fails
         self.stop_ok = False
         self.stop_reason: str | None = None
-        self.counters = {"frames": 0, "processed": 0, "dropped": 0, "bad": 0, "cold": 0, "published": 0, "clouds": 0}
+        self.counters = {"frames": 0, "processed": 0, "dropped": 0, "bad": 0, "cold": 0, "published": 0, "clouds": 0,
+                         "objects": 0, "object_failures": 0}
         self.last_bad: str | None = None
-        self._last_report = {"bad": -1e9}
+        self._last_report = {"bad": -1e9, "object": -1e9}
+        self.last_object_error: str | None = None
         self._prev: np.ndarray | None = None
         self._run_id: str | None = None
         self._scenario: Scenario | None = None
@@ -108,13 +124,21 @@ class PerceptionNode:
         self.solve_ms: list[float] = []
         # the source first: no camera is an error before anything is declared
         self._source = open_source(self.cfg.source, T_world_camera)
+        self._library = self._open_library()
+        self._mcond = threading.Condition()
+        self._mpending: RgbdFrame | None = None
+        self._marker_last = -1e9
+        self._marker_after: float | None = None  # a new run's start + settle: detect on the first frame from then
         self._soi_pub = Publisher(session, keys.perception_soi, SoiState)
         self._cloud_pub = Publisher(session, keys.perception_cloud, PointCloud)
+        self._object_pub = Publisher(session, keys.perception_object, ObjectDetection) if self._library is not None else None
         self._arm = LatestCache(session, keys.arm_state("left"), ArmState)
         self._subs = [Subscriber(session, keys.run_state, RunState, self._on_run_state)]
         if self._source is None:
             self._subs.append(Subscriber(session, keys.camera_rgbd, RgbdFrame, self._offer))
         self._threads = [threading.Thread(target=self._work, name="perception-worker", daemon=True)]
+        if self._library is not None:
+            self._threads.append(threading.Thread(target=self._marker_work, name="perception-marker", daemon=True))
         if self._source is not None:
             self._threads.append(threading.Thread(target=self._read, name="perception-reader", daemon=True))
         for t in self._threads:
@@ -130,6 +154,74 @@ class PerceptionNode:
                 self.counters["dropped"] += 1
             self._pending = frame
             self._cond.notify()
+        self._offer_marker(frame)
+
+    def _open_library(self) -> ObjectLibrary | None:
+        """The object library, or None when detection is off (by config, or no object has a marker)."""
+        if self.cfg.object_source == "off":
+            return None
+        lib = ObjectLibrary.from_scenarios(self.cfg.object_library)  # a bad library file is a config error
+        if len(lib) == 0:
+            if self.cfg.object_source == "marker":
+                self.report("object_source is marker but no object in the library has a marker: no detection")
+            return None
+        return lib
+
+    def _offer_marker(self, frame: RgbdFrame) -> None:
+        """Newest wins here too: at most marker_rate_hz, and on a new run's first settled frame."""
+        if self._library is None:
+            return
+        now = time.monotonic()
+        with self._mcond:
+            new_run = self._marker_after is not None and frame.stamp >= self._marker_after
+            if not new_run and now - self._marker_last < 1.0 / self.cfg.marker_rate_hz:
+                return
+            if new_run:
+                self._marker_after = None
+            self._marker_last = now
+            self._mpending = frame
+            self._mcond.notify()
+
+    def _marker_work(self) -> None:
+        while not self._stop.is_set():
+            with self._mcond:
+                while self._mpending is None and not self._stop.is_set():
+                    self._mcond.wait(0.1)
+                if self._stop.is_set():
+                    return
+                frame, self._mpending = self._mpending, None
+            try:
+                det = detect_object(frame, self._library, self._run_id)
+            except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection, never a dead thread
+                det = ObjectDetection(seq=frame.seq, source_stamp=frame.stamp, run_id=self._run_id, ok=False,
+                                      error=f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+            try:
+                self._object_pub.put(det)
+            except Exception as e:  # noqa: BLE001 - a closing session
+                self.report(f"could not publish perception/object: {e}")
+            if det.ok:
+                self.counters["objects"] += 1
+                continue
+            self.counters["object_failures"] += 1
+            self.last_object_error = f"frame {frame.seq}: {det.error}"
+            now = time.monotonic()
+            if now - self._last_report["object"] >= REPORT_EVERY_S:
+                self._last_report["object"] = now
+                self.report(f"no object ({self.counters['object_failures']} so far): {self.last_object_error}")
+
+    def _add_run_object(self, scen: Scenario) -> None:
+        """The run's own object joins the library when its marker id is new (a scenario document started from
+        the dashboard); one id for two different objects is reported and the library kept."""
+        o = scen.object
+        if self._library is None or o.marker is None or o.marker.id in self._library:
+            return
+        lib = ObjectLibrary(self._library.get(i) for i in self._library.ids())
+        try:
+            lib.add(LibraryObject(o.name or scen.name, o.marker, o.local_vertices(), float(o.effective_height()), "run/state"))
+        except BagItError as e:
+            self.report(f"the run's object is not added to the library: {e}")
+            return
+        self._library = lib  # swapped whole: the marker thread never sees a half-built library
 
     def _read(self) -> None:
         src = self._source
@@ -169,6 +261,11 @@ class PerceptionNode:
         with self._cond:
             self._run_id, self._scenario = msg.run_id, scen
             self._prev = None  # a new run: start cold
+        if scen is not None:
+            self._add_run_object(scen)
+        if msg.run_id is not None and msg.stage == "perceiving":
+            with self._mcond:
+                self._marker_after = msg.stamp - msg.elapsed_s + self.cfg.marker_settle_s
 
     # -- work --------------------------------------------------------------------------------------
 
@@ -266,6 +363,7 @@ class PerceptionNode:
     def status(self) -> dict[str, Any]:
         ms = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
         return {"source": self.cfg.source.kind, "counters": dict(self.counters), "last_bad": self.last_bad,
+                "last_object_error": self.last_object_error,
                 "solve_ms": {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95))},
                 "reason": None if self.stop_ok else self.stop_reason}
 
@@ -273,6 +371,8 @@ class PerceptionNode:
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
+        with self._mcond:
+            self._mcond.notify_all()
         for s in self._subs:
             s.close()
         for t in self._threads:
@@ -282,4 +382,6 @@ class PerceptionNode:
         self._arm.close()
         self._soi_pub.close()
         self._cloud_pub.close()
+        if self._object_pub is not None:
+            self._object_pub.close()
         return self.status()

@@ -8,6 +8,13 @@ a service appearing or disappearing, an e-stop engaged or released, a clock `tic
 publish the goal and the path). Every method takes `now` (wall-clock seconds, the clock the
 messages are stamped with), so tests drive it with a fake clock and the node with time.time().
 
+Which object (as in the paper, its ArUco marker says): the plan job's V and object height come from
+the freshest marker detection of the run (perception/object, from a frame at least `settle_s`
+after the start) when it names the run's object (the scenario object's marker id; any object
+when the scenario's object has no marker). A g0 that is ready before any detection waits up to
+`marker_wait_s` for one (when perception has published any detection at all); then, or with `object_source: scenario`, V is the scenario's, and the
+run's result says so (`object_from`, `object_reason`) with the marker's V error to the scenario's.
+
 Why pure: the rules (one run at a time, which SOI counts as g0, when a silent controller fails a
 run) are the part that must be right; the Zenoh node around it is thin and only wires them up.
 """
@@ -24,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from bagit.common.errors import BagItError, BadScenario
 from bagit.common.geometry import closed_polyline_length
-from bagit.common.messages import ControllerStatus, Goal, Path, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.messages import ControllerStatus, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.params import MethodParams
 from bagit.common.scenario import Scenario
 
@@ -53,6 +60,9 @@ class CoordinatorConfig(BaseModel):
     controllers: list[str] = Field(default_factory=lambda: list(CONTROLLERS))
     default_controller: str = "mpc"
     default_planner: str = "cbirrt"
+    object_source: Literal["marker", "scenario"] = Field(
+        "marker", description="V and height from the object's marker (perception/object) when detected, else the scenario's; or always the scenario's")
+    marker_wait_s: float = Field(3.0, ge=0.0, le=60.0, description="a g0 ready before any marker detection waits this long for one")
 
 
 @dataclass
@@ -141,6 +151,9 @@ class _Run:
     path_nodes: int = 0
     perception_gone_at: float | None = None
     last_status: ControllerStatus | None = None
+    detection: ObjectDetection | None = None  # the freshest usable marker detection of this run
+    detection_note: str | None = None  # why the last detection of this run was not usable
+    waiting_soi: SoiState | None = None  # g0 ready, waiting up to marker_wait_s for a detection
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -153,6 +166,7 @@ class Coordinator:
         self.state = RunState(stage="idle", stamp=time.time() if now is None else now)
         self.alive: set[str] = set()
         self.estop: str | None = None  # why the e-stop is engaged (latched until released), else None
+        self.objects_heard = False  # perception publishes marker detections: worth waiting for one
         self.changed = True  # the node publishes the state when set, then clears it
 
     # -- helpers -------------------------------------------------------------------------------
@@ -193,6 +207,8 @@ class Coordinator:
             )
             if reason:
                 res.setdefault("reason", reason)
+            for k, v in r.extra.get("object", {}).items():
+                res.setdefault(k, v)
         self._set(now, stage=stage, reason=reason, result=res)
 
     def tick_state(self, now: float) -> RunState:
@@ -285,7 +301,8 @@ class Coordinator:
     # -- data ----------------------------------------------------------------------------------
 
     def on_soi(self, soi: SoiState, now: float) -> list[Effect]:
-        """In `perceiving`, a fresh SOI becomes g0: stage goal, and a plan job for the node."""
+        """In `perceiving`, a fresh SOI becomes g0: stage goal, and a plan job for the node (after
+        waiting up to marker_wait_s for the object's marker, see the module doc)."""
         r = self.run
         if r is None or self.state.stage != "perceiving":
             return []
@@ -295,9 +312,75 @@ class Coordinator:
         n_x = r.scenario.bag.n_x
         if len(soi.rim) != n_x:
             return []  # perception not yet reconfigured for this run's n_x
+        if self.cfg.object_source == "marker" and self.objects_heard and r.detection is None and not self._marker_wait_over(now):
+            r.waiting_soi = soi  # the newest g0 candidate
+            return []
+        return self._begin_goal(soi, now)
+
+    def on_object(self, det: ObjectDetection, now: float) -> list[Effect]:
+        """A marker detection (perception/object): kept when it is of this run and names its object;
+        a g0 waiting for it goes on at once."""
+        self.objects_heard = True
+        r = self.run
+        if r is None or self.state.stage not in ("perceiving", "goal"):
+            return []
+        if det.source_stamp < r.t_start + self.cfg.settle_s:
+            return []  # a frame of before the start (or of the world before its reset)
+        if not det.ok:
+            r.detection_note = f"no marker detection: {det.error}"
+            return []
+        want = r.scenario.object.marker.id if r.scenario.object.marker is not None else None
+        if want is not None and det.marker_id != want:
+            r.detection_note = (f"the marker in view (id {det.marker_id}, {det.name}) is not the run's object's "
+                                f"(id {want}, {r.scenario.object.name or r.scenario_name})")
+            return []
+        if r.detection is not None and det.source_stamp < r.detection.source_stamp:
+            return []
+        r.detection = det
+        if self.state.stage == "perceiving" and r.waiting_soi is not None and self.cfg.object_source == "marker":
+            soi, r.waiting_soi = r.waiting_soi, None
+            return self._begin_goal(soi, now)
+        return []
+
+    def _marker_wait_over(self, now: float) -> bool:
+        r = self.run
+        return r is not None and now - r.t_start >= self.cfg.settle_s + self.cfg.marker_wait_s
+
+    def _begin_goal(self, soi: SoiState, now: float) -> list[Effect]:
+        """Stage goal with g0 = soi and the object from the marker or the scenario (stated in the result)."""
+        r = self.run
+        r.waiting_soi = None
+        scenario, info = self._object_for_plan(r)
+        r.extra["object"] = info
         self._set(now, stage="goal", progress=0.0)
-        job = PlanJob(r.run_id, r.scenario, np.array(soi.rim, dtype=float), r.planner, r.seed, self.cfg.plan_time_budget_s)
+        job = PlanJob(r.run_id, scenario, np.array(soi.rim, dtype=float), r.planner, r.seed, self.cfg.plan_time_budget_s)
         return [Effect("plan", job=job)]
+
+    def _object_for_plan(self, r: "_Run") -> tuple[Scenario, dict[str, Any]]:
+        """The scenario the plan job uses (its object's V and height from the marker when usable) and the
+        run-result fields saying where the object came from."""
+        det = r.detection
+        info: dict[str, Any] = {}
+        if det is not None:
+            V_sc = r.scenario.object.bottom_vertices()
+            info.update(marker_id=det.marker_id, marker_object=det.name, marker_height_m=round(float(det.height), 5))
+            if det.vertices.shape == V_sc.shape:
+                info["marker_v_error_m"] = round(float(np.linalg.norm(det.vertices - V_sc, axis=1).max()), 5)
+            else:
+                info["marker_v_error_m"] = None
+                info["marker_v_note"] = f"marker V has {len(det.vertices)} vertices, the scenario's {len(V_sc)}"
+        if det is not None and self.cfg.object_source == "marker":
+            obj = r.scenario.object.model_copy(update={"vertices": det.vertices.tolist(), "height": float(det.height)})
+            info.update(object_from="marker", object_reason=None)
+            return r.scenario.model_copy(update={"object": obj}), info
+        if self.cfg.object_source == "scenario":
+            reason = "object_source is scenario"
+        elif not self.objects_heard:
+            reason = "perception publishes no marker detections (perception/object)"
+        else:
+            reason = r.detection_note or f"no marker detection within {self.cfg.marker_wait_s:g} s"
+        info.update(object_from="scenario", object_reason=reason)
+        return r.scenario, info
 
     def on_goal(self, goal: Goal, now: float) -> list[Effect]:
         """The goal is known (compute_plan's on_goal): publish it, stage planning."""
@@ -362,31 +445,35 @@ class Coordinator:
         if not alive and service in self.cfg.required_services and self.state.stage in ("pre-bagging", "bagging"):
             self._finish(now, "failed", f"the {service} service is gone (liveliness lost during {self.state.stage})")
 
-    def tick(self, now: float) -> None:
-        """Timeouts: no fresh SOI, a silent controller, the run's time limit, perception gone too long."""
+    def tick(self, now: float) -> list[Effect]:
+        """Timeouts: no fresh SOI, a silent controller, the run's time limit, perception gone too long; a g0
+        whose wait for the marker is over goes on with the scenario's object (its plan job is returned)."""
         r = self.run
         if r is None or not self.active:
-            return
+            return []
         stage = self.state.stage
+        if stage == "perceiving" and r.waiting_soi is not None and self._marker_wait_over(now):
+            return self._begin_goal(r.waiting_soi, now)
         if stage == "perceiving" and now - r.t_start > self.cfg.perceive_timeout_s:
             who = "" if self.cfg.perception_service in self.alive else f" (the {self.cfg.perception_service} service is not up)"
             self._finish(now, "failed", f"no fresh SOI from perception within {self.cfg.perceive_timeout_s:g} s{who}")
-            return
+            return []
         if stage in ("pre-bagging", "bagging"):
             t_servo = r.t_servo or now
             missing = [s for s in self.cfg.required_services if s not in self.alive]
             if missing and now - t_servo > self.cfg.status_timeout_s:
                 self._finish(now, "failed", f"the {missing[0]} service is not up")
-                return
+                return []
             if r.t_last_status is None:
                 if now - t_servo > self.cfg.first_status_timeout_s:
                     self._finish(now, "failed", f"no controller status for this run within {self.cfg.first_status_timeout_s:g} s of the path")
-                    return
+                    return []
             elif now - r.t_last_status > self.cfg.status_timeout_s:
                 self._finish(now, "failed", f"controller status silent for {now - r.t_last_status:.1f} s (> {self.cfg.status_timeout_s:g} s)")
-                return
+                return []
             if now - t_servo > self.cfg.run_time_limit_s:
                 self._finish(now, "failed", f"time limit of {self.cfg.run_time_limit_s:g} s reached in {stage}")
-                return
+                return []
         if r.perception_gone_at is not None and now - r.perception_gone_at > self.cfg.perception_grace_s:
             self._finish(now, "failed", f"the {self.cfg.perception_service} service is gone (for {now - r.perception_gone_at:.1f} s)")
+        return []

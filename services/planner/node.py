@@ -1,6 +1,6 @@
 """The planner service on Zenoh: the run coordinator's node (the only planner module importing zenoh).
 
-It answers run/control, takes g0 from perception/soi, plans in a background thread (so a long
+It answers run/control, takes g0 from perception/soi and the object from perception/object, plans in a background thread (so a long
 search never holds up run/control or run/state), publishes planner/goal and planner/path, follows
 controller/status, the e-stop (which aborts the run and refuses starts until released) and the
 services' liveliness, and publishes run/state on every change and at `publish_hz`. All coordinator calls are serialised by one lock; publishing happens outside it.
@@ -24,7 +24,7 @@ from bagit.common.bus import (
     declare_alive,
     serve_run_control,
 )
-from bagit.common.messages import ControllerStatus, EStop, Goal, Path, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.messages import ControllerStatus, EStop, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, PlanJob, compute_plan
 
 log = logging.getLogger("bagit.planner")
@@ -68,6 +68,7 @@ class PlannerNode:
         self._watcher = LivelinessWatcher(session, keys, self._on_alive)
         self._subs = [
             Subscriber(session, keys.perception_soi, SoiState, self._on_soi),
+            Subscriber(session, keys.perception_object, ObjectDetection, self._on_object),
             Subscriber(session, keys.controller_status, ControllerStatus, self._on_status),
             Subscriber(session, keys.estop, EStop, self._on_estop),
         ]
@@ -92,6 +93,11 @@ class PlannerNode:
             effects = self.coord.on_soi(soi, self.clock())
         self._after(effects)
 
+    def _on_object(self, det: ObjectDetection) -> None:
+        with self._lock:
+            effects = self.coord.on_object(det, self.clock())
+        self._after(effects)
+
     def _on_status(self, st: ControllerStatus) -> None:
         with self._lock:
             self.coord.on_status(st, self.clock())
@@ -113,8 +119,8 @@ class PlannerNode:
         period = 1.0 / self.cfg.publish_hz
         while not self._stop.wait(min(period, 0.1)):
             with self._lock:
-                self.coord.tick(self.clock())
-            self._publish_if_changed()
+                effects = self.coord.tick(self.clock())
+            self._after(effects)
             now = time.monotonic()
             if now >= getattr(self, "_next_periodic", 0.0):
                 self._next_periodic = now + period
