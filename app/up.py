@@ -171,8 +171,7 @@ class Up:
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name in ("arm-driver", "perception"):
             args = [name, "--rig-config", str(rpath)]
-        elif name == "controller":
-            args = [name, "--rate", f"{o.fps:g}"]  # one tick per camera frame, each command spread over the frame period
+
         else:
             args = [name]
         return args + bus + o.extra_args.get(name, [])
