@@ -171,7 +171,6 @@ class Up:
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name in ("arm-driver", "perception"):
             args = [name, "--rig-config", str(rpath)]
-
         else:
             args = [name]
         return args + bus + o.extra_args.get(name, [])
