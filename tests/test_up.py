@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from bus_support import wait_until
-from up_support import ALL, ENV, alive as _alive, start_up as _up, up_log as _log, wait_status as _status
+from up_support import ENV, alive as _alive, rig_up, start_up as _up, up_log as _log, wait_status as _status
 
 pytestmark = pytest.mark.slow
 
@@ -87,20 +87,12 @@ def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
 
 
 def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_restart_runs_again(tmp_path):
-    from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, open_session, request_run_control
-    from bagit.common.messages import ArmState, Command, RunControl, RunState
+    from bagit.common.bus import LatestCache, request_run_control
+    from bagit.common.messages import ArmState, RunControl
 
-    proc, status = _up(tmp_path, "--no-dashboard")
-    session = None
-    try:
-        d = _status(status, ALL)
-        assert wait_until(lambda: "all services up" in _log(tmp_path), 150, 0.2), _log(tmp_path)
-        session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
-        keys = Keys(d["rig"])
-        state = LatestCache(session, keys.run_state, RunState)
+    with rig_up(tmp_path, "--no-dashboard") as rig:
+        d, status, session, keys, state, cmds = rig.status, rig.status_path, rig.session, rig.keys, rig.state, rig.cmds
         arms = LatestCache(session, keys.arm_state_any, ArmState)
-        cmds: list[tuple[float, Command]] = []
-        Subscriber(session, keys.controller_cmd, Command, lambda c: cmds.append((time.monotonic(), c)))
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
         assert rep.accepted, rep.reason
         run1 = rep.run_id
@@ -135,27 +127,14 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         assert rep.accepted, rep.reason
         assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("done", "failed", "aborted"), 230, 0.2)
         assert state.get().stage == "done", state.get()
-    finally:
-        if session is not None:
-            session.close()
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(60)
 
 
 def test_killing_perception_makes_the_controller_hold_on_stale_soi(tmp_path):
-    from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, open_session, request_run_control
-    from bagit.common.messages import Command, RunControl, RunState
+    from bagit.common.bus import request_run_control
+    from bagit.common.messages import RunControl
 
-    proc, status = _up(tmp_path, "--no-dashboard")
-    session = None
-    try:
-        d = _status(status, ALL)
-        assert wait_until(lambda: "all services up" in _log(tmp_path), 150, 0.2), _log(tmp_path)
-        session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
-        keys = Keys(d["rig"])
-        state = LatestCache(session, keys.run_state, RunState)
-        cmds: list[tuple[float, Command]] = []
-        Subscriber(session, keys.controller_cmd, Command, lambda c: cmds.append((time.monotonic(), c)))
+    with rig_up(tmp_path, "--no-dashboard") as rig:
+        d, session, keys, state, cmds = rig.status, rig.session, rig.keys, rig.state, rig.cmds
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
         assert rep.accepted, rep.reason
         assert wait_until(lambda: (s := state.get()) is not None and s.run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), 120, 0.1)
@@ -165,8 +144,3 @@ def test_killing_perception_makes_the_controller_hold_on_stale_soi(tmp_path):
         assert wait_until(lambda: any(t > t_kill and c.mode == "hold" for t, c in cmds), 10, 0.05), cmds[-3:]
         hold = next(c for t, c in cmds if t > t_kill and c.mode == "hold")
         assert hold.reason and ("stale" in hold.reason or "SOI" in hold.reason) and not np.any(hold.u)
-    finally:
-        if session is not None:
-            session.close()
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(60)

@@ -5,9 +5,14 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
+from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Iterator
 
 from bus_support import wait_until
 
@@ -56,3 +61,29 @@ def wait_status(path: Path, want: tuple[str, ...], timeout: float = 90) -> dict:
 
 def up_log(tmp_path: Path) -> str:
     return (tmp_path / "up.log").read_text(errors="replace")
+
+
+@contextmanager
+def rig_up(tmp_path: Path, *args: str) -> Iterator[SimpleNamespace]:
+    """`bagit up ARGS` with every service up and a test peer on its hub. Yields a namespace with
+    `status` (the status dict), `status_path`, `session`, `keys`, `state` (run/state cache) and
+    `cmds` (every controller/cmd as (monotonic time, Command)); SIGTERMs the rig afterwards."""
+    from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, open_session
+    from bagit.common.messages import Command, RunState
+
+    proc, status_path = start_up(tmp_path, *args)
+    session = None
+    try:
+        d = wait_status(status_path, ALL)
+        assert wait_until(lambda: "all services up" in up_log(tmp_path), 150, 0.2), up_log(tmp_path)
+        session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
+        keys = Keys(d["rig"])
+        cmds: list = []
+        Subscriber(session, keys.controller_cmd, Command, lambda c: cmds.append((time.monotonic(), c)))
+        yield SimpleNamespace(status=d, status_path=status_path, session=session, keys=keys,
+                              state=LatestCache(session, keys.run_state, RunState), cmds=cmds)
+    finally:
+        if session is not None:
+            session.close()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
