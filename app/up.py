@@ -94,6 +94,9 @@ class UpOptions:
     services: tuple[str, ...] = SERVICES
     record: Path | None = None
     fps: float = 10.0
+    # A run's wall-clock limit: the simulator runs at a fraction of real time when the machine is
+    # busy (x0.4 with the dashboard, a browser and every service on 2 cores), and the run with it.
+    run_time_limit_s: float = 360.0
     dashboard_port: int = 0
     workdir: Path | None = None
     status_file: Path | None = None
@@ -171,6 +174,8 @@ class Up:
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name in ("arm-driver", "perception"):
             args = [name, "--rig-config", str(rpath)]
+        elif name == "planner":
+            args = [name, "--run-time-limit", f"{o.run_time_limit_s:g}"]
         else:
             args = [name]
         return args + bus + o.extra_args.get(name, [])

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -105,3 +106,14 @@ def test_the_service_example_configs_load():
     assert a.driver.servo_command == "servoj" and a.driver.feedback_timeout_s == 0.2 and a.rig_config == "rig.yaml"
     with pytest.raises(BagItError, match="soi_max_age_s"):
         load_service_config(ControllerServiceConfig, deploy / "controller.yaml", {"soi_max_age_s": -1}, args)
+
+
+def test_planner_run_time_limit_is_validated(capsys, tmp_path):
+    """`bagit up` lengthens the coordinator's wall-clock limit for a simulator that may run slowly."""
+    assert main(["planner", "--run-time-limit", "-3", "--duration", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--run-time-limit" in err[0] and "greater than 0" in err[0]
+    from bagit.up import Up, UpOptions
+
+    up = Up(UpOptions(run_time_limit_s=400.0, workdir=tmp_path))
+    assert up._argv("planner", Path("z.json5"), Path("rig.yaml"))[:3] == ["planner", "--run-time-limit", "400"]

@@ -23,6 +23,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--config", type=Path, metavar="YAML", help="service config (coordinator timing, publish_hz, bus)")
     p.add_argument("--publish-hz", type=float, default=None, help="run/state republish rate (default 2)")
+    p.add_argument("--run-time-limit", type=float, default=None, metavar="S",
+                   help="a run still servoing after S seconds of wall time fails (default 180)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until stopped)")
     add_bus_arguments(p)
 
@@ -54,6 +56,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import threading
     import time
 
+    from pydantic import ValidationError
+
     from bagit.common.bus import Keys, bus_config_from_args, open_session, parse_bus_config
     from bagit.common.errors import BusError
     from bagit.services.planner.node import PlannerNode, PlannerServiceConfig
@@ -63,6 +67,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     cfg = load_config(args.config, PlannerServiceConfig)
     if args.publish_hz is not None:
         cfg = cfg.model_copy(update={"publish_hz": PlannerServiceConfig(publish_hz=args.publish_hz).publish_hz})
+    if args.run_time_limit is not None:
+        try:
+            coord = cfg.coordinator.model_validate({**cfg.coordinator.model_dump(), "run_time_limit_s": args.run_time_limit})
+        except ValidationError as e:
+            raise BusError(f"--run-time-limit: {e.errors()[0]['msg']}") from None
+        cfg = cfg.model_copy(update={"coordinator": coord})
     bus = bus_config_from_args(args, parse_bus_config(cfg.bus))
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     stop = threading.Event()
