@@ -73,8 +73,8 @@ def test_bad_input_is_a_one_line_error(tmp_path):
 def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
     t0 = time.monotonic()
     r = subprocess.run(
-        [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "230"],
-        capture_output=True, text=True, env=ENV, timeout=270,
+        [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "380"],
+        capture_output=True, text=True, env=ENV, timeout=420,
     )
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert r.returncode == 0 and out["success"] and out["stage"] == "done", (out, r.stderr[-3000:])
@@ -125,7 +125,7 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         assert wait_until(lambda: _log(tmp_path).count("service controller up") >= 2, 90, 0.2), _log(tmp_path)[-3000:]
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
         assert rep.accepted, rep.reason
-        assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("done", "failed", "aborted"), 230, 0.2)
+        assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("done", "failed", "aborted"), 380, 0.2)
         assert state.get().stage == "done", state.get()
 
 
