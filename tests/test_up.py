@@ -20,7 +20,7 @@ import pytest
 from bus_support import wait_until
 from up_support import ENV, alive as _alive, rig_up, start_up as _up, up_log as _log, wait_status as _status
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # whole runs: the simulator slows down under load
 
 
 def test_sigterm_stops_every_child_and_sigkill_leaves_no_orphans(tmp_path):

@@ -13,6 +13,8 @@ picked and started in the panel to `done`, then a second run e-stopped while the
 
 from __future__ import annotations
 
+import os
+
 import signal
 import time
 
@@ -23,13 +25,14 @@ from bagit.dashboard import style
 from bagit.dashboard.browser import BrowserPage, changed_pixels, chromium_available, color_mask, count_color
 from bus_support import wait_until
 from dashboard_support import ARTIFACTS
-from up_support import ALL, MISSING, start_up, up_log, wait_status
+from up_support import ALL, start_up, up_log, wait_status
 
 pytestmark = [
     pytest.mark.browser,
     pytest.mark.slow,
-    pytest.mark.skipif(not chromium_available(), reason="needs playwright and /usr/bin/chromium (apt-get install chromium)"),
-    pytest.mark.skipif(bool(MISSING), reason=f"this build lacks {MISSING} (the services' commands)"),
+    pytest.mark.timeout(900),  # whole runs: the simulator slows down under load
+    # CI installs Chromium (make sysdeps): there a missing browser is a failure, not a skip
+    pytest.mark.skipif(not chromium_available() and not os.environ.get("CI"), reason="needs playwright and /usr/bin/chromium (apt-get install chromium)"),
 ]
 
 SCENARIO = "exp02-canned-pineapple"  # the CI scenario: ~16 s simulated

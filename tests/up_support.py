@@ -16,12 +16,9 @@ from typing import Iterator
 
 from bus_support import wait_until
 
-from bagit.cli import build_parser
 
 ENV = dict(os.environ, MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa", PYTHONUNBUFFERED="1")
-_, MODULES = build_parser()
 ALL = ("sim", "perception", "planner", "controller", "arm-driver")
-MISSING = [s for s in ALL if s not in MODULES]  # service commands this build lacks
 
 
 def alive(pid: int) -> bool:
