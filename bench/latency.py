@@ -24,6 +24,7 @@ goal: 30 frames/s without drops, p99 <= 30 ms on 2 cores.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import signal
 import subprocess
@@ -37,6 +38,7 @@ from typing import Any, Callable
 import numpy as np
 
 RIG = "benchlat"
+_SEQ = itertools.count(1)  # frame seqs stay new across measurements
 
 
 def _latest_worker(fn: Callable[[Any], None]) -> Callable[[Any], None]:
@@ -151,7 +153,7 @@ def _chain(frames: list[Any], pub: Any, got: dict[float, float], rate_hz: float,
     t_next = time.monotonic()
     for i in range(n):
         f = frames[i % len(frames)]
-        f.seq = i
+        f.seq = next(_SEQ)
         f.stamp = time.time()
         sent.append(f.stamp)
         pub.put(f)
