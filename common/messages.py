@@ -178,6 +178,9 @@ class Command(Message):
     dt: float = Field(1 / 30, gt=0, le=1.0)
     mode: Literal["servo", "hold"] = "servo"
     reason: str | None = None
+    # the camera stamp of the SOI the command was computed from (0: none, e.g. a hold for a stale SOI),
+    # so a consumer can drop commands built from old frames and a benchmark can time frame -> command
+    source_stamp: float = 0.0
 
     @field_validator("u")
     @classmethod

@@ -32,6 +32,7 @@ class Plant:
         self.arm_error: str | None = None  # what the arm driver reports (e.g. a latched fault)
         self.seq = 0
         self.last_soi_t = 0.0
+        self.soi_stamps: set[float] = set()
         self.cmds: list[tuple[float, Command]] = []
         self._lock = threading.Lock()
         self.soi = Publisher(session, keys.perception_soi, SoiState)
@@ -49,6 +50,7 @@ class Plant:
         if self.soi_on:
             self.seq += 1
             now = time.time()
+            self.soi_stamps.add(now)
             self.soi.put(SoiState(seq=self.seq, source_stamp=now, rim=self.m.rim(self.g)))
             self.last_soi_t = time.monotonic()
 
@@ -139,6 +141,9 @@ def test_the_controller_service_servos_a_synthetic_rim_to_the_goal_over_zenoh(lo
     assert done.progress == 1.0 and done.stage == "bagging" and done.error_to_goal <= 0.008
     servo = [c for _, c in plant.cmds if c.mode == "servo"]
     assert len(servo) > 50 and all(c.run_id == "r1" and 1 / 60 - 1e-9 <= c.dt <= DT_MAX_S for c in servo)
+    # each command names the camera stamp of the SOI it was computed from, each SOI at most once
+    assert all(c.source_stamp in plant.soi_stamps for c in servo)
+    assert len({c.source_stamp for c in servo}) == len(servo)
     assert [c.seq for _, c in plant.cmds] == sorted(c.seq for _, c in plant.cmds)  # reliable, in order
     time.sleep(0.2)  # the done tick's command may still be on its way (the status is best-effort, it can overtake)
     n = len(plant.cmds)

@@ -292,7 +292,7 @@ class ControllerNode:
             self._hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", run)
             return
         self._seq += 1
-        cmd = out.to_command(self._command_dt(run), seq=self._seq, run_id=run.run_id)
+        cmd = out.to_command(self._command_dt(run), seq=self._seq, run_id=run.run_id, source_stamp=soi.source_stamp)
         self._cmd.put(cmd)
         self.counters["servo" if cmd.mode == "servo" else "hold"] += 1
         self.last_reason = out.reason

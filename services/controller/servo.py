@@ -52,11 +52,12 @@ class ControlOutput:
     done: bool
     progress: float = 0.0  # subgoal_index / (n_nodes - 1)
 
-    def to_command(self, dt: float, seq: int = 0, run_id: str | None = None) -> Command:
-        """The wire command: exploration and servoing are 'servo', holding and done are 'hold'."""
+    def to_command(self, dt: float, seq: int = 0, run_id: str | None = None, source_stamp: float = 0.0) -> Command:
+        """The wire command: exploration and servoing are 'servo', holding and done are 'hold'.
+        `source_stamp`: the camera stamp of the SOI this step was computed from."""
         servo = self.mode in ("explore", "servo")
         return Command(u=self.u if servo else np.zeros(12), dt=dt, seq=seq, run_id=run_id,
-                       mode="servo" if servo else "hold", reason=self.reason)
+                       mode="servo" if servo else "hold", reason=self.reason, source_stamp=source_stamp)
 
 
 def c7_limits(params: MethodParams) -> np.ndarray:
