@@ -24,6 +24,7 @@ from bagit.services.controller.synthetic import apply_increment
 from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
 from bagit.services.perception.rgbd import solid_rim_segmenter
 from bagit.services.planner import bagging_soi, collision_model, plan_path
+from bagit.services.sim.objects import object_parts, object_slice
 from bagit.services.sim.world import SimWorld
 
 SETTLE_S = 1.0  # let the hanging bag come to rest before the first frame
@@ -57,22 +58,32 @@ class RunResult:
 
 
 def judge(final_rim: np.ndarray, scenario: Scenario, lambda_d: float, up: np.ndarray) -> tuple[bool, float, str | None]:
-    """Does the final rim `(m, 3)` enclose the object's outline at least lambda_d/2 above its bottom?
-    Returns (enclosed, error_cm, reason). error_cm: the rim centre's distance to the object's axis."""
+    """Does the final rim `(m, 3)` go round the object at least lambda_d/2 above its bottom?
+    Returns (enclosed, error_cm, reason). error_cm: the rim centre's distance to the object's axis.
+
+    Seen along the object's axis, the rim must enclose the object's cross-section at the goal's lift
+    lambda_d (or at the rim's top, if it is lower). For a prism that is V itself; for a sphere or a
+    tapering object it is the narrower section the rim actually lies against: a rim resting on a
+    grapefruit above its equator has the widest part inside the bag yet lies inside V seen from above.
+    """
     v = scenario.object.bottom_vertices()
     c = v.mean(axis=0)
     rel = final_rim - c
     height = rel @ up
     axis_dist = np.linalg.norm(rel.mean(axis=0) - (rel.mean(axis=0) @ up) * up)
-    # In the bottom plane's coordinates: does the rim's projection contain V's?
+    h_ref = max(min(lambda_d, float(height.max())), 0.0)
+    section = object_slice(object_parts(scenario.object), c, up, h_ref)
+    if len(section) == 0:  # above the object: the rim must at least go round its axis
+        section = (c + h_ref * up)[None]
+    # In the bottom plane's coordinates: does the rim's projection contain the section's?
     e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
     rim2 = np.column_stack([rel @ e1, rel @ e2])
-    v2 = np.column_stack([(v - c) @ e1, (v - c) @ e2])
-    enclosed = bool(MplPath(rim2).contains_points(v2).all())
+    section2 = np.column_stack([(section - c) @ e1, (section - c) @ e2])
+    enclosed = bool(MplPath(rim2).contains_points(section2).all())
     if not enclosed:
-        return False, axis_dist * 100, "the final rim does not go round the object's bottom"
+        return False, axis_dist * 100, "the final rim does not go round the object"
     if np.median(height) < lambda_d / 2:
         return False, axis_dist * 100, f"the rim is only {np.median(height) * 100:.1f} cm above the bottom (< lambda_d/2)"
     return True, axis_dist * 100, None

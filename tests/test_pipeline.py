@@ -47,6 +47,27 @@ def test_judge_on_constructed_rims():
     assert not ok and "round" in why
 
 
+def test_judge_takes_the_section_the_rim_lies_against():
+    """A rim resting on a grapefruit above its equator is round it though it lies inside V seen from
+    above; on a box the same rim is not (a box's section is V at every height)."""
+    sphere = Scenario.from_file(find_scenario("exp03-grapefruit"))  # r = 6 cm, V its equator, lambda_d 3 cm
+    v = sphere.object.bottom_vertices()
+    c, up = v.mean(axis=0), np.array([0.0, 0.0, 1.0])
+    t = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+    circle = lambda r, h: np.stack([r * np.cos(t), r * np.sin(t), np.full(32, h)], 1) + c  # noqa: E731
+    r_at_goal = np.sqrt(0.06**2 - 0.03**2)  # the sphere's section 3 cm above the equator: 5.2 cm
+    ok, err, why = judge(circle(0.056, 0.03), sphere, 0.03, up)
+    assert ok and err < 0.01, why
+    ok, _, why = judge(circle(r_at_goal - 0.004, 0.03), sphere, 0.03, up)  # inside the section: not round it
+    assert not ok and "round" in why
+    box = Scenario.from_file(find_scenario("exp08-plastic-packing"))  # 10 x 7 cm bottom
+    cb = box.object.bottom_vertices().mean(axis=0)
+    ring = lambda r: np.stack([r * np.cos(t), r * np.sin(t), np.full(32, 0.03)], 1) + cb  # noqa: E731
+    assert judge(ring(0.07), box, 0.03, up)[0]
+    ok, _, why = judge(ring(0.055), box, 0.03, up)  # cuts the box's corners: not round it
+    assert not ok and "round" in why
+
+
 def test_run_cli_json_fields(capsys):
     code = main(["run", "exp08-plastic-packing", "--time-limit", "1", "--json"])
     out = json.loads(capsys.readouterr().out)

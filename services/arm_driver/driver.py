@@ -285,6 +285,10 @@ class ArmDriver:
     def _refusal(self) -> str | None:
         if not self.started or self._closing:
             return "not_running"
+        return self._blocker()
+
+    def _blocker(self) -> str | None:
+        """Why streaming is blocked while running (the latched states first), or None."""
         if self._estop:
             return "estopped"
         if self._fault is not None:
@@ -413,14 +417,8 @@ class ArmDriver:
         with self._lock:
             if not self.started:
                 return "off"
-            if self._estop:
-                return "estopped"
-            if self._fault is not None:
-                return "fault"
-            if self._links_down:
-                return "link_down"
-            if self._needs_reset:
-                return "restarting"
+            if (blocked := self._blocker()) is not None:
+                return blocked
             return {"position": "streaming", "stopping": "stopping"}.get(self.pipe.mode, "holding")
 
     def status(self) -> dict:

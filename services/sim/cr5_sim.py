@@ -282,28 +282,18 @@ class SimulatedCR5:
 
     def mov_j(self, joint_deg: np.ndarray | None = None, pose6: np.ndarray | None = None, v: float = 100, a: float = 100) -> tuple[int, int]:
         """Queue a joint-space move to joint angles (deg) or a flange pose; returns (error id, command id)."""
-        with self._lock:
-            if (code := self._motion_gate()) != 0:
-                return code, 0
-            if self._servo is not None:
-                self._servo = None
-            if joint_deg is not None:
-                q = np.radians(np.asarray(joint_deg, dtype=float))
-                alarm = self._check_joint_target(q)
-            else:
-                q, alarm = self._solve_pose(cr5.pose6_to_matrix(pose6), self._queue_seed())
-            if alarm is not None:
-                self._raise(alarm)
-                return int(ErrorId.FAILED), 0
-            return self._enqueue("joint", q, v, a)
+        return self._queue_move("joint", joint_deg, pose6, v, a)
 
     def mov_l(self, joint_deg: np.ndarray | None = None, pose6: np.ndarray | None = None, v: float = 100, a: float = 100) -> tuple[int, int]:
         """Queue a straight-line flange move; the path is checked as it runs (an unreachable point on it alarms)."""
+        return self._queue_move("linear", joint_deg, pose6, v, a)
+
+    def _queue_move(self, kind: str, joint_deg: np.ndarray | None, pose6: np.ndarray | None, v: float, a: float) -> tuple[int, int]:
+        """MovJ/MovL: a target in joints or as a flange pose; it ends any servo stream."""
         with self._lock:
             if (code := self._motion_gate()) != 0:
                 return code, 0
-            if self._servo is not None:
-                self._servo = None
+            self._servo = None
             if joint_deg is not None:
                 q = np.radians(np.asarray(joint_deg, dtype=float))
                 alarm = self._check_joint_target(q)
@@ -314,7 +304,7 @@ class SimulatedCR5:
             if alarm is not None:
                 self._raise(alarm)
                 return int(ErrorId.FAILED), 0
-            return self._enqueue("linear", q, v, a, T1=T1)
+            return self._enqueue(kind, q, v, a, T1=T1 if kind == "linear" else None)
 
     def servo_j(self, joint_deg: np.ndarray, t: float = 0.1, aheadtime: float = 50, gain: float = 500) -> int:
         with self._lock:

@@ -154,6 +154,18 @@ def object_parts(obj: ObjectSpec) -> list[ConvexPart]:
     return _parts(obj.shape, np.eye(4))
 
 
+def object_slice(parts: list[ConvexPart], origin: np.ndarray, up: np.ndarray, height: float) -> np.ndarray:
+    """(k, 3) points whose convex hulls (one per part) are the object's cross-section `height` above
+    `origin` along the unit `up`; (0, 3) when the plane misses every part."""
+    out = [np.zeros((0, 3))]
+    for part in parts:
+        s = (part.points - origin) @ up - height  # signed height of each hull point over the plane
+        i, j = np.nonzero((s[:, None] < 0.0) & (s[None, :] >= 0.0))  # point pairs that straddle it
+        t = s[i] / (s[i] - s[j])
+        out.append(part.points[i] + t[:, None] * (part.points[j] - part.points[i]))
+    return np.vstack(out)
+
+
 def object_pose(obj: ObjectSpec) -> np.ndarray:
     """(4, 4) world <- object: the shape's pose, or V's centroid (axes of the world) when only V is known."""
     if obj.shape is not None:
