@@ -22,3 +22,24 @@ def test_solid_bag_rim_from_its_top_band():
     d = points_to_polyline_distance(soi, w.true_rim())
     assert d.mean() < 0.012 and d.max() < 0.03
     w.close()
+
+
+def test_solid_bag_rim_when_the_grippers_tilt_it():
+    """One mount 6 cm above the other tilts the rim far beyond a global top band; its local top still
+    finds the whole rim."""
+    s = Scenario.from_file(find_scenario("exp09-tea-bucket-solid-bag"))
+    w = SimWorld(s, seed=0)
+    w.step(0.5)
+    mounts = w.mount_home_poses()
+    mounts["left"][2, 3] += 0.03
+    mounts["right"][2, 3] -= 0.03
+    for _ in range(40):  # the mounts move at their speed limit: step towards the targets
+        w.set_mount_targets(mounts)
+        w.step(0.05)
+    rim = w.true_rim()
+    assert np.ptp(rim[:, 2]) > 0.04  # tilted well past the 1.5 cm band
+    cloud = rim_cloud(w.render_rgbd(0), solid_rim_segmenter(s.bag.color))
+    soi = extract_soi(cloud, 32)
+    d = points_to_polyline_distance(soi, rim)
+    assert d.mean() < 0.012 and d.max() < 0.03
+    w.close()

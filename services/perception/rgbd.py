@@ -10,6 +10,7 @@ from typing import Protocol, Sequence
 
 import cv2
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 from bagit.common.errors import BadCloud
 from bagit.common.geometry import transform_points
@@ -108,9 +109,19 @@ def rim_cloud(
     return transform_points(T, pts_cam)
 
 
-def solid_rim_segmenter(color_rgb: tuple[float, float, float], band_m: float = 0.015, hue_tol: int = 12) -> Segmenter:
-    """A segmenter for a solid-colour bag (no red edge): the bag's pixels by hue, then only its top
-    band (within `band_m` of the highest bag point, measured along world z), where the rim is."""
+def solid_rim_segmenter(
+    color_rgb: tuple[float, float, float],
+    band_m: float = 0.015,
+    hue_tol: int = 12,
+    reach_m: float = 0.03,
+    depth_m: float = 0.10,
+) -> Segmenter:
+    """A segmenter for a solid-colour bag (no red edge): the bag's pixels by hue, then the rim, the
+    bag's local top: a bag point within `band_m` of the highest bag point within `reach_m` of it
+    horizontally (the fabric hangs down from the rim, so next to the rim nothing of the bag is higher),
+    and within `depth_m` of the bag's highest point (the bag's bottom, seen through its opening, is a
+    local top too, but far lower). A single global top band would keep only the upper arc of a rim
+    tilted by more than `band_m`, as it is whenever the grippers lift it round an object."""
     rgb = np.uint8([[[int(c * 255) for c in color_rgb]]])
     hue = int(cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)[0, 0, 0])
 
@@ -121,13 +132,24 @@ def solid_rim_segmenter(color_rgb: tuple[float, float, float], band_m: float = 0
         bag = (dh <= hue_tol) & (hsv[..., 1] >= 60) & (hsv[..., 2] >= 30) & (frame.depth > 0)
         if not bag.any():
             return bag
-        depth_m = frame.depth.astype(np.float64) * frame.camera.depth_scale
+        depth = frame.depth.astype(np.float64) * frame.camera.depth_scale
         v, u = np.nonzero(bag)
-        pts = transform_points(frame.camera.extrinsics(), back_project(depth_m, frame.camera, bag))
-        top = np.percentile(pts[:, 2], 99)
-        keep = pts[:, 2] >= top - band_m
+        pts = transform_points(frame.camera.extrinsics(), back_project(depth, frame.camera, bag))
+        keep = pts[:, 2] >= np.percentile(pts[:, 2], 99) - depth_m
+        keep &= pts[:, 2] >= local_top(pts[:, :2], pts[:, 2], reach_m) - band_m
         out = np.zeros_like(bag)
         out[v[keep], u[keep]] = True
         return out
 
     return mask
+
+
+def local_top(xy: np.ndarray, z: np.ndarray, reach_m: float) -> np.ndarray:
+    """(n,) the highest z within about `reach_m` horizontally of each point `xy (n, 2)`: the maximum
+    per grid cell of reach_m / 2, then over the cells around (a square of +-reach_m)."""
+    cell = reach_m / 2
+    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(int)
+    grid = np.full(ij.max(axis=0) + 1, -np.inf)
+    np.maximum.at(grid, (ij[:, 0], ij[:, 1]), z)
+    grid = maximum_filter(grid, size=5, mode="constant", cval=-np.inf)
+    return grid[ij[:, 0], ij[:, 1]]
