@@ -1,4 +1,4 @@
-"""A solid-colour bag (no red edge): the rim is the top band of the bag's colour."""
+"""A solid-colour bag (no red edge): the rim is the local top of the bag's colour, level or tilted."""
 
 import numpy as np
 

@@ -1,7 +1,7 @@
 """From an RGB-D frame to the rim cloud: segment the rim band, back-project it, move it to the world.
 
 Segmentation is a hook: any `Segmenter` (a callable `frame -> (H, W) bool mask`) can replace the
-red-rim colour threshold -- a solid-colour bag's top band, a learned segmenter, ...
+red-rim colour threshold -- a solid-colour bag's local top, a learned segmenter, ...
 """
 
 from __future__ import annotations
