@@ -13,7 +13,8 @@ from bus_support import session_pair, wait_until
 
 from bagit.cli import main
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Publisher, Subscriber, locators, open_session
-from bagit.common.messages import ArmState, Command, EStop
+from bagit.common.dobot import Alarm
+from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.node import ArmDriverNode
@@ -204,3 +205,34 @@ def test_cli_arm_driver_with_no_controller_is_a_one_line_error(tmp_path, capsys)
     assert main(["arm-driver", "--rig-config", str(tmp_path / "rig.yaml"), "--duration", "1"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "error" in err
+
+
+def test_a_new_run_clears_a_fault_latched_in_the_last_one_but_never_the_estop(rigbus):
+    sims, node, peer, keys = rigbus
+    states = LatestCache(peer, keys.arm_state_any, ArmState)
+    cmd = Publisher(peer, keys.controller_cmd, Command)
+    run = Publisher(peer, keys.run_state, RunState)
+    estop = Publisher(peer, keys.estop, EStop)
+    assert wait_until(lambda: len(states.items()) == 2 and cmd.matched and run.matched and estop.matched, 5.0)
+    run.put(RunState(run_id="r1", stage="planning"))  # nothing latched: nothing to clear
+    sims.robots["left"].raise_alarm(int(Alarm.FLANGE_INTERFERENCE))
+    assert wait_until(lambda: node.driver.mode == "fault", 2.0)
+    assert wait_until(lambda: states.get(keys.arm_state("right")).error, 2.0)  # the fault is on ArmState
+    run.put(RunState(run_id="r1", stage="bagging"))  # the same run going on: the fault stays
+    run.put(RunState(run_id="r2", stage="done"))  # a run that is over: the fault stays
+    time.sleep(0.5)
+    assert node.driver.mode == "fault"
+    run.put(RunState(run_id="r3", stage="perceiving"))  # a new run: ClearError, enable, restart
+    assert wait_until(lambda: node.driver.mode == "holding", 5.0), node.driver.status()
+    assert not sims.robots["left"].alarms() and any(e.startswith("fault_cleared: run r3") for e in node.events)
+    u = np.zeros(12)
+    u[2] = u[8] = 0.03 / 30
+    z0 = states.get(keys.arm_state("left")).tool_pose[2]
+    _stream(cmd, u, 0.4)
+    assert wait_until(lambda: states.get(keys.arm_state("left")).tool_pose[2] > z0 + 0.004, 2.0)
+    # an e-stop latched is not released by starting a run
+    estop.put(EStop(engage=True, source="test"))
+    assert wait_until(lambda: node.driver.mode == "estopped", 2.0)
+    run.put(RunState(run_id="r4", stage="perceiving"))
+    time.sleep(0.5)
+    assert node.driver.mode == "estopped" and all(sims.robots[a].estop_pressed for a in ("left", "right"))

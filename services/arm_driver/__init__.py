@@ -7,6 +7,7 @@ Modules, each doing one thing (none imports Zenoh; a node wraps `ArmDriver`):
   frames    mount pose in the world <-> flange pose6 in each arm's base; feedback -> ArmState
   streaming 12-DoF Ruckig over both mounts' poses; increments -> targets
   pipeline  MotionPipeline: increments in, safe jerk-limited poses out, one period at a time
+  reach     a step the joints cannot follow (near a singularity) is shortened, not refused
   client    DobotClient: dashboard requests matched to replies, 1440-byte feedback, reconnect
   driver    ArmDriver: both arms, bring-up/shutdown, servo loop, watchdog, e-stop, faults
 """

@@ -20,7 +20,11 @@ What stops the arms, and how:
   starts a new stream from the pose the arms are at.
 - a controller in error or collision, an arm disabled behind the driver's back, a ServoP refused,
   or too many requests without a good reply: a fault. Both arms brake (the arm in error is stopped
-  by its controller); the fault stays until `clear_fault()`.
+  by its controller); the fault stays until `clear_fault()` (the node clears it when a new run
+  starts).
+- a step the joints cannot follow (a wrist singularity) or a target out of reach: not a stop but a
+  slow-down (`reach`): the longest part of the step every joint can follow is sent, so the arms
+  pass a singularity at the joints' speed or stop short of an unreachable target.
 - a connection dropped, or an arm's feedback silent for `feedback_timeout_s`: both arms brake; the
   client reconnects with back-off; after it is back the pipeline restarts from the measured poses
   and waits for a new command (increments sent meanwhile are refused, never replayed).
@@ -48,13 +52,14 @@ from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, Do
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
 from bagit.services.arm_driver.pipeline import MotionPipeline
-from bagit.services.arm_driver.safety import Envelope, Violation
+from bagit.services.arm_driver.reach import Joints, Reach, joint_solver, solve_within
+from bagit.services.arm_driver.safety import Envelope, Violation, violations
 
 _RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
 _MAX_EVENTS = 200
 SETTLE_TIMEOUT_S = 1.0  # a restart waits at most this long for the arms to report idle
 SETTLED_MM_S = 1.0
-# A target whose joints would move faster than this fraction of the CR5's joint speed limit is refused
+# A step whose joints would move faster than this fraction of the CR5's joint speed limit is shortened
 # (the controller alarms at the limit, measured from its own lagging reference: keep well clear).
 REACH_JOINT_SPEED_FRACTION = 0.5
 
@@ -113,6 +118,7 @@ class ArmDriver:
         self._last_send = -np.inf
         self._failed_requests = {a: 0 for a in ARMS}
         self._q_seed: dict[str, np.ndarray] = {}
+        self._slowing = False  # the last period's step was shortened to the joints' speed
         self.counters: Counter[str] = Counter()
         self.violation_counts: Counter[str] = Counter()
         self.rejections: Counter[str] = Counter()
@@ -529,16 +535,19 @@ class ArmDriver:
                     self._reset_asked = now
                 if self._settled() or now - self._reset_asked > SETTLE_TIMEOUT_S:
                     self._restart_from_measured()
+            prev = self.pipe.last_sent
             tick = self.pipe.tick(now)  # a stop in progress carries on whatever else is wrong
             self._record(tick.violations)
             if tick.command is None:
                 return False
-            for a in ARMS:
-                if a in self._links_down or a in self._stale or self._arm_in_error(a):
-                    continue
-                text = self._servo_text(a, tick.command[a])
-                if text is not None:
-                    sends[a] = text
+            active = [a for a in ARMS if a not in self._links_down and a not in self._stale and not self._arm_in_error(a)]
+            command, joints = tick.command, None
+            if active and (self.cfg.servo_command == "servoj" or self.cfg.check_reach):
+                command, joints = self._within_reach(prev, tick.command, active)
+                if command is None:
+                    return False
+            for a in active:
+                sends[a] = self._servo_text(a, command[a], None if joints is None else joints[a])
         wait = self._last_send + self.period - time.monotonic()
         if wait > 0:  # never two ServoPs less than a period apart, whatever the schedule did
             time.sleep(wait)
@@ -553,34 +562,49 @@ class ArmDriver:
                     self._link_lost(a, str(e))
         return bool(sends)
 
-    def _servo_text(self, arm: str, T_world_mount: np.ndarray) -> str | None:
-        """The ServoP (or ServoJ) command for one arm, or None (and a fault) if the arm cannot take it.
+    def _within_reach(self, prev: Poses, cmd: Poses, active: list[str]) -> tuple[Poses | None, Joints | None]:
+        """`cmd`, or the longest part of the step from `prev` the joints of the `active` arms can follow.
 
-        With `check_reach` (always for ServoJ) the target is solved here first, nearest the joints of
-        the last one: a target out of reach, across a configuration flip (joints too fast) or with
-        the tool against the arm's body stops both arms smoothly instead of making the controller
-        alarm and stop this one dead.
+        Each target is solved nearest the joints of the last one (see `reach`): near a singularity the
+        arms slow down to the joints' speed instead of making a controller alarm; a target out of
+        reach or with the tool against the arm's body stops them short of it. Only when not even the
+        last command can be held is it a fault.
         """
+        limit = cr5.JOINT_SPEED_LIMIT * self.period * REACH_JOINT_SPEED_FRACTION
+        solve = joint_solver(
+            {a: self.frames[a] for a in active},
+            {a: self._q_seed[a] for a in active},
+            {a: np.asarray(self.rig.arms[a].mount_offset, dtype=float) for a in active},
+            limit,
+        )
+        r = solve_within(prev, cmd, solve)
+        if r.poses is None:
+            self._set_fault(f"cannot hold the last command either: {r.why}")
+            return None, None
+        if r.why is not None:
+            if r.fraction > 0 and violations(r.poses, prev, self.period, self.env):
+                r = solve_within(prev, prev, solve)  # the shortened step left the envelope (it never should): hold
+                if r.poses is None:
+                    self._set_fault("cannot hold the last command either: its joints are unreachable now")
+                    return None, None
+                r = Reach(prev, r.joints, 0.0, "the shortened step left the safety envelope")
+            self.pipe.replace_last(r.poses, prev)
+            self.counters["slowed"] += 1
+            if not self._slowing:
+                self._event("slowed", f"{r.why}: {r.fraction:.0%} of the step sent")
+        elif self._slowing:
+            self._event("slowed", f"full speed again after {self.counters['slowed']} slowed periods in all")
+        self._slowing = r.why is not None
+        for a in active:
+            self._q_seed[a] = r.joints[a]
+        return r.poses, r.joints
+
+    def _servo_text(self, arm: str, T_world_mount: np.ndarray, q: np.ndarray | None) -> str:
+        """The ServoP for one arm's mount pose, or the ServoJ for its joints `q (6,)` (rad)."""
         cfg = self.cfg
+        if cfg.servo_command == "servoj" and q is not None:
+            return DobotClient.servo_text("ServoJ", np.degrees(q), self.servo_t, cfg.aheadtime, cfg.gain)
         T_bf = self.frames[arm].flange_in_base(T_world_mount)
-        if cfg.servo_command == "servoj" or cfg.check_reach:
-            seed = self._q_seed[arm]
-            q = cr5.ik(T_bf, seed)
-            why = None
-            if q is None:
-                why = "out of the arm's reach"
-            elif np.max(np.abs(q - seed)) > cr5.JOINT_SPEED_LIMIT * self.period * REACH_JOINT_SPEED_FRACTION:
-                j = int(np.argmax(np.abs(q - seed)))  # near a singularity
-                why = (f"a joint would have to move faster than it can (J{j + 1} {np.degrees(seed[j]):.1f} -> "
-                       f"{np.degrees(q[j]):.1f} deg in {self.period * 1e3:.0f} ms; joints {np.round(np.degrees(seed), 1).tolist()})")
-            elif cr5.self_collision(q, np.asarray(self.rig.arms[arm].mount_offset, dtype=float)):
-                why = "puts the tool against the arm's own body"
-            if why is not None:
-                self._set_fault(f"{arm}: next target {why}")
-                return None
-            self._q_seed[arm] = q
-            if cfg.servo_command == "servoj":
-                return DobotClient.servo_text("ServoJ", np.degrees(q), self.servo_t, cfg.aheadtime, cfg.gain)
         return DobotClient.servo_text("ServoP", cr5.matrix_to_pose6(T_bf), self.servo_t, cfg.aheadtime, cfg.gain)
 
     def _check_replies(self, now: float) -> None:

@@ -4,8 +4,10 @@
     ...                                   # controller/cmd -> submit, estop -> latch / reset
     node.close()                          # smooth stop, hold, DisableRobot, disconnect
 
-In: `controller/cmd` (each Command to `ArmDriver.submit`: servo increments, or hold) and `estop`
-(engage latches EmergencyStop on both controllers; engage=False resets it). Out: `arm/<side>/state`
+In: `controller/cmd` (each Command to `ArmDriver.submit`: servo increments, or hold), `estop`
+(engage latches EmergencyStop on both controllers; engage=False resets it) and `run/state` (a new
+run clears a fault latched in the last one: starting a run is the operator's reset; the e-stop
+latch is never cleared this way, and a fault whose cause persists latches again). Out: `arm/<side>/state`
 from each feedback packet (or at most `state_rate_hz`), with the driver's own condition laid over
 the controller's: `estopped` while the latch holds, `error` and `error_reason` while a driver
 fault (or a lost link) stops the arms, and for `notice_s` after a watchdog stop, a clipped
@@ -27,7 +29,7 @@ import zenoh  # noqa: F401 - the node is where the service meets the bus
 
 from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.errors import BagItError
-from bagit.common.messages import ArmState, Command, EStop
+from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.driver import ArmDriver
 
@@ -70,6 +72,8 @@ class ArmDriverNode:
         driver.start()  # ProtocolError: a controller is unreachable or refuses; nothing declared yet
         self._estop_sub = Subscriber(session, keys.estop, EStop, self._on_estop)
         self._cmd_sub = Subscriber(session, keys.controller_cmd, Command, self._on_command)
+        self._run_id: str | None = None
+        self._run_sub = Subscriber(session, keys.run_state, RunState, self._on_run_state)
 
     # -- in ----------------------------------------------------------------------------------------
 
@@ -96,6 +100,22 @@ class ArmDriverNode:
             self._on_event("estop", f"reset refused, the e-stop stays latched: {e}")
         except Exception as e:  # noqa: BLE001 - a reset that fails must not take the node down
             self._on_event("estop", f"reset failed, the e-stop stays latched: {type(e).__name__}: {e}")
+
+    def _on_run_state(self, msg: RunState) -> None:
+        if msg.run_id is None or msg.run_id == self._run_id or msg.stage in ("idle", "done", "failed", "aborted"):
+            return
+        self._run_id = msg.run_id
+        if self.driver.mode != "fault":  # an e-stop latch reads 'estopped' and stays
+            return
+        # ClearError and EnableRobot wait for the controllers' replies: not on the bus's thread
+        threading.Thread(target=self._clear_fault, args=(msg.run_id,), name="arm-clear-fault", daemon=True).start()
+
+    def _clear_fault(self, run_id: str) -> None:
+        try:
+            self.driver.clear_fault()
+            self._on_event("fault_cleared", f"run {run_id} started")
+        except Exception as e:  # noqa: BLE001 - the fault stays latched and the arms hold; say why
+            self._on_event("fault", f"run {run_id} started but the fault could not be cleared: {type(e).__name__}: {e}")
 
     # -- out ---------------------------------------------------------------------------------------
 
@@ -160,7 +180,7 @@ class ArmDriverNode:
 
     def close(self) -> dict[str, Any]:
         """Stop listening, bring the arms to rest, disable them, disconnect; the final status."""
-        for s in (self._cmd_sub, self._estop_sub):
+        for s in (self._cmd_sub, self._estop_sub, self._run_sub):
             s.close()
         try:
             self.driver.close()

@@ -141,6 +141,12 @@ class MotionPipeline:
             self.last_sent = cmd
         return Tick(cmd, found, step, self.streamer.mode)
 
+    def replace_last(self, sent: Poses, previous: Poses) -> None:
+        """The driver sent `sent` instead of the last tick's command (the joints could not follow it,
+        see `reach`): carry the trajectory on from what was sent, `previous` being the command before."""
+        self.streamer.sync(sent, previous, self.period)
+        self.last_sent = {a: np.array(sent[a], dtype=float) for a in ARMS}
+
     def commanded(self) -> Poses:
         """The last poses sent (or the reset poses)."""
         if self.last_sent is None:

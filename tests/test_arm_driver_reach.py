@@ -1,0 +1,106 @@
+"""A step the joints cannot follow is shortened to what they can, on the CR5's own kinematics.
+
+Near the wrist singularity (J5 near 0, J4 and J6 parallel) a tilt of the tool about the one axis the
+wrist cannot turn about directly asks J4 and J6 for a large turn: a few millimetres at the mount,
+tens of degrees at the joints. The driver must send only the part of
+that step every joint can follow in a period, so the arm crosses slowly instead of alarming.
+"""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bagit.common import cr5
+from bagit.common.rig import ARMS, RigConfig
+from bagit.services.arm_driver.frames import ArmFrames
+from bagit.services.arm_driver.reach import interpolate, joint_solver, solve_within
+
+PERIOD = 0.03
+LIMIT = cr5.JOINT_SPEED_LIMIT * PERIOD * 0.5
+
+
+def _setup(q_left: np.ndarray, q_right: np.ndarray):
+    rig = RigConfig()
+    frames = {a: ArmFrames.from_config(rig.arms[a]) for a in ARMS}
+    offsets = {a: np.asarray(rig.arms[a].mount_offset, dtype=float) for a in ARMS}
+    seeds = {"left": q_left, "right": q_right}
+    poses = {a: frames[a].mount_in_world(cr5.fk(seeds[a])) for a in ARMS}
+    return frames, offsets, seeds, poses
+
+
+Q_NEAR_SINGULAR = np.radians([10.0, -20.0, 100.0, -80.0, 1.5, 30.0])
+Q_EASY = np.radians([-10.0, -20.0, 100.0, -80.0, 60.0, 30.0])
+
+
+def _tilted(frames, q: np.ndarray, deg: float) -> np.ndarray:
+    """The left mount's pose with the flange at `q` tilted `deg` about its own y axis."""
+    F = cr5.fk(q).copy()
+    F[:3, :3] = F[:3, :3] @ Rotation.from_rotvec(np.radians(deg) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    return frames["left"].mount_in_world(F)
+
+
+def test_a_step_past_the_wrist_singularity_is_shortened_to_the_joints_speed():
+    frames, offsets, seeds, prev = _setup(Q_NEAR_SINGULAR, Q_EASY)
+    cmd = {"left": _tilted(frames, Q_NEAR_SINGULAR, 3.0), "right": prev["right"].copy()}
+    assert np.linalg.norm(cmd["left"][:3, 3] - prev["left"][:3, 3]) < 0.005  # a small Cartesian step ...
+    solve = joint_solver(frames, seeds, offsets, LIMIT)
+    q_full, why = solve(cmd)
+    assert q_full is None and "faster than it can" in why  # ... that the joints cannot follow in one period
+    r = solve_within(prev, cmd, solve)
+    assert r.poses is not None and 0.0 < r.fraction < 1.0 and r.why == why
+    for a in ARMS:
+        assert np.max(np.abs(r.joints[a] - seeds[a])) <= LIMIT + 1e-12
+        assert np.allclose(frames[a].mount_in_world(cr5.fk(r.joints[a])), r.poses[a], atol=1e-6)
+    # the step sent lies on the way from the last command to the target, for both arms alike
+    assert np.allclose(r.poses["left"], interpolate(prev, cmd, r.fraction)["left"], atol=1e-9)
+    assert np.allclose(r.poses["right"], prev["right"], atol=1e-9)
+    # and it is the longest such part (within the bisection's resolution)
+    assert solve(interpolate(prev, cmd, min(1.0, r.fraction + 2.0 / 1024)))[0] is None
+
+
+def test_stepping_on_reaches_the_target_past_the_singularity_at_the_joints_speed():
+    frames, offsets, seeds, prev = _setup(Q_NEAR_SINGULAR, Q_EASY)
+    cmd = {"left": _tilted(frames, Q_NEAR_SINGULAR, 3.0), "right": prev["right"].copy()}
+    for periods in range(1, 300):
+        r = solve_within(prev, cmd, joint_solver(frames, seeds, offsets, LIMIT))
+        assert r.poses is not None
+        for a in ARMS:
+            assert np.max(np.abs(r.joints[a] - seeds[a])) <= LIMIT + 1e-12
+        seeds, prev = r.joints, r.poses
+        if r.fraction == 1.0:
+            break
+    assert np.allclose(prev["left"], cmd["left"], atol=1e-9)
+    assert periods > 10  # the joints, not the 3 mm Cartesian step, set the pace
+
+
+def test_a_target_out_of_reach_is_approached_and_never_passed():
+    frames, offsets, seeds, prev = _setup(Q_EASY, Q_EASY)
+    cmd = {a: prev[a].copy() for a in ARMS}
+    cmd["left"][:3, 3] += (cmd["left"][:3, 3] - frames["left"].T_world_base[:3, 3]) * 2.0  # twice as far out
+    r = solve_within(prev, cmd, joint_solver(frames, seeds, offsets, LIMIT))
+    assert r.poses is not None and r.fraction < 1.0
+    assert "out of the arm's reach" in r.why or "faster than it can" in r.why
+    for a in ARMS:
+        assert np.max(np.abs(r.joints[a] - seeds[a])) <= LIMIT + 1e-12
+
+
+def test_when_not_even_the_last_command_can_be_solved_nothing_is_sent():
+    frames, offsets, seeds, prev = _setup(Q_EASY, Q_EASY)
+    far = {a: prev[a].copy() for a in ARMS}
+    for a in ARMS:
+        far[a][:3, 3] += [5.0, 5.0, 5.0]
+    r = solve_within(far, far, joint_solver(frames, seeds, offsets, LIMIT))
+    assert r.poses is None and r.joints is None and "reach" in r.why
+
+
+@pytest.mark.parametrize("s", [0.0, 0.25, 1.0])
+def test_interpolate_ends_and_midpoints(s):
+    _, _, _, a = _setup(Q_EASY, Q_EASY)
+    _, _, _, b = _setup(Q_NEAR_SINGULAR, Q_EASY)
+    out = interpolate(a, b, s)
+    for arm in ARMS:
+        R = out[arm][:3, :3]
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.allclose(out[arm][:3, 3], a[arm][:3, 3] + s * (b[arm][:3, 3] - a[arm][:3, 3]))
+    if s in (0.0, 1.0):
+        assert np.allclose(out["left"], (a, b)[int(s)]["left"], atol=1e-9)
