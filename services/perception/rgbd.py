@@ -144,12 +144,21 @@ def solid_rim_segmenter(
     return mask
 
 
-def local_top(xy: np.ndarray, z: np.ndarray, reach_m: float) -> np.ndarray:
-    """(n,) the highest z within about `reach_m` horizontally of each point `xy (n, 2)`: the maximum
-    per grid cell of reach_m / 2, then over the cells around (a square of +-reach_m)."""
+def local_top(xy: np.ndarray, z: np.ndarray, reach_m: float, support: int = 3) -> np.ndarray:
+    """(n,) the highest z within about `reach_m` horizontally of each point `xy (n, 2)`: per grid cell
+    of reach_m / 2 the `support`-th highest z (so that a few flying pixels, the colour of the bag
+    with the depth of what is in front of it at a silhouette, cannot raise the top), then the maximum
+    over the cells around (a square of +-reach_m). A cell with fewer points gives no top."""
     cell = reach_m / 2
     ij = np.floor((xy - xy.min(axis=0)) / cell).astype(int)
-    grid = np.full(ij.max(axis=0) + 1, -np.inf)
-    np.maximum.at(grid, (ij[:, 0], ij[:, 1]), z)
+    shape = ij.max(axis=0) + 1
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    order = np.lexsort((-z, flat))  # by cell, highest first within each
+    flat_sorted = flat[order]
+    first = np.searchsorted(flat_sorted, flat_sorted, side="left")
+    rank = np.arange(len(order)) - first
+    pick = order[rank == support - 1]
+    grid = np.full(shape, -np.inf)
+    grid[ij[pick, 0], ij[pick, 1]] = z[pick]
     grid = maximum_filter(grid, size=5, mode="constant", cval=-np.inf)
     return grid[ij[:, 0], ij[:, 1]]
