@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from bagit.common.geometry import pose_to_matrix
+from bagit.common.shapes import Vec3
 
 SQUARE_PX = 120  # printed resolution of one square (board_image)
 
@@ -27,8 +28,8 @@ class BoardSpec(BaseModel):
     marker_length: float = Field(0.045, gt=0.002, lt=0.5, description="side of a marker's black square (m)")
     dictionary: str = "DICT_4X4_50"
     # default: face up on a stand in the work area, centred at (0, 0, 0.45), its top edge towards +y
-    position: tuple[float, float, float] = Field((-0.21, 0.15, 0.45), description="world position of the board origin (m)")
-    rpy: tuple[float, float, float] = Field((np.pi, 0.0, 0.0), description="world orientation of the board frame")
+    position: Vec3 = Field((-0.21, 0.15, 0.45), description="world position of the board origin (m)")
+    rpy: Vec3 = Field((np.pi, 0.0, 0.0), description="world orientation of the board frame")
 
     @field_validator("dictionary")
     @classmethod
@@ -37,13 +38,6 @@ class BoardSpec(BaseModel):
 
         if v not in ARUCO_DICTIONARIES:
             raise ValueError(f"unknown ArUco dictionary {v!r}")
-        return v
-
-    @field_validator("position", "rpy")
-    @classmethod
-    def _finite(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if not np.all(np.isfinite(v)):
-            raise ValueError("must be finite")
         return v
 
     @model_validator(mode="after")

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import closed_polyline_length, make_transform, pca, pose_to_matrix, resample_closed
 from bagit.common.params import DEFAULT_LAMBDA_D_M, MethodParams
-from bagit.common.shapes import Shape
+from bagit.common.shapes import Shape, Vec3
 
 # Height assumed for collision checks when only V is known: the object is extruded this far up.
 DEFAULT_OBJECT_HEIGHT_M = 0.10
@@ -56,21 +56,14 @@ class MarkerSpec(BaseModel):
     id: int = Field(..., ge=0, le=999)
     size: float = Field(0.05, gt=0.005, lt=0.5, description="side of the marker's black square (m)")
     dictionary: str = Field("DICT_4X4_50", description="OpenCV predefined dictionary, e.g. DICT_4X4_50")
-    position: tuple[float, float, float] | None = Field(None, description="marker centre in the bottom frame (m)")
-    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    position: Vec3 | None = Field(None, description="marker centre in the bottom frame (m)")
+    rpy: Vec3 = (0.0, 0.0, 0.0)
 
     @field_validator("dictionary")
     @classmethod
     def _dictionary(cls, v: str) -> str:
         if v not in ARUCO_DICTIONARIES:
             raise ValueError(f"unknown ArUco dictionary {v!r} (use one of DICT_4X4_50 ... DICT_7X7_1000)")
-        return v
-
-    @field_validator("position", "rpy")
-    @classmethod
-    def _finite(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
-        if v is not None and not np.all(np.isfinite(v)):
-            raise ValueError("must be finite")
         return v
 
     @model_validator(mode="after")

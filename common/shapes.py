@@ -10,12 +10,21 @@ from __future__ import annotations
 from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 from scipy.spatial import ConvexHull
 
 from bagit.common.geometry import pose_to_matrix, transform_points
 
 CIRCLE_VERTICES = 24  # polygon vertices used for a round bottom (cylinder, sphere)
+
+
+def _finite_vec(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    if not np.all(np.isfinite(v)):
+        raise ValueError("must be finite")
+    return v
+
+
+Vec3 = Annotated[tuple[float, float, float], AfterValidator(_finite_vec)]  # a finite position or rpy
 
 
 def _circle(radius: float, z: float, n: int = CIRCLE_VERTICES) -> np.ndarray:
@@ -26,15 +35,8 @@ def _circle(radius: float, z: float, n: int = CIRCLE_VERTICES) -> np.ndarray:
 class _ShapeBase(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    @field_validator("position", "rpy")
-    @classmethod
-    def _finite(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if not np.all(np.isfinite(v)):
-            raise ValueError("must be finite")
-        return v
+    position: Vec3 = (0.0, 0.0, 0.0)
+    rpy: Vec3 = (0.0, 0.0, 0.0)
 
     def pose(self) -> np.ndarray:
         """4x4 transform parent <- shape."""

@@ -101,8 +101,9 @@ class PendingReply:
         return self._done.is_set()
 
     def wait(self, timeout: float) -> Reply:
-        if not self._done.wait(timeout):
-            raise ProtocolError(f"no reply to {self.text[:60]} within {timeout * 1000:.0f} ms")
+        if not self._done.wait(timeout):  # how long it has been unanswered, not just this wait
+            waited = max(timeout, time.monotonic() - self.sent_at)
+            raise ProtocolError(f"no reply to {self.text[:60]} within {waited * 1000:.0f} ms")
         if self._error is not None:
             raise self._error
         assert self._reply is not None
