@@ -155,7 +155,8 @@ def test_truncated_file_reads_back_every_message_of_its_complete_chunks(tmp_path
     times = [r.log_time_ns for r, _ in full]
     cut_dir = tmp_path / "cut"
     cut_dir.mkdir()
-    for cut in range(chunks[0].chunk_start_offset, len(data) - 1, 173):
+    # every 173rd byte from the first chunk, and each cut inside the footer and closing magic
+    for cut in [*range(chunks[0].chunk_start_offset, len(data) - 1, 173), *range(len(data) - 40, len(data))]:
         p = cut_dir / f"c{cut}.mcap"
         p.write_bytes(data[:cut])
         expected = sum(1 for c in chunks if c.chunk_start_offset + c.chunk_length <= cut

@@ -68,6 +68,7 @@ class Recording:
             schemas: dict[int, Schema] = {}
             channels: dict[int, tuple[str, type[Message]] | None] = {}
             it = reader.records
+            footer = False
             while True:
                 try:
                     rec = next(it)
@@ -93,8 +94,10 @@ class Recording:
                 elif isinstance(rec, Metadata):
                     self.metadata[rec.name] = dict(rec.metadata)
                 elif isinstance(rec, Footer):
-                    self.complete = True
-            if not self.complete and self.truncated is None:
+                    footer = True
+            # a footer followed by a cut closing magic is still a cut file: complete needs both
+            self.complete = footer and self.truncated is None
+            if not footer and self.truncated is None:
                 self.truncated = f"stopped after {self.read} messages: no footer (the recorder did not close the file)"
 
 
