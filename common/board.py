@@ -9,8 +9,9 @@ its left edge, z into the board (so a board lying face up has z pointing down).
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from bagit.common.aruco import ARUCO_DICTIONARIES, ArucoDictionary
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.shapes import Vec3
 
@@ -26,24 +27,13 @@ class BoardSpec(BaseModel):
     squares_y: int = Field(5, ge=3, le=30)
     square_length: float = Field(0.06, gt=0.005, lt=0.5, description="side of a chessboard square (m)")
     marker_length: float = Field(0.045, gt=0.002, lt=0.5, description="side of a marker's black square (m)")
-    dictionary: str = "DICT_4X4_50"
+    dictionary: ArucoDictionary = "DICT_4X4_50"
     # default: face up on a stand in the work area, centred at (0, 0, 0.45), its top edge towards +y
     position: Vec3 = Field((-0.21, 0.15, 0.45), description="world position of the board origin (m)")
     rpy: Vec3 = Field((np.pi, 0.0, 0.0), description="world orientation of the board frame")
 
-    @field_validator("dictionary")
-    @classmethod
-    def _dict(cls, v: str) -> str:
-        from bagit.common.scenario import ARUCO_DICTIONARIES
-
-        if v not in ARUCO_DICTIONARIES:
-            raise ValueError(f"unknown ArUco dictionary {v!r}")
-        return v
-
     @model_validator(mode="after")
     def _fits(self) -> "BoardSpec":
-        from bagit.common.scenario import ARUCO_DICTIONARIES
-
         if self.marker_length >= self.square_length:
             raise ValueError("a marker must be smaller than its square")
         if (self.squares_x * self.squares_y) // 2 > ARUCO_DICTIONARIES[self.dictionary]:

@@ -14,6 +14,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from bagit.common.aruco import ARUCO_DICTIONARIES, ArucoDictionary
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import closed_polyline_length, make_transform, pca, pose_to_matrix, resample_closed
 from bagit.common.params import DEFAULT_LAMBDA_D_M, MethodParams
@@ -37,10 +38,6 @@ def _finite_points(v: list[list[float]] | None, what: str, min_points: int) -> l
 
 
 MARKER_THICKNESS_M = 0.001  # a printed card: the marker's face stands this far off the surface it is stuck on
-# OpenCV's predefined ArUco dictionaries this project prints markers from, and how many ids each has.
-ARUCO_DICTIONARIES = {
-    f"DICT_{bits}X{bits}_{n}": n for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)
-}
 
 
 class MarkerSpec(BaseModel):
@@ -55,16 +52,9 @@ class MarkerSpec(BaseModel):
 
     id: int = Field(..., ge=0, le=999)
     size: float = Field(0.05, gt=0.005, lt=0.5, description="side of the marker's black square (m)")
-    dictionary: str = Field("DICT_4X4_50", description="OpenCV predefined dictionary, e.g. DICT_4X4_50")
+    dictionary: ArucoDictionary = Field("DICT_4X4_50", description="OpenCV predefined dictionary, e.g. DICT_4X4_50")
     position: Vec3 | None = Field(None, description="marker centre in the bottom frame (m)")
     rpy: Vec3 = (0.0, 0.0, 0.0)
-
-    @field_validator("dictionary")
-    @classmethod
-    def _dictionary(cls, v: str) -> str:
-        if v not in ARUCO_DICTIONARIES:
-            raise ValueError(f"unknown ArUco dictionary {v!r} (use one of DICT_4X4_50 ... DICT_7X7_1000)")
-        return v
 
     @model_validator(mode="after")
     def _id_in_dictionary(self) -> "MarkerSpec":

@@ -80,6 +80,9 @@ def test_board_spec_validation(tmp_path):
         BoardSpec(square_length=0.03, marker_length=0.04)
     with pytest.raises(ValueError, match="too few markers"):
         BoardSpec(squares_x=12, squares_y=10)
+    with pytest.raises(ValueError, match="unknown ArUco dictionary 'DICT_9X9_1'"):
+        BoardSpec(dictionary="DICT_9X9_1")
+    assert BoardSpec(dictionary="DICT_5X5_100", squares_x=14, squares_y=14).dictionary == "DICT_5X5_100"
     (tmp_path / "r.yaml").write_text("board: {squares_x: 2}\n")
     with pytest.raises(BadScenario, match="board.squares_x"):
         RigConfig.from_file(tmp_path / "r.yaml")
