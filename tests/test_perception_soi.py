@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from bagit.common.errors import BadCloud
-from bagit.common.geometry import closed_polyline_length, points_to_polyline_distance, rpy_to_matrix
+from bagit.common.geometry import closed_polyline_length, points_to_polyline_distance, resample_closed, rpy_to_matrix
 from bagit.services.perception import SoiParams, extract_soi
 from bagit.services.perception.synthetic import make_rim_cloud, rim_cloud, true_rim
 
@@ -167,6 +167,26 @@ def test_warm_start_tracks_and_keeps_order():
         # point i stays point i: each moves no more than the rim did (4 mm slide + turn + noise)
         assert np.linalg.norm(cur - prev, axis=1).max() < 0.008
         prev = cur
+
+
+def _bean(dent: float, width: float = 0.4) -> np.ndarray:
+    """A kidney-shaped rim `(2000, 3)`: an ellipse with a dent `dent` deep (share of its radius) at +x."""
+    t = np.linspace(0.0, 2.0 * np.pi, 2000, endpoint=False)
+    r = 0.11 * (1.0 - dent * np.exp(-((np.angle(np.exp(1j * t)) / width) ** 2)))
+    return resample_closed(np.column_stack([r * np.cos(t), 0.8 * r * np.sin(t), 0.45 + 0.01 * np.cos(2 * t)]), 2000)
+
+
+@pytest.mark.parametrize("occlusion_at", [0.25, 0.5, 0.75])
+def test_warm_start_keeps_a_kidney_shaped_rims_length_over_a_hidden_stretch(occlusion_at):
+    """A pinched rim is far from the ellipse the polar bridge models: bridged that way, a hidden
+    stretch bulged out by centimetres and the SOI jumped. Warm, the bridge that keeps the last
+    rim's length is taken."""
+    rim = _bean(0.6)
+    prev = resample_closed(rim, N_X)  # the rim as last seen, whole
+    cloud, _ = rim_cloud(rim, occlusion=0.15, occlusion_at=occlusion_at, seed=3)
+    cur = extract_soi(cloud, N_X, init=prev)
+    assert abs(closed_polyline_length(cur) / closed_polyline_length(rim) - 1.0) < 0.04
+    assert np.linalg.norm(cur - prev, axis=1).max() < 0.015
 
 
 def test_warm_start_keeps_init_indexing_whatever_it_is():

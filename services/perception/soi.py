@@ -21,6 +21,8 @@ Gaussian that covers a long arc lies inside the rim; the SOI points are then tak
 
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -153,12 +155,15 @@ def _warm(raw: np.ndarray, prev: np.ndarray, k: int, p: SoiParams) -> ClosedCurv
         mu, keep = _repair(fit, p)
     except BadCloud:
         return None
-    curve = _curve(mu, keep, _normal_of(mu, np.array([0.0, 0.0, 1.0])))
-    # A rim's length barely changes between frames (the paper's premise); if this one did, EM
-    # latched onto something else near the old rim: start cold instead.
-    if abs(curve.length / closed_polyline_length(prev) - 1.0) > p.max_length_change:
-        return None
-    return curve
+    # A rim's length barely changes between frames (the paper's premise), so of the two bridges over
+    # a hidden stretch the one that keeps it is taken: the polar bridge restores a hidden tip the
+    # spline would cut across, but bulges far out when the seen rim is not near an ellipse (a
+    # kidney-shaped, pinched rim). If neither keeps the length, EM latched onto something else near
+    # the old rim: start cold instead.
+    length = closed_polyline_length(prev)
+    change = {abs(c.length / length - 1.0): c for c in _curves(mu, keep, _normal_of(mu, np.array([0.0, 0.0, 1.0])))}
+    best = min(change)
+    return change[best] if best <= p.max_length_change else None
 
 
 def _repair(fit: ChainFit, p: SoiParams) -> tuple[np.ndarray, np.ndarray]:
@@ -192,10 +197,20 @@ def _repair(fit: ChainFit, p: SoiParams) -> tuple[np.ndarray, np.ndarray]:
 def _curve(mu: np.ndarray, keep: np.ndarray, normal: np.ndarray) -> ClosedCurve:
     """The rim curve through the kept means, hidden stretches bridged in polar form when the rim is
     star-shaped about its centre (else by the arc-length spline alone)."""
+    return next(_curves(mu, keep, normal))
+
+
+def _curves(mu: np.ndarray, keep: np.ndarray, normal: np.ndarray) -> Iterator[ClosedCurve]:
+    """The rim curves through the kept means `mu (k, 3)`: with every mean kept, the one curve; else
+    the polar bridge over the hidden stretches (when the rim is star-shaped about its centre), then
+    the arc-length spline's."""
     if keep.all():
-        return ClosedCurve.through(mu)
+        yield ClosedCurve.through(mu)
+        return
     knots = polar_fill(mu, keep, normal)
-    return ClosedCurve.through(mu, keep) if knots is None else ClosedCurve.through(knots)
+    if knots is not None:
+        yield ClosedCurve.through(knots)
+    yield ClosedCurve.through(mu, keep)
 
 
 def _normal_of(mu: np.ndarray, fallback: np.ndarray) -> np.ndarray:
