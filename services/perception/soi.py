@@ -13,7 +13,9 @@ the SOI points, plus a uniform component for outliers. The steps here:
 4. starved components (no points: a hidden stretch) and strays (off the smooth curve through their
    neighbours, e.g. caught by an outlier clump) are replaced by the bending interpolation of the
    good ones, so no SOI point sits on an outlier or inside a gap;
-5. the SOI is n_x points at equal arc length along a periodic spline through the means (curve.py).
+5. the SOI is n_x points at equal arc length along a periodic spline through the means (curve.py);
+   a hidden stretch is bridged in polar form (restores a hidden tip of an ellipse) or by the spline
+   alone, and a warm start takes the bridge that keeps the last rim's length.
 
 At least `min_components` Gaussians are fitted even when n_x is smaller, because the mean of a
 Gaussian that covers a long arc lies inside the rim; the SOI points are then taken on the curve.
