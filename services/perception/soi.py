@@ -163,9 +163,8 @@ def _warm(raw: np.ndarray, prev: np.ndarray, k: int, p: SoiParams) -> ClosedCurv
     # kidney-shaped, pinched rim). If neither keeps the length, EM latched onto something else near
     # the old rim: start cold instead.
     length = closed_polyline_length(prev)
-    change = {abs(c.length / length - 1.0): c for c in _curves(mu, keep, _normal_of(mu, np.array([0.0, 0.0, 1.0])))}
-    best = min(change)
-    return change[best] if best <= p.max_length_change else None
+    curve = min(_curves(mu, keep, _normal_of(mu, np.array([0.0, 0.0, 1.0]))), key=lambda c: abs(c.length / length - 1.0))
+    return curve if abs(curve.length / length - 1.0) <= p.max_length_change else None
 
 
 def _repair(fit: ChainFit, p: SoiParams) -> tuple[np.ndarray, np.ndarray]:
