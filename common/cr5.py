@@ -21,7 +21,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from bagit.common.so3 import matrix_to_rpy, rpy_to_matrix
 
 D1, A2, A3, D4, D5, D6 = 0.147, -0.427, -0.357, 0.141, 0.116, 0.105
 DH_D = np.array([D1, 0.0, 0.0, D4, D5, D6])
@@ -47,15 +48,20 @@ def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
 def link_frames(q: np.ndarray) -> np.ndarray:
     """`(7, 4, 4)`: the base, then each joint's frame after it (the last is the tool flange), base frame."""
     theta = np.asarray(q, dtype=float) + JOINT_OFFSET
-    out = [np.eye(4)]
+    out = np.empty((7, 4, 4))
+    out[0] = np.eye(4)
     for i in range(6):
-        out.append(out[-1] @ _dh(theta[i], DH_D[i], DH_A[i], DH_ALPHA[i]))
-    return np.stack(out)
+        np.matmul(out[i], _dh(float(theta[i]), DH_D[i], DH_A[i], DH_ALPHA[i]), out=out[i + 1])
+    return out
 
 
 def fk(q: np.ndarray) -> np.ndarray:
     """4x4 base <- flange for joint angles `q (6,)` in radians."""
-    return link_frames(q)[-1]
+    theta = np.asarray(q, dtype=float) + JOINT_OFFSET
+    T = _dh(float(theta[0]), D1, 0.0, DH_ALPHA[0])
+    for i in range(1, 6):
+        T = T @ _dh(float(theta[i]), DH_D[i], DH_A[i], DH_ALPHA[i])
+    return T
 
 
 def within_limits(q: np.ndarray) -> bool:
@@ -63,10 +69,12 @@ def within_limits(q: np.ndarray) -> bool:
     return bool(q.shape == (6,) and np.all(np.isfinite(q)) and np.all(q >= JOINT_LIMITS[:, 0]) and np.all(q <= JOINT_LIMITS[:, 1]))
 
 
-def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+def _segment_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances `(k,)` of `points (k, 3)` to the segment from `a (3,)` to `b (3,)`."""
     ab = b - a
-    t = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0)
-    return float(np.linalg.norm(p - (a + t * ab)))
+    t = np.clip((points - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    d = points - (a + t[:, None] * ab)
+    return np.sqrt(np.einsum("ij,ij->i", d, d))
 
 
 def self_collision(q: np.ndarray, tool_offset: np.ndarray | None = None) -> bool:
@@ -78,16 +86,19 @@ def self_collision(q: np.ndarray, tool_offset: np.ndarray | None = None) -> bool
     F = link_frames(q)
     wrist = [F[5][:3, 3], F[6][:3, 3]]
     if tool_offset is not None:
-        wrist.append((F[6] @ np.append(np.asarray(tool_offset, dtype=float), 1.0))[:3])
-    base_a, base_b = np.zeros(3), F[1][:3, 3]
-    shoulder, elbow = F[1][:3, 3], F[2][:3, 3]
-    for p in wrist:
-        if _segment_distance(p, base_a, base_b) < BASE_COLUMN_RADIUS + WRIST_RADIUS:
-            return True
-        if _segment_distance(p, shoulder, elbow) < UPPER_ARM_RADIUS + WRIST_RADIUS:
-            return True
-    # the wrist-1 joint at the forearm's end against the base column
-    return _segment_distance(F[4][:3, 3], base_a, base_b) < BASE_COLUMN_RADIUS + WRIST_RADIUS
+        wrist.append(F[6][:3, :3] @ np.asarray(tool_offset, dtype=float) + F[6][:3, 3])
+    near = WRIST_RADIUS + np.array([BASE_COLUMN_RADIUS, UPPER_ARM_RADIUS])
+    base_a, shoulder, elbow = np.zeros(3), F[1][:3, 3], F[2][:3, 3]
+    # the wrist and tool against the base column and the upper arm; the wrist-1 joint at the forearm's
+    # end against the base column
+    if (_segment_distances(np.array(wrist + [F[4][:3, 3]]), base_a, shoulder) < near[0]).any():
+        return True
+    return bool((_segment_distances(np.array(wrist), shoulder, elbow) < near[1]).any())
+
+
+def _rotation_gap(A: np.ndarray, B: np.ndarray) -> float:
+    """Largest element-wise difference of the rotation parts of two 4x4s (np.allclose's test, without its overhead)."""
+    return float(np.abs(A[:3, :3] - B[:3, :3]).max())
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -104,39 +115,39 @@ def _rigid_inv(T: np.ndarray) -> np.ndarray:
 def _ik_candidates(T: np.ndarray, q6_free: float) -> list[np.ndarray]:
     """The closed-form candidates (Dobot angles, unwrapped), not yet checked against T."""
     p05 = T[:3, 3] - D6 * T[:3, 2]
-    r = np.hypot(p05[0], p05[1])
+    r = math.hypot(p05[0], p05[1])
     if r < abs(D4) + 1e-9:
         return []
     Ti = _rigid_inv(T)
     sols = []
-    phi = np.arctan2(p05[1], p05[0])
-    psi = np.arccos(np.clip(D4 / r, -1.0, 1.0))
-    for t1 in (phi + psi + np.pi / 2, phi - psi + np.pi / 2):
-        s1, c1 = np.sin(t1), np.cos(t1)
+    phi = math.atan2(p05[1], p05[0])
+    psi = math.acos(min(max(D4 / r, -1.0), 1.0))
+    for t1 in (phi + psi + math.pi / 2, phi - psi + math.pi / 2):
+        s1, c1 = math.sin(t1), math.cos(t1)
         c5 = (T[0, 3] * s1 - T[1, 3] * c1 - D4) / D6
         if abs(c5) > 1.0 + 1e-9:
             continue
         T01i = _rigid_inv(_dh(t1, D1, 0.0, DH_ALPHA[0]))
         for sign5 in (1.0, -1.0):
-            t5 = sign5 * np.arccos(np.clip(c5, -1.0, 1.0))
-            s5 = np.sin(t5)
+            t5 = sign5 * math.acos(min(max(c5, -1.0), 1.0))
+            s5 = math.sin(t5)
             if abs(s5) < 1e-9:  # wrist singularity: J6 is free
                 t6 = q6_free - JOINT_OFFSET[5]
             else:  # J6 from the base x and y axes seen in the flange frame
-                t6 = np.arctan2((-Ti[1, 0] * s1 + Ti[1, 1] * c1) / s5, (Ti[0, 0] * s1 - Ti[0, 1] * c1) / s5)
+                t6 = math.atan2((-Ti[1, 0] * s1 + Ti[1, 1] * c1) / s5, (Ti[0, 0] * s1 - Ti[0, 1] * c1) / s5)
             T46 = _dh(t5, D5, 0.0, DH_ALPHA[4]) @ _dh(t6, D6, 0.0, DH_ALPHA[5])
             T14 = T01i @ T @ _rigid_inv(T46)
             p13 = T14 @ np.array([0.0, -D4, 0.0, 1.0])
-            d2 = p13[0] ** 2 + p13[1] ** 2
+            d2 = float(p13[0] ** 2 + p13[1] ** 2)
             c3 = (d2 - A2**2 - A3**2) / (2 * A2 * A3)
             if abs(c3) > 1.0 + 1e-9:
                 continue
+            # J2, J3 and J4 turn about parallel axes: T14's rotation is Rz(t2 + t3 + t4) Rx(pi/2)
+            t234 = math.atan2(T14[1, 0], T14[0, 0])
             for sign3 in (1.0, -1.0):
-                t3 = sign3 * np.arccos(np.clip(c3, -1.0, 1.0))
-                t2 = -np.arctan2(p13[1], -p13[0]) + np.arcsin(np.clip(A3 * np.sin(t3) / np.sqrt(d2), -1.0, 1.0))
-                T34 = _rigid_inv(_dh(t2, 0.0, A2, 0.0) @ _dh(t3, 0.0, A3, 0.0)) @ T14
-                t4 = np.arctan2(T34[1, 0], T34[0, 0])
-                sols.append(np.array([t1, t2, t3, t4, t5, t6]) - JOINT_OFFSET)
+                t3 = sign3 * math.acos(min(max(c3, -1.0), 1.0))
+                t2 = -math.atan2(p13[1], -p13[0]) + math.asin(min(max(A3 * math.sin(t3) / math.sqrt(d2), -1.0), 1.0))
+                sols.append(np.array([t1, t2, t3, t234 - t2 - t3, t5, t6]) - JOINT_OFFSET)
     return sols
 
 
@@ -151,7 +162,7 @@ def ik_all(T: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return np.zeros((0, 6))
-    good = [q for q in _wrap(np.array(_ik_candidates(T, q6_free)).reshape(-1, 6)) if np.allclose(fk(q), T, atol=1e-6)]
+    good = [q for q in _wrap(np.array(_ik_candidates(T, q6_free)).reshape(-1, 6)) if np.abs(fk(q) - T).max() <= 1e-6]
     return np.array(good) if good else np.zeros((0, 6))
 
 
@@ -183,7 +194,7 @@ def ik(T: np.ndarray, q_seed: np.ndarray, tol: float = 1e-4, avoid_self_collisio
     qs = qs[ok]
     for qn in qs[np.argsort(np.sum((qs - seed) ** 2, axis=1), kind="stable")]:
         F = fk(qn)
-        if not np.allclose(F[:3, :3], T[:3, :3], atol=1e-6) or np.linalg.norm(F[:3, 3] - T[:3, 3]) > tol:
+        if _rotation_gap(F, T) > 1e-6 or np.linalg.norm(F[:3, 3] - T[:3, 3]) > tol:
             continue
         if avoid_self_collision and self_collision(qn):
             continue
@@ -195,7 +206,7 @@ def pose6_to_matrix(pose: np.ndarray) -> np.ndarray:
     """Dobot [x, y, z, rx, ry, rz] (mm, deg) -> 4x4 (metres)."""
     p = np.asarray(pose, dtype=float)
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", np.radians(p[3:6])).as_matrix()
+    T[:3, :3] = rpy_to_matrix(np.radians(p[3:6]))
     T[:3, 3] = p[:3] / 1000.0
     return T
 
@@ -203,4 +214,4 @@ def pose6_to_matrix(pose: np.ndarray) -> np.ndarray:
 def matrix_to_pose6(T: np.ndarray) -> np.ndarray:
     """4x4 (metres) -> Dobot [x, y, z, rx, ry, rz] (mm, deg)."""
     T = np.asarray(T, dtype=float)
-    return np.concatenate([T[:3, 3] * 1000.0, np.degrees(Rotation.from_matrix(T[:3, :3]).as_euler("xyz"))])
+    return np.concatenate([T[:3, 3] * 1000.0, np.degrees(matrix_to_rpy(T[:3, :3]))])

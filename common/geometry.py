@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from bagit.common.errors import NumericalFailure
+from bagit.common.so3 import matrix_to_rpy, rpy_to_matrix  # noqa: F401  (part of this module's API)
 
 
 def as_points(obj: object, error: type[Exception], what: str) -> np.ndarray:
@@ -173,16 +173,6 @@ def ellipse_points_3d(
 ) -> np.ndarray:
     """Points `(len(theta), 3)` of E(theta) = c + rho_u cos(theta) u + rho_v sin(theta) v (the paper's 3D ellipse)."""
     return center[None] + rho_u * np.cos(theta)[:, None] * u[None] + rho_v * np.sin(theta)[:, None] * v[None]
-
-
-def rpy_to_matrix(rpy: np.ndarray | list[float]) -> np.ndarray:
-    """Rotation `(3, 3)` from roll, pitch, yaw (radians; extrinsic x, y, z as in URDF)."""
-    return Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)).as_matrix()
-
-
-def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw `(3,)` (radians, extrinsic x, y, z) of a rotation `(3, 3)`."""
-    return Rotation.from_matrix(R).as_euler("xyz")
 
 
 def make_transform(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:

@@ -20,6 +20,7 @@ CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--disable-gpu-compositing", "--disable-accelerated-2d-canvas",
 ]
 
 
@@ -35,7 +36,12 @@ def chromium_available() -> bool:
 class BrowserPage:
     """One headless Chromium page on `url`; `errors` collects console errors and page errors."""
 
-    def __init__(self, url: str, viewport: tuple[int, int] = (1400, 900), max_fps: float | None = None) -> None:
+    def __init__(self, url: str, viewport: tuple[int, int] = (1400, 900), max_fps: float | None = None, nice: int = 0) -> None:
+        """`nice` > 0 runs the browser (all its processes and threads) at that lower CPU priority: on
+        a machine it shares with the simulated rig, an observer must not starve what it observes.
+        Run as root, Chromium resets its children to niceness 0 and raises its display threads to
+        -8, ahead of the rig; it is therefore started without CAP_SYS_NICE (util-linux `setpriv`),
+        so it can only keep the niceness it was given."""
         from playwright.sync_api import sync_playwright
 
         self.url = url
@@ -43,10 +49,16 @@ class BrowserPage:
         self.console: list[tuple[str, str]] = []
         self.context: Any = None
         self._profile = tempfile.mkdtemp(prefix="bagit-chromium-")
+        executable = CHROMIUM
+        if nice > 0:  # a launcher: lower priority, and no capability to raise it again
+            executable = str(Path(self._profile).parent / f"{Path(self._profile).name}-nice.sh")
+            Path(executable).write_text(f'#!/bin/sh\nexec setpriv --bounding-set -sys_nice --inh-caps -sys_nice nice -n {int(nice)} {CHROMIUM} "$@"\n')
+            Path(executable).chmod(0o755)
+        self._launcher = executable if executable != CHROMIUM else None
         self._pw = sync_playwright().start()
         try:
             self.context = self._pw.chromium.launch_persistent_context(
-                self._profile, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
+                self._profile, executable_path=executable, headless=True, args=CHROMIUM_ARGS,
                 viewport={"width": viewport[0], "height": viewport[1]},
             )
             self.page = self.context.new_page()
@@ -159,6 +171,8 @@ class BrowserPage:
         finally:
             self._pw.stop()
             shutil.rmtree(self._profile, ignore_errors=True)
+            if self._launcher is not None:
+                Path(self._launcher).unlink(missing_ok=True)
 
     def __enter__(self) -> "BrowserPage":
         return self
@@ -172,14 +186,22 @@ def _cap_fps_script(max_fps: float) -> str:
 
     Software WebGL redraws the 3-D view on every animation frame (about 0.6 of a core for a still
     scene); on a small machine shared with the simulated rig a capped frame rate leaves the CPU to
-    the rig. What is drawn is unchanged, only how often."""
+    the rig. What is drawn is unchanged, only how often. The wait is a timer *before* the frame is
+    requested: a requested frame makes Chromium produce one at the next vsync, so requesting it
+    first and waiting inside it would keep the compositor at 60 Hz. cancelAnimationFrame is
+    wrapped to match."""
     if not max_fps > 0:
         raise ValueError(f"max_fps must be positive, got {max_fps}")
     period_ms = 1000.0 / max_fps
     return (
-        "(() => { const raf = window.requestAnimationFrame.bind(window); let last = 0;"
-        f" window.requestAnimationFrame = (cb) => {{ const wait = Math.max(0, last + {period_ms:.1f} - performance.now());"
-        " return raf((t) => setTimeout(() => { last = performance.now(); cb(performance.now()); }, wait)); }; })();"
+        "(() => { const raf = window.requestAnimationFrame.bind(window), caf = window.cancelAnimationFrame.bind(window);"
+        " let last = 0, next = 1; const live = new Map();"
+        " window.requestAnimationFrame = (cb) => { const id = next++;"
+        f" const wait = Math.max(0, last + {period_ms:.1f} - performance.now());"
+        " live.set(id, { timer: setTimeout(() => { live.set(id, { frame: raf((t) => {"
+        " live.delete(id); last = performance.now(); cb(t); }) }); }, wait) }); return id; };"
+        " window.cancelAnimationFrame = (id) => { const h = live.get(id); if (!h) return; live.delete(id);"
+        " if (h.timer !== undefined) clearTimeout(h.timer); if (h.frame !== undefined) caf(h.frame); }; })();"
     )
 
 

@@ -12,7 +12,7 @@ from bagit.services.arm_driver.safety import (
     clip_target,
     violations,
 )
-from bagit.services.arm_driver.so3 import so3_exp
+from bagit.common.so3 import so3_exp
 
 from arm_driver_support import home_poses
 

@@ -126,8 +126,14 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         assert wait_until(lambda: _log(tmp_path).count("service controller up") >= 2, 90, 0.2), _log(tmp_path)[-3000:]
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
         assert rep.accepted, rep.reason
-        assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("done", "failed", "aborted"), 380, 0.2)
-        assert state.get().stage == "done", state.get()
+        # the new controller servos the new run (a whole run to `done` is test_a_full_simulated_run's)
+        n = len(cmds)
+        assert wait_until(lambda: any(c.mode == "servo" and c.run_id == rep.run_id for _, c in cmds[n:]), 240, 0.2), (state.get(), _log(tmp_path)[-3000:])
+        s = state.get()
+        assert s.run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), s
+        stop = request_run_control(session, keys, RunControl(action="stop"), timeout=10)
+        assert stop.accepted, stop.reason
+        assert wait_until(lambda: state.get().stage in ("failed", "aborted"), 20, 0.1), state.get()
 
 
 def test_killing_perception_makes_the_controller_hold_on_stale_soi(tmp_path):

@@ -22,8 +22,8 @@ import numpy as np
 
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.frames import Poses
-from bagit.services.arm_driver.safety import Envelope, Violation, check_and_clip, clip_target, violations
-from bagit.services.arm_driver.so3 import rotvec_between, so3_exp
+from bagit.services.arm_driver.safety import MEASURED_TOL_M, Envelope, Violation, check_and_clip, clip_target, violations
+from bagit.common.so3 import rotvec_between, so3_exp
 from bagit.services.arm_driver.streaming import StreamStep, Streamer, TargetIntegrator
 
 
@@ -52,11 +52,12 @@ class MotionPipeline:
     # -- state -----------------------------------------------------------------------------------
 
     def reset(self, poses: Poses) -> list[Violation]:
-        """Start over at rest at `poses` (the measured mount poses); returns the limits they already break."""
+        """Start over at rest at `poses` (the measured mount poses); returns the limits they already break
+        by more than an arm's following error (MEASURED_TOL_M)."""
         self.streamer.reset(poses)
         self.targets.reset(poses)
         self.last_sent = {a: np.array(poses[a], dtype=float) for a in ARMS}
-        return violations(self.last_sent, None, self.period, self.env)
+        return violations(self.last_sent, None, self.period, self.env, tol=MEASURED_TOL_M)
 
     @property
     def mode(self) -> str:

@@ -27,12 +27,16 @@ from dataclasses import dataclass
 import numpy as np
 from bagit.common.rig import ARMS, RigConfig, SafetyLimits
 from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
-from bagit.services.arm_driver.so3 import so3_exp, so3_log
+from bagit.common.so3 import so3_exp, so3_log
 
 
 # Slack on the final check: clipping lands exactly on a limit and floating point may miss by ulps.
 TOL_M = 1e-9
 TOL_RAD = 1e-9
+# A measured pose may sit this far past a limit its commands kept: targets clipped onto a limit are
+# reached with the servo's following error, and the feedback rounds to 1 um. Within it, the arms are
+# where they were sent, and the next target is clipped inside again; beyond it, they are not.
+MEASURED_TOL_M = 0.002
 _MAX_PASSES = 8  # alternating box / separation projections before giving up
 
 
@@ -132,12 +136,13 @@ def speed_violations(p: np.ndarray, R: np.ndarray, p_prev: np.ndarray, R_prev: n
     return out
 
 
-def violations(target: Poses, previous: Poses | None, dt: float, env: Envelope) -> list[Violation]:
-    """Every limit `target` breaks (speed only when `previous` is given); empty means it may be sent."""
+def violations(target: Poses, previous: Poses | None, dt: float, env: Envelope, tol: float = TOL_M) -> list[Violation]:
+    """Every limit `target` breaks (speed only when `previous` is given); empty means it may be sent.
+    `tol`: slack on the static limits (MEASURED_TOL_M for the arms' measured poses)."""
     if any(not _is_pose(target.get(a)) for a in ARMS):
         return [Violation("both", "non_finite", "a pose is missing, non-finite or not a rigid transform")]
     p, R = poses_to_arrays(target)
-    out = static_violations(p, R, env)
+    out = static_violations(p, R, env, tol)
     if previous is not None:
         pp, Rp = poses_to_arrays(previous)
         out += speed_violations(p, R, pp, Rp, dt, env)

@@ -30,7 +30,7 @@ from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ru
 
 from bagit.common.rig import SafetyLimits
 from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
-from bagit.services.arm_driver.so3 import left_jacobian, rotvec_between, so3_exp
+from bagit.common.so3 import left_jacobian, rotvec_between, so3_exp
 
 N_DOF = 12
 SQRT3 = float(np.sqrt(3.0))

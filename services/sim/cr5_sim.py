@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from bagit.common import cr5
+from bagit.common.so3 import matrix_to_quat_wxyz, so3_log
 from bagit.common.dobot import Alarm, ErrorId, RobotMode, joint_limit_alarm, new_feedback, overspeed_alarm
 from bagit.common.rig import ArmConfig
 
@@ -516,7 +517,7 @@ class SimulatedCR5:
         eps = 1e-3
         T_next = cr5.fk(q + eps * qd)
         lin = (T_next[:3, 3] - T[:3, 3]) / eps * 1000.0
-        ang = Rotation.from_matrix(T_next[:3, :3] @ T[:3, :3].T).as_rotvec() / eps
+        ang = so3_log(T_next[:3, :3] @ T[:3, :3].T) / eps
         rec["RobotMode"] = mode
         rec["TimeStamp"] = int(_time.time() * 1000)
         rec["RunTime"] = int(sim_t * 1000)
@@ -547,8 +548,6 @@ class SimulatedCR5:
         rec["CurrentCommandId"] = cmd_id
         rec["Load"] = load
         rec["CenterX"], rec["CenterY"], rec["CenterZ"] = center
-        qa = Rotation.from_matrix(T[:3, :3]).as_quat()
-        qt = Rotation.from_matrix(T_ref[:3, :3]).as_quat()
-        rec["ActualQuaternion"] = [qa[3], qa[0], qa[1], qa[2]]
-        rec["TargetQuaternion"] = [qt[3], qt[0], qt[1], qt[2]]
+        rec["ActualQuaternion"] = matrix_to_quat_wxyz(T[:3, :3])
+        rec["TargetQuaternion"] = matrix_to_quat_wxyz(T_ref[:3, :3])
         return rec
