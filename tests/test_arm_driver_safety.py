@@ -6,13 +6,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bagit.common.rig import ArmConfig, RigConfig
+from bagit.common.so3 import so3_exp
 from bagit.services.arm_driver.safety import (
     Envelope,
     check_and_clip,
     clip_target,
     violations,
 )
-from bagit.common.so3 import so3_exp
 
 from arm_driver_support import home_poses
 

@@ -8,9 +8,9 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from bagit.common.rig import RigConfig
+from bagit.common.so3 import so3_exp
 from bagit.services.arm_driver.pipeline import MotionPipeline
 from bagit.services.arm_driver.safety import Envelope, violations
-from bagit.common.so3 import rotvec_between, so3_exp
 from bagit.services.arm_driver.streaming import Streamer, TargetIntegrator
 
 from arm_driver_support import home_poses

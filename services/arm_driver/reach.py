@@ -22,8 +22,8 @@ import numpy as np
 
 from bagit.common import cr5
 from bagit.common.rig import ARMS
-from bagit.services.arm_driver.frames import ArmFrames, Poses
 from bagit.common.so3 import rotvec_between, so3_exp
+from bagit.services.arm_driver.frames import ArmFrames, Poses
 
 Joints = dict[str, np.ndarray]  # arm -> (6,) rad
 Solver = Callable[[Poses], tuple[Joints | None, str | None]]

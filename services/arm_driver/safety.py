@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from bagit.common.rig import ARMS, RigConfig, SafetyLimits
-from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
 from bagit.common.so3 import so3_exp, so3_log
+from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
 
 
 # Slack on the final check: clipping lands exactly on a limit and floating point may miss by ulps.

@@ -29,8 +29,8 @@ import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
 
 from bagit.common.rig import SafetyLimits
-from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
 from bagit.common.so3 import left_jacobian, rotvec_between, so3_exp
+from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
 
 N_DOF = 12
 SQRT3 = float(np.sqrt(3.0))
