@@ -36,8 +36,12 @@ def chromium_available() -> bool:
 class BrowserPage:
     """One headless Chromium page on `url`; `errors` collects console errors and page errors."""
 
-    def __init__(self, url: str, viewport: tuple[int, int] = (1400, 900), max_fps: float | None = None, nice: int = 0) -> None:
-        """`nice` > 0 runs the browser (all its processes and threads) at that lower CPU priority: on
+    def __init__(
+        self, url: str, viewport: tuple[int, int] = (1400, 900), max_fps: float | None = None, nice: int = 0, timeout_s: float = 30.0
+    ) -> None:
+        """`timeout_s`: how long any one browser action (a click, a screenshot, a wait) may take; a
+        niced browser on a machine the rig keeps busy draws a frame in seconds, not milliseconds.
+        `nice` > 0 runs the browser (all its processes and threads) at that lower CPU priority: on
         a machine it shares with the simulated rig, an observer must not starve what it observes.
         Run as root, Chromium resets its children to niceness 0 and raises its display threads to
         -8, ahead of the rig; it is therefore started without CAP_SYS_NICE (util-linux `setpriv`),
@@ -61,6 +65,7 @@ class BrowserPage:
                 self._profile, executable_path=executable, headless=True, args=CHROMIUM_ARGS,
                 viewport={"width": viewport[0], "height": viewport[1]},
             )
+            self.context.set_default_timeout(timeout_s * 1000)
             self.page = self.context.new_page()
             if max_fps is not None:
                 self.page.add_init_script(_cap_fps_script(max_fps))
@@ -103,7 +108,7 @@ class BrowserPage:
         """The options of the dropdown labelled `label` (opens it, reads them, closes it again)."""
         self.page.get_by_label(label, exact=True).click()
         opts = self.page.get_by_role("option")
-        opts.first.wait_for(timeout=10_000)
+        opts.first.wait_for()
         out = [opts.nth(i).inner_text().strip() for i in range(opts.count())]
         self.page.keyboard.press("Escape")
         return out
@@ -111,7 +116,7 @@ class BrowserPage:
     def panel_text(self, marker: str = "Stage:") -> str:
         """The text of the panel paragraph holding `marker` (the run state: run id, stage, reason, e-stop)."""
         p = self.page.locator("p", has_text=marker).first
-        return p.inner_text(timeout=10_000) if p.count() else ""
+        return p.inner_text() if p.count() else ""
 
     def stage(self) -> str | None:
         """The run's stage as the panel shows it (`**Stage:** done · 100 % · ...`), None before it shows one."""

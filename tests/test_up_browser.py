@@ -113,8 +113,9 @@ def rig(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def browser(rig):
-    # a smaller view, 5 frames/s and a low priority: software WebGL takes ~0.5 core, and the rig goes first
-    b = BrowserPage(rig.url, viewport=(1000, 650), max_fps=5, nice=10)
+    # a smaller view, 5 frames/s and a low priority: software WebGL takes ~0.5 core, and the rig goes
+    # first; so one action (a screenshot needs a fresh frame) may take long on a busy machine
+    b = BrowserPage(rig.url, viewport=(1000, 650), max_fps=5, nice=10, timeout_s=120.0)
     try:
         b.wait_text("Stage:", 60.0)
         yield b
@@ -151,7 +152,7 @@ def test_page_loads_and_shows_the_cloud_and_the_soi(rig, browser):
     # The live cloud takes its colours from the camera image, and other things in the scene share
     # the SOI's red (the frames' x axes): each layer's pixels are those that go when it is
     # switched off, and come back when it is switched on again.
-    assert wait_until(lambda: count_color(b.canvas_pixels(), style.SOI, tol=30) > 100, 30.0, 1.0), "no SOI-red pixels"
+    assert wait_until(lambda: count_color(b.canvas_pixels(), style.SOI, tol=30) > 100, 120.0, 1.0), "no SOI-red pixels"
     b.settle(1.0)
     on = b.canvas_pixels()
     b.dismiss_notifications()
