@@ -26,6 +26,10 @@ class MethodParams(BaseModel):
     lambda_5: float = Field(0.021, ge=0.0, le=0.5, description="C5: max ellipse-centre offset (m)")
     # Goal SOI (eq. 11): lift of g_dagger along the object; None = half the object height.
     lambda_d: float | None = Field(None, gt=0.0, le=1.0, description="g* = g_dagger + lambda_d a_z (m)")
+    # Not in the paper: g† a little below the bottom plane, so the rim encircles the object's bottom
+    # before it rises past it (a rim brought in level with the bottom can slide under a corner the
+    # camera cannot see); g* stays lambda_d above the bottom plane.
+    dagger_depth_m: float = Field(0.02, ge=0.0, le=0.1, description="g† this far below the object's bottom (m)")
     # Planner.
     planner_max_iterations: int = Field(4000, ge=10, le=1_000_000)
     planner_step_m: float = Field(0.03, gt=0.0, le=0.05, description="max rim-point move per tree step (m)")

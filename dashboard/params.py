@@ -24,7 +24,7 @@ class FieldSpec:
     hint: str
 
 
-# λ1-λ5, λd, the MPC's horizon and weights, the speed limits (C7) and the tolerances.
+# λ1-λ5, λd, g†'s depth, the MPC's horizon and weights, the speed limits (C7) and the tolerances.
 FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("lambda_1", "λ1 C1 margin", 0.001, "max F_e of any vertex inside the ellipse (< 1)"),
     FieldSpec("lambda_2", "λ2 C2 centre (m)", 0.001, "max ellipse-centre offset from V's centroid"),
@@ -32,6 +32,7 @@ FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("lambda_4", "λ4 C4 perimeter", 0.001, "max |R_x/R_y - 1| of a path node"),
     FieldSpec("lambda_5", "λ5 C5 centre (m)", 0.001, "max regularised-ellipse centre offset"),
     FieldSpec("lambda_d", "λd lift (m)", 0.005, "g* = g† + λd a_z; tick 'λd auto' for half the object height"),
+    FieldSpec("dagger_depth_m", "g† depth (m)", 0.005, "g† this far below the object's bottom; g* stays λd above it"),
     FieldSpec("horizon", "MPC horizon T", 1, "steps the MPC looks ahead"),
     FieldSpec("q_weight", "MPC Q weight", 0.05, "weight of the SOI error"),
     FieldSpec("r_weight", "MPC R weight", 0.01, "weight of the command size"),

@@ -37,9 +37,11 @@ def check_goal(g, v, R, n_x=32):
     assert closed_polyline_length(g.g_dagger) == pytest.approx(R, rel=0.02)  # 32-gon on the ellipse
     lift = g.g_star - g.g_dagger
     assert np.allclose(lift, lift[0]) and lift[0][2] > 0  # a translation, upward (sgn rule)
-    # g† lies on the ellipse in F_m's plane around V
+    assert np.linalg.norm(lift[0]) == pytest.approx(g.dagger_depth + g.lambda_d)
+    # g† lies on the ellipse around V, dagger_depth below F_m's plane; g* lambda_d above it
     gd = transform_points(invert_transform(g.frame), g.g_dagger)
-    assert np.allclose(gd[:, 2], 0, atol=1e-9)
+    assert np.allclose(gd[:, 2], -g.dagger_depth, atol=1e-9)
+    assert np.allclose(transform_points(invert_transform(g.frame), g.g_star)[:, 2], g.lambda_d, atol=1e-9)
     assert np.allclose(f_e(gd[:, :2], e.a, e.b, e.alpha, e.center), 1.0, atol=1e-6)
 
 
@@ -56,7 +58,16 @@ def test_tilted_object_goal_follows_its_axis():
     g = bagging_soi(s.object.bottom_vertices(), 0.68, 32, lambda_d=0.05)
     up = g.frame[:3, 2]
     assert up[2] > 0 and abs(up[1]) > 0.2  # tilted with the box
-    assert np.allclose(g.g_star - g.g_dagger, 0.05 * up)
+    assert np.allclose(g.g_star - g.g_dagger, (g.dagger_depth + 0.05) * up)
+
+
+def test_dagger_depth_lowers_g_dagger_and_keeps_g_star():
+    v = np.array([[0.06, 0.04, 0.5], [-0.06, 0.04, 0.5], [-0.06, -0.04, 0.5], [0.06, -0.04, 0.5]])
+    flat = bagging_soi(v, 0.68, 32, MethodParams(dagger_depth_m=0.0), lambda_d=0.05)
+    deep = bagging_soi(v, 0.68, 32, MethodParams(dagger_depth_m=0.03), lambda_d=0.05)
+    assert np.allclose(flat.g_dagger[:, 2], 0.5) and np.allclose(deep.g_dagger[:, 2], 0.47)
+    assert np.allclose(deep.g_dagger[:, :2], flat.g_dagger[:, :2])  # same ellipse, lower
+    assert np.allclose(deep.g_star, flat.g_star)  # the goal is unchanged
 
 
 def test_c3_keeps_major_axis_along_an_elongated_base():

@@ -55,6 +55,7 @@ class BaggingGoal:
     c3_applied: bool
     lambda_d: float
     vertices: np.ndarray = field(repr=False)
+    dagger_depth: float = 0.0  # g† lies this far below V's plane (m); g* lies lambda_d above it
 
     @property
     def up(self) -> np.ndarray:
@@ -228,11 +229,11 @@ def bagging_soi(
     idx = farthest_point_sampling(dense, n_x)
     ring = dense[np.sort(idx)]  # FPS picks the points; sorting by theta orders them counter-clockwise
 
-    g_dagger = transform_points(T, np.column_stack([ring, np.zeros(n_x)]))
+    g_dagger = transform_points(T, np.column_stack([ring, np.full(n_x, -p.dagger_depth_m)]))
     if g0 is not None:
         g_dagger = align_cyclic(g_dagger, np.asarray(g0, dtype=float))
     ld = lambda_d if lambda_d is not None else (p.lambda_d if p.lambda_d is not None else DEFAULT_LAMBDA_D_M)
-    g_star = g_dagger + ld * T[:3, 2]  # eq. (11) with a_z already turned upward
+    g_star = g_dagger + (p.dagger_depth_m + ld) * T[:3, 2]  # eq. (11) with a_z already turned upward
     return BaggingGoal(
         g_dagger=g_dagger,
         g_star=g_star,
@@ -245,4 +246,5 @@ def bagging_soi(
         c3_applied=bool(c3_applied),
         lambda_d=ld,
         vertices=v,
+        dagger_depth=p.dagger_depth_m,
     )
