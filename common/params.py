@@ -30,6 +30,10 @@ class MethodParams(BaseModel):
     # before it rises past it (a rim brought in level with the bottom can slide under a corner the
     # camera cannot see); g* stays lambda_d above the bottom plane.
     dagger_depth_m: float = Field(0.02, ge=0.0, le=0.1, description="g† this far below the object's bottom (m)")
+    # Not in the paper either: the cloth lags the grippers, most of all its leading edge, which is on
+    # the far side of the object from the camera (perception bridges it); the grippers keep still
+    # at g† for a moment so it catches up before the lift, instead of being pinned under the bottom.
+    dagger_settle_s: float = Field(1.0, ge=0.0, le=10.0, description="grippers still at g† this long before the lift (s)")
     # Planner.
     planner_max_iterations: int = Field(4000, ge=10, le=1_000_000)
     planner_step_m: float = Field(0.03, gt=0.0, le=0.05, description="max rim-point move per tree step (m)")

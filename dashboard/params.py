@@ -24,7 +24,7 @@ class FieldSpec:
     hint: str
 
 
-# λ1-λ5, λd, g†'s depth, the MPC's horizon and weights, the speed limits (C7) and the tolerances.
+# λ1-λ5, λd, g†'s depth, the MPC's horizon and weights, the speed limits (C7), the tolerances and the settle at g†.
 FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("lambda_1", "λ1 C1 margin", 0.001, "max F_e of any vertex inside the ellipse (< 1)"),
     FieldSpec("lambda_2", "λ2 C2 centre (m)", 0.001, "max ellipse-centre offset from V's centroid"),
@@ -42,6 +42,7 @@ FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("max_angular_speed_rps", "max ang. speed (rad/s)", 0.05, "C7: gripper angular speed limit"),
     FieldSpec("subgoal_tol_m", "subgoal tol (m)", 0.001, "advance along the path below this RMS error"),
     FieldSpec("goal_tol_m", "goal tol (m)", 0.001, "the run reaches g* below this RMS error"),
+    FieldSpec("dagger_settle_s", "g† settle (s)", 0.1, "grippers still at g† this long before the lift"),
 )
 FIELD_NAMES = tuple(f.name for f in FIELDS)
 LAMBDA_D_AUTO_VALUE = 0.04  # what the λd box shows while λd is automatic

@@ -45,6 +45,20 @@ def test_advances_on_a_stall_close_to_a_node_the_bag_cannot_match():
     assert tr.index == 2 and tr.stage == "pre-bagging"
 
 
+def test_settles_at_dagger_before_the_lift():
+    path = np.stack([np.full((4, 3), k, float) for k in range(5)])
+    tr = SubgoalTracker(path, dagger_index=2, subgoal_tol=0.1, goal_tol=0.1, dagger_settle_ticks=3)
+    assert tr.update(path[1]) == 2 and tr.settled_ticks == 0 and not tr.settling
+    assert tr.update(path[2] + 0.5) == 2 and tr.settled_ticks == 0  # not yet at g†: no settle
+    # from the first update at g†, three updates are the settle (wherever the bag drifts meanwhile);
+    # the lift (g_3) comes on the fourth
+    for k, x in enumerate((path[2], path[2] + 0.5, path[2]), start=1):
+        assert tr.update(x) == 2 and tr.settled_ticks == k and tr.settling and tr.stage == "pre-bagging"
+    assert tr.update(path[2] + 0.05) == 3 and tr.stage == "bagging" and not tr.settling
+    with pytest.raises(BadControlInput):
+        SubgoalTracker(path, 2, 0.1, 0.1, dagger_settle_ticks=-1)
+
+
 def test_rejects_bad_paths():
     with pytest.raises(BadControlInput):
         SubgoalTracker(np.zeros((3, 4)), 0, 0.01, 0.01)

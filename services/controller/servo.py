@@ -42,7 +42,7 @@ class ControlOutput:
     """One tick's decision. u: (12,) = [left dx dy dz drx dry drz, right ...] (m, rad) for this tick."""
 
     u: np.ndarray
-    mode: str  # 'explore' | 'servo' | 'hold' | 'done'
+    mode: str  # 'explore' | 'servo' | 'settle' (still, at g†) | 'hold' | 'done'
     reason: str | None  # why the arms are held (mode 'hold'), else None
     subgoal_index: int
     stage: str  # 'pre-bagging' before g† is reached, 'bagging' after
@@ -53,9 +53,9 @@ class ControlOutput:
     progress: float = 0.0  # subgoal_index / (n_nodes - 1)
 
     def to_command(self, dt: float, seq: int = 0, run_id: str | None = None, source_stamp: float = 0.0) -> Command:
-        """The wire command: exploration and servoing are 'servo', holding and done are 'hold'.
+        """The wire command: exploration, servoing and settling (u = 0) are 'servo', holding and done are 'hold'.
         `source_stamp`: the camera stamp of the SOI this step was computed from."""
-        servo = self.mode in ("explore", "servo")
+        servo = self.mode in ("explore", "servo", "settle")
         return Command(u=self.u if servo else np.zeros(12), dt=dt, seq=seq, run_id=run_id,
                        mode="servo" if servo else "hold", reason=self.reason, source_stamp=source_stamp)
 
@@ -157,7 +157,8 @@ class ServoBase:
                 raise BadControlInput(f"x0 must be a finite ({self.n_x}, 3) SOI, got shape {x0.shape}")
         if gripper_poses is not None and (why := pose_problem(gripper_poses)):
             raise BadControlInput(why)
-        self.tracker = SubgoalTracker(nodes, dagger, self.p.subgoal_tol_m, self.p.goal_tol_m, GOAL_STALL_TICKS)
+        settle = int(round(self.p.dagger_settle_s * self.p.control_rate_hz))
+        self.tracker = SubgoalTracker(nodes, dagger, self.p.subgoal_tol_m, self.p.goal_tol_m, GOAL_STALL_TICKS, settle)
         self.path = self.tracker.path
         if perimeter is None:
             perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
@@ -232,6 +233,9 @@ class ServoBase:
         idx = self.tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
+        if self.tracker.settling and not self.aims_at_goal:  # still at g†: the bag settles before the lift
+            self._u_prev = np.zeros(12)
+            return self._out(np.zeros(12), "settle", None, x)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]
         try:
             target = slide_to(goal, x).ravel()

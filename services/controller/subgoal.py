@@ -14,9 +14,13 @@ def rms_error(x: np.ndarray, g: np.ndarray) -> float:
 
 class SubgoalTracker:
     """Walks along path `(n_nodes, n_x, 3)`: advance when close enough to the current subgoal or when a
-    later node is already nearer, but never past g† (dagger_index) before g† itself was reached."""
+    later node is already nearer, but never past g† (dagger_index) before g† itself was reached, that
+    is, `dagger_settle_ticks` updates after the SOI first came within tolerance of it (while the
+    controller keeps the grippers still and the bag settles)."""
 
-    def __init__(self, path: np.ndarray, dagger_index: int, subgoal_tol: float, goal_tol: float, stall_ticks: int = 45):
+    def __init__(
+        self, path: np.ndarray, dagger_index: int, subgoal_tol: float, goal_tol: float, stall_ticks: int = 45, dagger_settle_ticks: int = 0
+    ):
         self.path = np.asarray(path, dtype=float)
         if self.path.ndim != 3 or len(self.path) < 1 or self.path.shape[2] != 3:
             raise BadControlInput(f"path must have shape (n_nodes, n_x, 3), got {self.path.shape}")
@@ -34,6 +38,10 @@ class SubgoalTracker:
         self.stall_ticks = stall_ticks
         self._best = np.inf
         self._since_best = 0
+        if dagger_settle_ticks < 0:
+            raise BadControlInput(f"dagger_settle_ticks must be >= 0, got {dagger_settle_ticks}")
+        self.dagger_settle_ticks = dagger_settle_ticks
+        self.settled_ticks = 0  # updates since the SOI first came within tolerance of g†
 
     def _reached(self, x: np.ndarray, k: int) -> bool:
         e = self.error(x, k)
@@ -50,11 +58,11 @@ class SubgoalTracker:
         else:
             self._since_best += 1
         start = self.index
+        settle_counted = False
         while self.index < last:
+            if self.index == self.dagger and not self.dagger_reached:
+                settle_counted = self._settle_at_dagger(x)
             limit = last if self.dagger_reached else self.dagger
-            if self.index == self.dagger and self._reached(x, self.index):
-                self.dagger_reached = True
-                limit = last
             close = self._reached(x, self.index)
             ahead = self.index + 1 <= limit and self.error(x, self.index + 1) < self.error(x, self.index)
             if (close or ahead) and self.index + 1 <= limit:
@@ -62,11 +70,24 @@ class SubgoalTracker:
                 self._best, self._since_best = np.inf, 0  # a stall on one node says nothing of the next
             else:
                 break
-        if self.index == self.dagger and self._reached(x, self.dagger):
-            self.dagger_reached = True
+        if self.index == self.dagger and not self.dagger_reached and not settle_counted:
+            self._settle_at_dagger(x)
         if self.index != start:
             self._best, self._since_best = np.inf, 0
         return self.index
+
+    def _settle_at_dagger(self, x: np.ndarray) -> bool:
+        """One update at g†: the settle starts when the SOI first comes within tolerance and then
+        counts every update; g† is reached when it is over. True (this update was counted)."""
+        if self.settled_ticks > 0 or self._reached(x, self.dagger):
+            self.settled_ticks += 1
+        self.dagger_reached = self.settled_ticks > self.dagger_settle_ticks
+        return True
+
+    @property
+    def settling(self) -> bool:
+        """At g†, reached once, and the bag still settling before the lift."""
+        return not self.dagger_reached and self.settled_ticks > 0
 
     def error(self, x: np.ndarray, k: int) -> float:
         """RMS error of `x` to node k once the node is slid along itself to match x (see `slide_to`)."""
