@@ -56,6 +56,15 @@ def test_closed_loop_reaches_the_goal_on_a_synthetic_rim(kind):
         assert idx == sorted(idx) and idx[-1] == len(path) - 1  # it walked the path in order
         first_bagging = next(i for i, o in enumerate(outs) if o.stage == "bagging")
         assert all(o.subgoal_index <= 5 for o in outs[:first_bagging])  # never past g† before reaching it
+        # at g† the grippers keep still for dagger_settle_s, sent as servo commands of zero, then lift
+        settle = [i for i, o in enumerate(outs) if o.mode == "settle"]
+        assert len(settle) == round(P.dagger_settle_s * P.control_rate_hz) and settle == list(range(settle[0], settle[-1] + 1))
+        assert all(outs[i].subgoal_index == 5 and outs[i].stage == "pre-bagging" and not outs[i].u.any() for i in settle)
+        cmd = outs[settle[0]].to_command(c.dt)
+        assert cmd.mode == "servo" and not np.any(cmd.u)
+        assert outs[settle[-1] + 1].stage == "bagging" and outs[settle[-1] + 1].mode == "servo"
+    else:
+        assert "settle" not in modes  # no path: nothing to settle at
 
 
 def test_mpc_reaches_the_goal_with_a_noisy_soi():
