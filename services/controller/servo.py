@@ -157,7 +157,8 @@ class ServoBase:
                 raise BadControlInput(f"x0 must be a finite ({self.n_x}, 3) SOI, got shape {x0.shape}")
         if gripper_poses is not None and (why := pose_problem(gripper_poses)):
             raise BadControlInput(why)
-        settle = int(round(self.p.dagger_settle_s * self.p.control_rate_hz))
+        # a law aiming straight at g* (ssvs) has no g† to settle at
+        settle = 0 if self.aims_at_goal else int(round(self.p.dagger_settle_s * self.p.control_rate_hz))
         self.tracker = SubgoalTracker(nodes, dagger, self.p.subgoal_tol_m, self.p.goal_tol_m, GOAL_STALL_TICKS, settle)
         self.path = self.tracker.path
         if perimeter is None:
@@ -233,7 +234,7 @@ class ServoBase:
         idx = self.tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
-        if self.tracker.settling and not self.aims_at_goal:  # still at g†: the bag settles before the lift
+        if self.tracker.settling:  # still at g†: the bag settles before the lift
             self._u_prev = np.zeros(12)
             return self._out(np.zeros(12), "settle", None, x)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]

@@ -58,10 +58,11 @@ class SubgoalTracker:
         else:
             self._since_best += 1
         start = self.index
-        settle_counted = False
+        settle_due = not self.dagger_reached  # the settle counts one update at g† at most once per call
         while self.index < last:
-            if self.index == self.dagger and not self.dagger_reached:
-                settle_counted = self._settle_at_dagger(x)
+            if self.index == self.dagger and settle_due:
+                self._settle_at_dagger(x)
+                settle_due = False
             limit = last if self.dagger_reached else self.dagger
             close = self._reached(x, self.index)
             ahead = self.index + 1 <= limit and self.error(x, self.index + 1) < self.error(x, self.index)
@@ -70,19 +71,18 @@ class SubgoalTracker:
                 self._best, self._since_best = np.inf, 0  # a stall on one node says nothing of the next
             else:
                 break
-        if self.index == self.dagger and not self.dagger_reached and not settle_counted:
+        if self.index == self.dagger and settle_due:
             self._settle_at_dagger(x)
         if self.index != start:
             self._best, self._since_best = np.inf, 0
         return self.index
 
-    def _settle_at_dagger(self, x: np.ndarray) -> bool:
+    def _settle_at_dagger(self, x: np.ndarray) -> None:
         """One update at g†: the settle starts when the SOI first comes within tolerance and then
-        counts every update; g† is reached when it is over. True (this update was counted)."""
+        counts every update; g† is reached when it is over."""
         if self.settled_ticks > 0 or self._reached(x, self.dagger):
             self.settled_ticks += 1
         self.dagger_reached = self.settled_ticks > self.dagger_settle_ticks
-        return True
 
     @property
     def settling(self) -> bool:
