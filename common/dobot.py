@@ -125,6 +125,25 @@ def joint_limit_alarm(j: int, positive: bool) -> int:
     return int(Alarm.JOINT1_POSITIVE_LIMIT) + 2 * j + (0 if positive else 1)
 
 
+def describe_alarm(alarm: int) -> str:
+    """A short name for a controller alarm id (the ones `Alarm` documents; others by number)."""
+    a = int(alarm)
+    if a == Alarm.IK_NO_SOLUTION:
+        return "no inverse kinematics solution"
+    if a == Alarm.IK_OUT_OF_LIMITS:
+        return "inverse solution beyond the joint limits"
+    if Alarm.JOINT1_OVERSPEED <= a < Alarm.JOINT1_OVERSPEED + 6:
+        return f"joint {a - Alarm.JOINT1_OVERSPEED + 1} overspeed"
+    if Alarm.JOINT1_POSITIVE_LIMIT <= a < Alarm.JOINT1_POSITIVE_LIMIT + 12:
+        k = a - Alarm.JOINT1_POSITIVE_LIMIT
+        return f"joint {k // 2 + 1} beyond its {'negative' if k % 2 else 'positive'} limit"
+    if a == Alarm.FLANGE_INTERFERENCE:
+        return "flange interferes with the robot body"
+    if a == Alarm.SOFTWARE_ESTOP:
+        return "software emergency stop"
+    return f"alarm {a}"
+
+
 # -- the real-time feedback packet ---------------------------------------------------------------
 
 # (name, numpy format, byte offset) as in the V4 manual's table; reserved bytes are named Reserved*.

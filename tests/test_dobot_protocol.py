@@ -145,4 +145,6 @@ def test_error_ids_and_alarms():
         dobot.param_error(dobot.ErrorId.FAILED, 1)
     assert dobot.joint_limit_alarm(2, True) == 68 and dobot.joint_limit_alarm(2, False) == 69
     assert dobot.overspeed_alarm(5) == 53
+    assert dobot.describe_alarm(53) == "joint 6 overspeed" and dobot.describe_alarm(69) == "joint 3 beyond its negative limit"
+    assert dobot.describe_alarm(17) == "no inverse kinematics solution" and dobot.describe_alarm(999) == "alarm 999"
     assert dobot.RobotMode.ERROR == 9 and dobot.RobotMode.ENABLE == 5 and dobot.RobotMode.DISABLED == 4

@@ -108,6 +108,8 @@ class SimulatedCR5:
         self._enabled = False
         self._estop = False
         self._alarms: list[int] = []
+        # why each alarm was raised, for the operator's log (GetErrorID has only the ids): (sim time, id, detail)
+        self.alarm_log: deque[tuple[float, int, str]] = deque(maxlen=50)
         self._speed_factor = int(self.arm.speed_factor)
         self._load = 0.0
         self._center = np.zeros(3)
@@ -339,7 +341,9 @@ class SimulatedCR5:
         speed = np.abs(q_goal - prev) / t
         j = int(np.argmax(speed))
         if speed[j] > cr5.JOINT_SPEED_LIMIT * 1.05:
-            self._raise(overspeed_alarm(j))
+            self._raise(overspeed_alarm(j), f"servo target J{j + 1} {np.degrees(prev[j]):.1f} -> {np.degrees(q_goal[j]):.1f} deg "
+                        f"in t = {t * 1000:.0f} ms ({np.degrees(speed[j]):.0f} deg/s; limit {np.degrees(cr5.JOINT_SPEED_LIMIT):.0f}); "
+                        f"reference at {np.degrees(self._q_ref[j]):.1f}, actual {np.degrees(self._q[j]):.1f} deg")
             return int(ErrorId.FAILED)
         omega = SERVO_OMEGA * float(np.sqrt(gain / 500.0))
         self._servo = _Servo(start=self._q_ref.copy(), goal=q_goal.copy(), t=float(t), elapsed=0.0, omega=omega, feedforward=float(aheadtime) / 100.0)
@@ -347,9 +351,10 @@ class SimulatedCR5:
 
     # -- alarms ----------------------------------------------------------------------------------
 
-    def _raise(self, alarm: int) -> None:
+    def _raise(self, alarm: int, detail: str = "") -> None:
         if alarm not in self._alarms:
             self._alarms.append(alarm)
+            self.alarm_log.append((self.time, int(alarm), detail))
         self._hold()
 
     def raise_alarm(self, alarm: int) -> None:

@@ -26,6 +26,7 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.bus import Keys, Publisher, Subscriber, declare_alive
+from bagit.common.dobot import describe_alarm
 from bagit.common.errors import BagItError
 from bagit.common.messages import RgbdFrame, RunState, SimTruth
 from bagit.common.scenario import Scenario
@@ -139,6 +140,7 @@ class SimNode:
                 continue
             before = self.rig.time
             self.rig.step(cfg.chunk_s)
+            self._say_alarms()
             sim_total += self.rig.time - before
             if cfg.camera and self._camera_paused is None and self.rig.time >= next_frame - 1e-9:
                 taken = time.time()
@@ -172,6 +174,13 @@ class SimNode:
         self.stats.sim_s, self.stats.wall_s = sim_total, wall
         self.stats.realtime_factor = sim_total / wall if wall > 0 else 0.0
         return self.stats
+
+    def _say_alarms(self) -> None:
+        """Print why a simulated controller alarmed (its GetErrorID gives the id only)."""
+        for name, arm in self.rig.arms.items():
+            while arm.alarm_log:
+                t, alarm, detail = arm.alarm_log.popleft()
+                self.say(f"{name} CR5 alarm {alarm} ({describe_alarm(alarm)}) at t = {t:.2f} s" + (f": {detail}" if detail else ""))
 
     def close(self) -> None:
         for x in (self._state_sub, self._frame_pub, self._truth_pub):
