@@ -21,13 +21,15 @@ What stops the arms, and how:
 - a controller in error or collision, an arm disabled behind the driver's back, a ServoP refused,
   or too many requests without a good reply: a fault. Both arms brake (the arm in error is stopped
   by its controller); the fault stays until `clear_fault()` (the node clears it when a new run
-  starts).
+  starts). The supervisor thread then asks the controllers for their alarm ids (GetErrorID) and
+  adds them to the fault's text.
 - a step the joints cannot follow (a wrist singularity) or a target out of reach: not a stop but a
   slow-down (`reach`): the longest part of the step every joint can follow is sent, so the arms
   pass a singularity at the joints' speed or stop short of an unreachable target.
 - a connection dropped, or an arm's feedback silent for `feedback_timeout_s`: both arms brake; the
-  client reconnects with back-off; after it is back the pipeline restarts from the measured poses
-  and waits for a new command (increments sent meanwhile are refused, never replayed).
+  client reconnects with back-off; after it is back the pipeline restarts from the poses the
+  controllers command (the measured ones once the arms settle; see `_restart_from_measured`) and
+  waits for a new command (increments sent meanwhile are refused, never replayed).
 - e-stop (`estop()` or an `EStop` message): the latch is set first (nothing more is streamed), then
   EmergencyStop(1) goes to both controllers back to back without waiting for either reply. A
   controller that could not be reached gets it as soon as it reconnects. `reset_estop()` releases
@@ -44,7 +46,7 @@ from typing import Callable
 import numpy as np
 
 from bagit.common import cr5
-from bagit.common.dobot import RobotMode
+from bagit.common.dobot import RobotMode, describe_alarm
 from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
 from bagit.common.messages import ArmState, Command, EStop
 from bagit.common.rig import ARMS, RigConfig
@@ -107,6 +109,7 @@ class ArmDriver:
         self._estop_reason: str | None = None
         self._estop_unconfirmed: set[str] = set()
         self._fault: str | None = None
+        self._fault_alarms_asked = False  # GetErrorID asked since the fault latched (once per fault)
         self._links_down: dict[str, str] = {}
         self._seen_epoch = {a: 0 for a in ARMS}
         self._needs_reset = False
@@ -468,17 +471,23 @@ class ArmDriver:
     def _set_fault(self, why: str) -> None:
         if self._fault is None:
             self._fault = why
+            self._fault_alarms_asked = False
             self.counters["faults"] += 1
             self._event("fault", why)
         self.pipe.stop()
 
     def _restart_from_measured(self) -> bool:
-        """Reset the pipeline at rest at the measured poses; a start outside the envelope is a fault."""
+        """Reset the pipeline at rest at the poses the controllers command (QTarget, ToolVectorTarget:
+        the measured ones once the arms settle); a start outside the envelope is a fault.
+
+        Not the actual poses: an arm still following its last target (a restart waits at most
+        SETTLE_TIMEOUT_S for it to settle) would get a first target back behind it, a jump the
+        controller alarms on (joint overspeed) or a jerk the other way."""
         recs = {a: self.clients[a].latest()[0] for a in ARMS}
         if any(r is None for r in recs.values()):
             return False
-        poses = {a: self.frames[a].mount_from_pose6(recs[a]["ToolVectorActual"]) for a in ARMS}
-        q = {a: np.radians(np.asarray(recs[a]["QActual"], dtype=float)) for a in ARMS}
+        poses = {a: self.frames[a].mount_from_pose6(recs[a]["ToolVectorTarget"]) for a in ARMS}
+        q = {a: np.radians(np.asarray(recs[a]["QTarget"], dtype=float)) for a in ARMS}
         if not all(np.all(np.isfinite(poses[a])) and np.all(np.isfinite(q[a])) for a in ARMS):
             self._set_fault("the feedback reports a non-finite pose; cannot restart from it")
             return False
@@ -700,9 +709,34 @@ class ArmDriver:
                 self._event("estop", f"{arm}: still not sent: {e}")
 
     def _supervise(self) -> None:
-        """Reconnect dropped controllers with back-off, off the servo loop (a connect may block)."""
+        """Reconnect dropped controllers with back-off, and ask a faulted controller for its alarms,
+        off the servo loop (a connect or a request may block)."""
         while not self._stop.wait(0.02):
             for a in ARMS:
                 c = self.clients[a]
                 if not c.connected and not self._closing:
                     c.reconnect_if_due()
+            if self._fault is not None and not self._fault_alarms_asked:
+                self._fault_alarms_asked = True
+                self._report_alarms()
+
+    def _report_alarms(self) -> None:
+        """Add the controllers' latched alarm ids to the fault's text: which limit tripped, not just that one did."""
+        found: list[str] = []
+        for a in ARMS:
+            if not self.clients[a].connected:
+                continue
+            try:
+                ids = sorted({i for group in self.clients[a].error_ids() for i in group})
+            except ProtocolError as e:
+                found.append(f"{a}: GetErrorID failed ({e})")
+                continue
+            if ids:
+                found.append(f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in ids))
+        if not found:
+            return
+        text = "; ".join(found)
+        with self._lock:
+            if self._fault is not None and "alarms:" not in self._fault:
+                self._fault = f"{self._fault} [alarms: {text}]"
+        self._event("alarms", text)
