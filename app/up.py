@@ -2,8 +2,9 @@
 
 The composition root of the distributed rig. It writes, in a scratch folder, a Zenoh config
 (peers on 127.0.0.1, multicast scouting off, 1 s lease, every peer connected to the hub session
-this process listens with) and a rig YAML (free ports for the simulated CR5s), then starts the
-services as child processes (`python -m bagit.cli <service> ...`), streams their output with
+this process listens with), a rig YAML (free ports for the simulated CR5s) and an arm-driver
+config (link time-outs for controllers that share the CPU, `SIM_DRIVER_TIMEOUTS`), then starts
+the services as child processes (`python -m bagit.cli <service> ...`), streams their output with
 `[service]` prefixes, waits for each one's liveliness token, and can start a run on run/control
 and wait for its end.
 
@@ -40,6 +41,13 @@ SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboa
 # A service that needs another one up before it can start (the arm driver connects to the CR5s the
 # simulator serves; on a real rig the controllers are already up).
 AFTER = {"arm-driver": "sim"}
+# The arm driver's link time-outs for the simulated CR5s. A real CR5 sends feedback every 8 ms and
+# answers at once, so the driver's defaults call 0.2 s without feedback a lost link and 0.5 s
+# without a reply an error. The simulated controllers share the machine's cores with the physics,
+# every other service and maybe a browser: a loaded machine keeps them off the CPU for that long
+# (seen on 2 cores), and the driver would then restart the stream or fault a run over a scheduler
+# pause. The watchdog on the controller's commands and every motion limit stay as they are.
+SIM_DRIVER_TIMEOUTS = {"feedback_timeout_s": 1.0, "reply_timeout_s": 2.0}
 FINAL = ("done", "failed", "aborted")
 
 
@@ -159,6 +167,7 @@ class Up:
         rig = rig.model_copy(update={"arms": arms})
         rpath = self.dir / "rig.yaml"
         rpath.write_text(rig.to_yaml(), encoding="utf-8")
+        (self.dir / "arm-driver.yaml").write_text(json.dumps({"driver": SIM_DRIVER_TIMEOUTS}, indent=2), encoding="utf-8")
         return zpath, rpath
 
     def _argv(self, name: str, zpath: Path, rpath: Path) -> list[str]:
@@ -172,7 +181,9 @@ class Up:
             args = ["dashboard", "--port", str(port), "--rig-config", str(rpath), "--scenario", o.scenario or o.world]
         elif name == "recorder":
             args = ["recorder", "--dir", str(o.record or "recordings")]
-        elif name in ("arm-driver", "perception"):
+        elif name == "arm-driver":
+            args = [name, "--config", str(self.dir / "arm-driver.yaml"), "--rig-config", str(rpath)]
+        elif name == "perception":
             args = [name, "--rig-config", str(rpath)]
         elif name == "planner":
             args = [name, "--run-time-limit", f"{o.run_time_limit_s:g}"]

@@ -117,3 +117,24 @@ def test_planner_run_time_limit_is_validated(capsys, tmp_path):
 
     up = Up(UpOptions(run_time_limit_s=400.0, workdir=tmp_path))
     assert up._argv("planner", Path("z.json5"), Path("rig.yaml"))[:3] == ["planner", "--run-time-limit", "400"]
+
+
+def test_up_gives_the_arm_driver_link_timeouts_for_simulated_controllers(tmp_path):
+    """`bagit up` drives simulated CR5s that share the CPU: its arm driver waits longer for their
+    feedback and replies than the defaults for a real CR5, and every motion limit stays the rig's."""
+    import argparse
+
+    from bagit.commands._service import load_service_config
+    from bagit.services.arm_driver.config import ArmDriverServiceConfig, DriverConfig
+    from bagit.up import SIM_DRIVER_TIMEOUTS, Up, UpOptions
+
+    up = Up(UpOptions(workdir=tmp_path))
+    zpath, rpath = up._write_configs()
+    argv = up._argv("arm-driver", zpath, rpath)
+    cfg_path = Path(argv[argv.index("--config") + 1])
+    assert argv[argv.index("--rig-config") + 1] == str(rpath)
+    cfg, _ = load_service_config(ArmDriverServiceConfig, cfg_path, {"rig_config": str(rpath)}, argparse.Namespace(rig="sim"))
+    default = DriverConfig()
+    assert cfg.driver.feedback_timeout_s == SIM_DRIVER_TIMEOUTS["feedback_timeout_s"] > default.feedback_timeout_s
+    assert cfg.driver.reply_timeout_s == SIM_DRIVER_TIMEOUTS["reply_timeout_s"] > default.reply_timeout_s
+    assert cfg.driver.model_copy(update={k: getattr(default, k) for k in SIM_DRIVER_TIMEOUTS}) == default  # nothing else
