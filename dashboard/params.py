@@ -24,7 +24,8 @@ class FieldSpec:
     hint: str
 
 
-# λ1-λ5, λd, g†'s depth, the MPC's horizon and weights, the speed limits (C7), the tolerances and the settle at g†.
+# λ1-λ5, λd, g†'s depth, the MPC's horizon and weights (R and the move suppression), the speed
+# limits (C7), the tolerances and the settle at g†.
 FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("lambda_1", "λ1 C1 margin", 0.001, "max F_e of any vertex inside the ellipse (< 1)"),
     FieldSpec("lambda_2", "λ2 C2 centre (m)", 0.001, "max ellipse-centre offset from V's centroid"),
@@ -36,6 +37,7 @@ FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("horizon", "MPC horizon T", 1, "steps the MPC looks ahead"),
     FieldSpec("q_weight", "MPC Q weight", 0.05, "weight of the SOI error"),
     FieldSpec("r_weight", "MPC R weight", 0.01, "weight of the command size"),
+    FieldSpec("du_weight", "MPC Δu weight", 1.0, "weight of the command's change per tick"),
     FieldSpec("epsilon", "Broyden ε", 0.05, "Jacobian update rate"),
     FieldSpec("control_rate_hz", "control rate (Hz)", 1, "controller ticks per second"),
     FieldSpec("max_linear_speed_mps", "max speed (m/s)", 0.005, "C7: gripper linear speed limit"),

@@ -45,6 +45,49 @@ def test_condensed_cost_is_the_papers_cost():
         assert np.allclose(s.predicted(J, x, u).ravel(), xb)
 
 
+def test_move_suppression_is_the_cost_of_the_input_change():
+    """du Σ_k |u_k - u_{k-1}|²_W (u_{-1} the last applied input, W weighing rotations like R) is added
+    exactly: the condensed H and c give the paper's cost plus it, for every ū."""
+    rng = np.random.default_rng(5)
+    T, q, r, du = 4, 2.0, 0.1, 30.0
+    J = rng.normal(size=(18, 12))
+    x, k, u_prev = rng.normal(size=18), rng.normal(size=18), rng.normal(size=12)
+    s = MpcSolver(T, q, r, du=du)
+    H, c = s.condensed(J, x, k, u_prev=u_prev)
+    H0, c0 = MpcSolver(T, q, r).condensed(J, x, k)
+    W = np.diag(s.r_diag[:12] / r)  # rotations weighed like R
+    for _ in range(5):
+        u = rng.normal(size=12 * T)
+        steps = np.diff(np.vstack([u_prev, u.reshape(T, 12)]), axis=0)
+        change = du * sum(d @ W @ d for d in steps)
+        const = du * u_prev @ W @ u_prev
+        assert np.isclose(u @ H0 @ u + 2 * c0 @ u + change, u @ H @ u + 2 * c @ u + const)
+    with pytest.raises(ValueError, match="du"):
+        MpcSolver(T, q, r, du=-1.0)
+
+
+def test_move_suppression_stops_the_input_flipping_on_a_noisy_soi():
+    """A few millimetres of noise on the SOI flip a saturated input from tick to tick without it
+    (the error's direction is lost in the noise); with it the input changes gently."""
+    rng = np.random.default_rng(6)
+    J, x, target, _ = _problem(rng)
+    target = x + (target - x) * 0.2  # a cm or so away: within the noise's reach of the optimum's corner
+    noise = rng.normal(size=(60, x.size)) * 0.004
+
+    def input_changes(du: float) -> float:
+        s = MpcSolver(10, 1.0, 0.05, du=du)
+        u_prev, total = np.zeros(12), 0.0
+        for n in noise:
+            sol = s.solve(J, x + n, target, U_MAX, u_prev=u_prev)
+            assert sol.ok and np.all(np.abs(sol.u) <= U_MAX + 1e-12)  # C7 whatever du
+            total += float(np.linalg.norm((sol.u - u_prev) / U_MAX))
+            u_prev = sol.u
+        return total / len(noise)
+
+    flippy, smooth = input_changes(0.0), input_changes(100.0)
+    assert smooth < 0.5 * flippy, (smooth, flippy)
+
+
 def test_unconstrained_solution_is_the_least_squares_one():
     """With bounds far away the QP's answer is H⁻¹(-c)."""
     rng = np.random.default_rng(1)

@@ -14,6 +14,14 @@ inputs: the fabric rim cannot be pulled further apart than about half its perime
 closer than the subgoal's shape needs it goes slack and folds in (see ServoBase.separation_band).
 Only the first input is applied.
 
+Move suppression (`MethodParams.du_weight`, not in the paper): the cost also has
+du Σ_k |u_k - u_{k-1}|² with u_{-1} the input applied last tick. The paper's R is tiny next to
+Q JᵀJ, so without it the QP is nearly minimum-time: its answer sits on a corner of the C7 box,
+and a few millimetres of SOI noise move it to another corner from one tick to the next (seen in
+the simulator as grippers shaking up and down at full speed instead of lifting the rim). The term
+adds the constant du (DᵀD ⊗ W) to H and -du (e_0 ⊗ W) u_{-1} to c (D the first difference, W the
+rotation weighting of R); `uncondensed_qp` stays the paper's QP, for the solver comparison.
+
 PIQP is an interior-point solver and takes no primal start in its Python API (v0.7), so the
 "warm start" it can use is its set-up: the KKT structure and workspace are kept between ticks and
 only the data change through `update()`. (Shifting the origin to last tick's shifted plan was
@@ -67,6 +75,17 @@ def rotation_weighted_r(r: float, horizon: int) -> np.ndarray:
     return r * np.tile(per_tick, horizon)
 
 
+def move_suppression(s: float, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cost s Σ_k |u_k - u_{k-1}|² (u_{-1} the input applied last tick, rotations weighted like R)
+    as its Hessian `(12T, 12T)` = s (DᵀD ⊗ W) and the gradient's factor `(12T, 12)` = -s (e_0 ⊗ W),
+    D the first difference over the horizon: c gets factor @ u_prev."""
+    W = np.diag(rotation_weighted_r(1.0, 1))
+    D = np.eye(horizon) - np.eye(horizon, k=-1)
+    e0 = np.zeros((horizon, 1))
+    e0[0, 0] = 1.0
+    return s * np.kron(D.T @ D, W), -s * np.kron(e0, W)
+
+
 def plane_weight(target: np.ndarray, out_of_plane: float) -> np.ndarray:
     """W `(3, 3)` = I - (1 - out_of_plane) n nᵀ with n the normal of the subgoal `target (3 n_x,)`:
     whether the object passes is decided in the rim's plane, while the sag of the free fabric out of
@@ -100,7 +119,7 @@ class MpcSolver:
     'sparse' (piqp.SparseSolver on the same QP, for comparison).
     """
 
-    def __init__(self, horizon: int, q: float, r: float, backend: str = "dense", eps: float = 1e-7):
+    def __init__(self, horizon: int, q: float, r: float, backend: str = "dense", eps: float = 1e-7, du: float = 0.0):
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         if backend not in ("dense", "sparse"):
@@ -116,6 +135,10 @@ class MpcSolver:
         self._Lt1 = L.T @ np.ones(horizon)
         self.r_diag = rotation_weighted_r(r, horizon)
         self._R = np.diag(self.r_diag)
+        if not (np.isfinite(du) and du >= 0):
+            raise ValueError(f"du must be a finite weight >= 0, got {du}")
+        self.du = float(du)
+        self._H_du, self._c_du = move_suppression(self.du, horizon)
         # Fixed sparsity patterns (the sparse solver's update needs the same pattern every tick).
         n = 12 * horizon
         self._triu = np.triu_indices(n)
@@ -134,15 +157,20 @@ class MpcSolver:
         self.last: MpcSolution | None = None
 
     def condensed(
-        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, point_weight: np.ndarray | None = None
+        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, point_weight: np.ndarray | None = None, u_prev: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """H `(12T, 12T)` and c `(12T,)` of the condensed cost for `J (3 n_x, 12)`, `x`, `target (3 n_x,)`.
 
         point_weight `(3, 3)`: Q = q (I_{n_x} ⊗ W) instead of q I, the same symmetric weight on every
-        point's (x, y, z) error (e.g. less on the direction out of the rim's plane)."""
+        point's (x, y, z) error (e.g. less on the direction out of the rim's plane). u_prev `(12,)`: the
+        input applied last tick, the start of the move suppression (`du`; None: zero)."""
         WJ = J if point_weight is None else np.einsum("ab,ibk->iak", point_weight, J.reshape(-1, 3, J.shape[1])).reshape(J.shape)
         H = self.q * np.kron(self._LtL, J.T @ WJ) + self._R
         c = self.q * np.outer(self._Lt1, WJ.T @ (x - target)).ravel()
+        if self.du > 0:
+            H = H + self._H_du
+            if u_prev is not None:
+                c = c + self._c_du @ np.asarray(u_prev, dtype=float)
         return H, c
 
     def separation_rows(self, axis: np.ndarray) -> np.ndarray:
@@ -160,13 +188,15 @@ class MpcSolver:
         sep_limits: tuple[float, float] = (0.0, np.inf),
         sep_recover: float = 0.0,
         point_weight: np.ndarray | None = None,
+        u_prev: np.ndarray | None = None,
     ) -> MpcSolution:
         """Inputs for the SOI `x (3 n_x,)` to reach `target (3 n_x,)` under the model `J (3 n_x, 12)`.
 
         `u_max (12,)`: C7 bound per input per tick. `sep_axis (3,)`: unit vector from the left to the
         right gripper; the separation along it stays within `sep_limits` over the horizon (C6). If the
         grippers are already outside that band they must head back by `sep_recover` (m) per step
-        (0: only no worse), never faster than the band asks. `point_weight (3, 3)`: see `condensed`.
+        (0: only no worse), never faster than the band asks. `point_weight (3, 3)`, `u_prev (12,)`:
+        see `condensed`.
         """
         T = self.T
         t0 = time.perf_counter()
@@ -174,20 +204,22 @@ class MpcSolver:
         x = np.asarray(x, dtype=float).ravel()
         target = np.asarray(target, dtype=float).ravel()
         zeros = np.zeros(12 * T)
+        if u_prev is not None and not np.all(np.isfinite(u_prev)):
+            u_prev = None
         if not (np.all(np.isfinite(J)) and np.all(np.isfinite(x)) and np.all(np.isfinite(target))):
             return self._fail(zeros, t0, "non-finite model or SOI")
         try:
-            return self._solve(J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, t0)
+            return self._solve(J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, u_prev, t0)
         except (ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError) as e:
             # PIQP's set-up or factorisation refusing the data: a failed tick (the arms hold), not a crash
             self._solver = None  # set up afresh next tick
             return self._fail(zeros, t0, f"solver error: {e}")
 
-    def _solve(self, J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, t0) -> MpcSolution:
+    def _solve(self, J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, u_prev, t0) -> MpcSolution:
         T = self.T
         zeros = np.zeros(12 * T)
         with np.errstate(over="ignore", invalid="ignore"):  # an overflowing model is caught just below
-            H, c = self.condensed(J, x, target, point_weight)
+            H, c = self.condensed(J, x, target, point_weight, u_prev)
         if not (np.all(np.isfinite(H)) and np.all(np.isfinite(c))):
             return self._fail(zeros, t0, "non-finite QP data")
         ub = np.tile(np.asarray(u_max, dtype=float), T)
@@ -314,10 +346,10 @@ class MpcController(ServoBase):
 
     def __init__(self, params: MethodParams, n_x: int, backend: str = "dense", **kwargs):
         super().__init__(params, n_x, **kwargs)
-        self.solver = MpcSolver(params.horizon, params.q_weight, params.r_weight, backend)
+        self.solver = MpcSolver(params.horizon, params.q_weight, params.r_weight, backend, du=params.du_weight)
 
     def _on_reset(self) -> None:
-        self.solver = MpcSolver(self.p.horizon, self.p.q_weight, self.p.r_weight, self.solver.backend)
+        self.solver = MpcSolver(self.p.horizon, self.p.q_weight, self.p.r_weight, self.solver.backend, du=self.p.du_weight)
 
     def _law(self, J, x, target, grippers):
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
@@ -325,7 +357,7 @@ class MpcController(ServoBase):
         axis = (pr - pl) / max(sep, 1e-9)
         band = self.separation_band(target, axis)
         W = plane_weight(target, OUT_OF_PLANE_WEIGHT) if OUT_OF_PLANE_WEIGHT != 1.0 else None
-        sol = self.solver.solve(J, x, target, self.u_max, axis, sep, band, servo_mod.SEP_RECOVER_M, W)
+        sol = self.solver.solve(J, x, target, self.u_max, axis, sep, band, servo_mod.SEP_RECOVER_M, W, self._u_prev)
         if not sol.ok:
             return np.zeros(12), sol.solve_ms, f"MPC QP not solved ({sol.status})"
         return sol.u, sol.solve_ms, None
