@@ -188,3 +188,47 @@ def test_c6_lower_bound_follows_the_subgoal_held_taut():
     assert np.isclose(lower, m.sep0 - 0.01) and np.isclose(upper, 0.9 * c.perimeter / 2)
     narrow = x0 * [1.0, 0.8, 1.0]  # a subgoal 20 % narrower along the grippers' axis
     assert np.isclose(c.separation_band(narrow.ravel(), axis)[0], 0.8 * m.sep0 - 0.01)
+
+
+def test_bound_pitch_cuts_only_the_turn_about_the_grippers_axis_past_the_limit():
+    from scipy.spatial.transform import Rotation
+
+    from bagit.services.controller.servo import bound_pitch
+
+    m = SyntheticRim(32)
+    start = m.home()
+    axis = start["right"][:3, 3] - start["left"][:3, 3]
+    axis /= np.linalg.norm(axis)
+    now = {a: start[a].copy() for a in start}
+    for a in now:  # both grippers already turned 14 deg about the axis
+        now[a][:3, :3] = Rotation.from_rotvec(np.radians(14) * axis).as_matrix() @ start[a][:3, :3]
+    u = np.zeros(12)
+    u[3:6] = 0.03 * axis + np.array([0.0, 0.0, 0.004]) - 0.004 * axis[2] * axis  # 1.7 deg further, plus a turn across it
+    u[9:12] = -0.03 * axis  # back towards the start
+    out = bound_pitch(u, now, start, np.radians(15))
+    assert np.isclose(out[3:6] @ axis, np.radians(1), atol=1e-9)  # only up to the limit
+    assert np.allclose(out[3:6] - (out[3:6] @ axis) * axis, u[3:6] - (u[3:6] @ axis) * axis)  # the rest kept
+    assert np.allclose(out[9:12], u[9:12]) and np.allclose(out[[0, 1, 2, 6, 7, 8]], 0)  # turning back is free
+    assert np.allclose(bound_pitch(u, start, start, np.radians(15)), u)  # well inside: untouched
+
+
+@pytest.mark.parametrize("kind", ["mpc", "ibvs", "ssvs"])
+def test_no_gripper_turns_about_the_grippers_axis_past_max_pitch(kind):
+    """A goal reached by turning both grippers 30 deg about the line between them: they stop at
+    max_pitch_deg (15), whatever the law asks."""
+    from bagit.common.so3 import so3_log
+
+    m = SyntheticRim(32)
+    start = m.home()
+    axis = start["right"][:3, 3] - start["left"][:3, 3]
+    axis /= np.linalg.norm(axis)
+    u_goal = np.zeros(12)
+    u_goal[3:6] = u_goal[9:12] = np.radians(30) * axis
+    pitches = []
+
+    def check(g, out):
+        pitches.append(max(abs(so3_log(g[a][:3, :3] @ start[a][:3, :3].T) @ axis) for a in ("left", "right")))
+
+    _run(kind, m, _path(m, u_goal, 5), dagger=2, ticks=400, check=check)
+    assert max(pitches) <= np.radians(P.max_pitch_deg) + 1e-6
+    assert max(pitches) > np.radians(P.max_pitch_deg) - np.radians(2)  # it did turn as far as allowed

@@ -17,6 +17,7 @@ from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import Command
 from bagit.common.params import MethodParams
+from bagit.common.so3 import so3_log
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
@@ -65,6 +66,30 @@ def c7_limits(params: MethodParams) -> np.ndarray:
     dt = 1.0 / params.control_rate_hz
     lin, ang = params.max_linear_speed_mps * dt, params.max_angular_speed_rps * dt
     return np.array([lin] * 3 + [ang] * 3 + [lin] * 3 + [ang] * 3)
+
+
+def bound_pitch(u: np.ndarray, grippers: dict[str, np.ndarray], start: dict[str, np.ndarray], limit_rad: float) -> np.ndarray:
+    """`u (12,)` with each gripper's turn about the line between the grippers cut so that its angle
+    about it from its `start` rotation `(3, 3)` does not grow past `limit_rad`.
+
+    That turn swings the rim's near side (towards the camera) and its far side in opposite ways.
+    The camera sees only the near side, so a controller lifting what it sees by it drops the far
+    side, hidden behind the object, under the object's bottom. Only growth is cut: an input never
+    has to turn a gripper back, so it stays inside C7."""
+    pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
+    sep = float(np.linalg.norm(pr - pl))
+    if sep < 1e-9:
+        return u
+    axis = (pr - pl) / sep
+    out = np.array(u, dtype=float)
+    for arm, cols in (("left", slice(3, 6)), ("right", slice(9, 12))):
+        pitch = float(so3_log(grippers[arm][:3, :3] @ start[arm][:3, :3].T) @ axis)
+        step = float(out[cols] @ axis)
+        if step > 0 and pitch + step > limit_rad:
+            out[cols] += (max(limit_rad - pitch, 0.0) - step) * axis
+        elif step < 0 and pitch + step < -limit_rad:
+            out[cols] += (min(-limit_rad - pitch, 0.0) - step) * axis
+    return out
 
 
 def scale_into_box(u: np.ndarray, u_max: np.ndarray) -> np.ndarray:
@@ -179,6 +204,7 @@ class ServoBase:
         self._goal_since = 0
         self._sep_offset: float | None = None
         self.ticks = 0
+        self._start_rot = None if gripper_poses is None else {a: np.array(gripper_poses[a][:3, :3]) for a in ("left", "right")}
         if x0 is not None and gripper_poses is not None:
             self._learn_separation_offset(x0, gripper_poses)
         self._on_reset()
@@ -216,6 +242,8 @@ class ServoBase:
         xf = x.ravel()
         if self._sep_offset is None:
             self._learn_separation_offset(x, gripper_poses)
+        if self._start_rot is None:
+            self._start_rot = {a: np.array(gripper_poses[a][:3, :3]) for a in ("left", "right")}
         self._learn(xf)
         self._x_prev = xf
         if self.jacobian is None:
@@ -251,6 +279,10 @@ class ServoBase:
             out.solve_ms = solve_ms
             return out
         u = np.clip(u, -self.u_max, self.u_max)  # C7, whatever the law
+        if self.p.max_pitch_deg is not None:
+            # the cut is along the grippers' axis, which is not a C7 box axis: alternate with the box
+            for _ in range(3):
+                u = np.clip(bound_pitch(u, gripper_poses, self._start_rot, np.radians(self.p.max_pitch_deg)), -self.u_max, self.u_max)
         self._u_prev = u
         out = self._out(u, "servo", None, x)
         out.solve_ms = solve_ms
