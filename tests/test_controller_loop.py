@@ -21,9 +21,9 @@ def _path(m: SyntheticRim, u_goal=U_GOAL, n_nodes: int = 8) -> np.ndarray:
     return np.stack([m.rim(apply_increment(m.home(), u_goal * s)) for s in np.linspace(0, 1, n_nodes)])
 
 
-def _run(kind, m, path, dagger=5, ticks=900, noise=0.0, seed=0, perimeter=None, check=None):
+def _run(kind, m, path, dagger=5, ticks=900, noise=0.0, seed=0, perimeter=None, check=None, params=P):
     rng = np.random.default_rng(seed)
-    c = make_controller(kind, P, m.n_x)
+    c = make_controller(kind, params, m.n_x)
     g = m.home()
     c.reset(m.rim(g), Path(nodes=path, dagger_index=dagger), g, perimeter=perimeter)
     t, out, outs = 0.0, None, []
@@ -213,9 +213,9 @@ def test_bound_pitch_cuts_only_the_turn_about_the_grippers_axis_past_the_limit()
 
 
 @pytest.mark.parametrize("kind", ["mpc", "ibvs", "ssvs"])
-def test_no_gripper_turns_about_the_grippers_axis_past_max_pitch(kind):
-    """A goal reached by turning both grippers 30 deg about the line between them: they stop at
-    max_pitch_deg (15), whatever the law asks."""
+def test_with_max_pitch_no_gripper_turns_about_the_grippers_axis_past_it(kind):
+    """A goal reached by turning both grippers 30 deg about the line between them: with
+    max_pitch_deg 15 they stop there, whatever the law asks; without it (the default) they do not."""
     from bagit.common.so3 import so3_log
 
     m = SyntheticRim(32)
@@ -229,6 +229,10 @@ def test_no_gripper_turns_about_the_grippers_axis_past_max_pitch(kind):
     def check(g, out):
         pitches.append(max(abs(so3_log(g[a][:3, :3] @ start[a][:3, :3].T) @ axis) for a in ("left", "right")))
 
+    bounded = P.model_copy(update={"max_pitch_deg": 15.0})
+    _run(kind, m, _path(m, u_goal, 5), dagger=2, ticks=400, check=check, params=bounded)
+    assert max(pitches) <= np.radians(15) + 1e-6
+    assert max(pitches) > np.radians(13)  # it did turn as far as allowed
+    pitches.clear()
     _run(kind, m, _path(m, u_goal, 5), dagger=2, ticks=400, check=check)
-    assert max(pitches) <= np.radians(P.max_pitch_deg) + 1e-6
-    assert max(pitches) > np.radians(P.max_pitch_deg) - np.radians(2)  # it did turn as far as allowed
+    assert max(pitches) > np.radians(17)
