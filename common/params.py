@@ -49,8 +49,9 @@ class MethodParams(BaseModel):
     # Not in the paper: how far each gripper may turn about the line between the grippers (from its
     # start); None: no bound (the default: measured, the bound did not pay).
     max_pitch_deg: float | None = Field(None, ge=0.0, le=180.0, description="grippers turn at most this far about their common axis (deg)")
-    # Not in the paper: the cost of changing the input from one tick to the next (move suppression).
-    du_weight: float = Field(100.0, ge=0.0, le=1e4, description="MPC cost of the input's change per tick")
+    # Not in the paper: the cost of changing the input from one tick to the next (move suppression);
+    # 0 (the paper's cost) is the default: measured, 100 did not pay.
+    du_weight: float = Field(0.0, ge=0.0, le=1e4, description="MPC cost of the input's change per tick")
     max_linear_speed_mps: float = Field(0.05, gt=0.0, le=0.25, description="C7: gripper speed (m/s)")
     max_angular_speed_rps: float = Field(0.3, gt=0.0, le=2.0, description="C7: gripper angular speed (rad/s)")
     subgoal_tol_m: float = Field(0.02, gt=0.0, le=0.2, description="advance along the path below this RMS error")

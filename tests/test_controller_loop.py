@@ -75,6 +75,18 @@ def test_mpc_reaches_the_goal_with_a_noisy_soi():
     assert np.linalg.norm(c.jacobian.J) <= c.jacobian.max_norm
 
 
+def test_move_suppression_smooths_the_mpc_inputs_on_a_noisy_soi_and_still_reaches_the_goal():
+    """du_weight reaches the MPC's QP: on a noisy SOI its inputs change less from tick to tick."""
+    m = SyntheticRim(32)
+    change = {}
+    for du in (0.0, 100.0):
+        c, out, outs, _ = _run("mpc", m, _path(m), noise=0.003, seed=7, ticks=1500, params=P.model_copy(update={"du_weight": du}))
+        assert c.solver.du == du and out.done and out.error_to_goal <= 2 * P.subgoal_tol_m
+        u = np.array([o.u for o in outs if o.mode == "servo"]) / c7_limits(P)
+        change[du] = float(np.mean(np.linalg.norm(np.diff(u, axis=0), axis=1)))
+    assert change[100.0] < 0.5 * change[0.0], change
+
+
 def test_mpc_keeps_the_grippers_within_what_the_rim_allows():
     """A goal that asks for 6 cm more separation than C6 allows: MPC stops at the limit."""
     m = SyntheticRim(32)

@@ -14,7 +14,7 @@ inputs: the fabric rim cannot be pulled further apart than about half its perime
 closer than the subgoal's shape needs it goes slack and folds in (see ServoBase.separation_band).
 Only the first input is applied.
 
-Move suppression (`MethodParams.du_weight`, not in the paper): the cost also has
+Move suppression (`MethodParams.du_weight`, not in the paper, 0 by default): the cost also has
 du Σ_k |u_k - u_{k-1}|² with u_{-1} the input applied last tick. The paper's R is tiny next to
 Q JᵀJ, so without it the QP is nearly minimum-time: its answer sits on a corner of the C7 box,
 and a few millimetres of SOI noise move it to another corner from one tick to the next (seen in
