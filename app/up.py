@@ -134,6 +134,7 @@ class Up:
         self._own_dir = opts.workdir is None
         self.dir = Path(tempfile.mkdtemp(prefix="bagit-up-")) if opts.workdir is None else Path(opts.workdir)
         self.dir.mkdir(parents=True, exist_ok=True)
+        self.driver_config = self.dir / "arm-driver.yaml"  # the arm driver's link time-outs (SIM_DRIVER_TIMEOUTS)
         self.keys = Keys(opts.rig)
         self.children: dict[str, Child] = {}
         self._stopping = threading.Event()
@@ -167,7 +168,7 @@ class Up:
         rig = rig.model_copy(update={"arms": arms})
         rpath = self.dir / "rig.yaml"
         rpath.write_text(rig.to_yaml(), encoding="utf-8")
-        (self.dir / "arm-driver.yaml").write_text(json.dumps({"driver": SIM_DRIVER_TIMEOUTS}, indent=2), encoding="utf-8")
+        self.driver_config.write_text(json.dumps({"driver": SIM_DRIVER_TIMEOUTS}, indent=2), encoding="utf-8")
         return zpath, rpath
 
     def _argv(self, name: str, zpath: Path, rpath: Path) -> list[str]:
@@ -182,7 +183,7 @@ class Up:
         elif name == "recorder":
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name == "arm-driver":
-            args = [name, "--config", str(self.dir / "arm-driver.yaml"), "--rig-config", str(rpath)]
+            args = [name, "--config", str(self.driver_config), "--rig-config", str(rpath)]
         elif name == "perception":
             args = [name, "--rig-config", str(rpath)]
         elif name == "planner":

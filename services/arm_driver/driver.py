@@ -737,6 +737,6 @@ class ArmDriver:
             return
         text = "; ".join(found)
         with self._lock:
-            if self._fault is not None and "alarms:" not in self._fault:
+            if self._fault is not None:
                 self._fault = f"{self._fault} [alarms: {text}]"
         self._event("alarms", text)

@@ -204,7 +204,7 @@ class ServoBase:
         self._goal_since = 0
         self._sep_offset: float | None = None
         self.ticks = 0
-        self._start_rot = None if gripper_poses is None else {a: np.array(gripper_poses[a][:3, :3]) for a in ("left", "right")}
+        self._start_rot: dict[str, np.ndarray] | None = None  # the grippers' rotations at the first tick (max_pitch_deg)
         if x0 is not None and gripper_poses is not None:
             self._learn_separation_offset(x0, gripper_poses)
         self._on_reset()
