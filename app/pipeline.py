@@ -141,7 +141,7 @@ def run_bagging(
     if not plan.success:
         return finish(False, "planning", plan.reason, plan_t=plan.time_s)
     progress(f"pre-bagging: {len(plan.path)} nodes, g† at {plan.dagger_index} (planned in {plan.time_s:.2f} s)")
-    servo = ShapeServo(controller, p, plan.path, plan.dagger_index, R)
+    servo = ShapeServo(controller, p, plan.path, plan.dagger_index, R, outline=V, frame=goal.frame)
     x, ticks, stage = g0, 0, "pre-bagging"
     limit = servo.u_max
     holding: str | None = None  # why the controller holds the arms, while it does

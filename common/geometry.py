@@ -131,6 +131,43 @@ def points_to_polyline_distance(points: np.ndarray, polyline: np.ndarray, closed
     return np.linalg.norm(q[:, None, :] - proj, axis=2).min(axis=1)
 
 
+def enclosure(rim: np.ndarray, points: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How well the closed `rim (n, 3)`, seen along the z axis of `frame` (4x4, world <- F), goes round
+    each of `points (m, 3)`: its signed distance `(m,)` (m, > 0 inside) from the rim's outline, and
+    the unit world direction `(m, 3)`, in F's xy plane, in which the rim's edge nearest it must move
+    to take it in further.
+
+    Why: an SOI can match a subgoal to within its RMS tolerance and still leave an object's corner
+    outside, which the lift then catches."""
+    r = np.asarray(rim, dtype=float)
+    q = np.asarray(points, dtype=float)
+    T = np.asarray(frame, dtype=float)
+    if r.ndim != 2 or r.shape[1] != 3 or len(r) < 3 or q.ndim != 2 or q.shape[1] != 3 or len(q) < 1 or T.shape != (4, 4):
+        raise ValueError(f"enclosure: need rim (n >= 3, 3), points (m >= 1, 3), frame (4, 4); got {r.shape}, {q.shape}, {T.shape}")
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(q)) and np.all(np.isfinite(T))):
+        raise ValueError("enclosure: non-finite input")
+    import cv2  # only here: the rest of this module does not need OpenCV
+
+    axes = T[:3, :2]  # F's x and y axes in the world
+    r2 = (r - T[:3, 3]) @ axes  # (n, 2)
+    q2 = (q - T[:3, 3]) @ axes  # (m, 2)
+    a, ab = r2, np.roll(r2, -1, axis=0) - r2
+    denom = np.where((ab * ab).sum(1) > 0, (ab * ab).sum(1), 1.0)
+    t = np.clip(np.einsum("mnj,nj->mn", q2[:, None] - a[None], ab) / denom, 0.0, 1.0)  # (m, n)
+    near = a[None] + t[..., None] * ab[None]  # (m, n, 2)
+    d = np.linalg.norm(near - q2[:, None], axis=2)  # (m, n)
+    rows = np.arange(len(q2))
+    j = d.argmin(axis=1)
+    contour = r2.astype(np.float32).reshape(-1, 1, 2)
+    inside = np.array([cv2.pointPolygonTest(contour, (float(x), float(y)), False) >= 0 for x, y in q2])
+    out2 = np.where(inside[:, None], near[rows, j] - q2, q2 - near[rows, j])  # towards where the edge must go
+    on_edge = np.linalg.norm(out2, axis=1) < 1e-9
+    out2[on_edge] = q2[on_edge] - r2.mean(axis=0)  # on the outline: away from the rim's centre
+    norm = np.linalg.norm(out2, axis=1, keepdims=True)
+    out2 = np.divide(out2, norm, out=np.zeros_like(out2), where=norm > 1e-12)
+    return np.where(inside, d[rows, j], -d[rows, j]), out2 @ axes.T
+
+
 def align_cyclic(rim: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """`rim (n, 3)` re-indexed (best cyclic shift and direction) so point i lies nearest reference point i.
 

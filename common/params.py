@@ -34,6 +34,14 @@ class MethodParams(BaseModel):
     # the far side of the object from the camera (perception bridges it); the grippers keep still
     # at g† for a moment so it catches up before the lift, instead of being pinned under the bottom.
     dagger_settle_s: float = Field(1.0, ge=0.0, le=10.0, description="grippers still at g† this long before the lift (s)")
+    # Not in the paper either: an SOI within the RMS tolerance of g† can still leave a corner of the
+    # object outside the rim, and the lift then catches it where the camera cannot see. With a value,
+    # the rim must go round V (seen along the object's axis) by this much before the lift and at the
+    # end, and the subgoal may be pushed outwards where it does not. None (the default, the paper's
+    # rule): measured over the whole sweep, the rule did not pay (it costs time, and runs ran out of it).
+    enclose_margin_m: float | None = Field(None, ge=0.0, le=0.1, description="the rim goes round V by this much before the lift and at g* (m)")
+    enclose_timeout_s: float = Field(5.0, ge=0.0, le=60.0, description="lift or finish anyway after the enclosure rule held this long (s)")
+    enclose_push_m: float = Field(0.0, ge=0.0, le=0.1, description="the enclosure rule moves a subgoal outwards at most this far (m)")
     # Planner.
     planner_max_iterations: int = Field(4000, ge=10, le=1_000_000)
     planner_step_m: float = Field(0.03, gt=0.0, le=0.05, description="max rim-point move per tree step (m)")

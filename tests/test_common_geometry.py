@@ -59,3 +59,20 @@ def test_resample_and_length_and_polyline_distance():
     assert np.allclose(np.linalg.norm(np.roll(r, -1, 0) - r, axis=1), 0.5)
     d = g.points_to_polyline_distance(np.array([[0.5, 0.5, 0], [2, 0, 0], [0.5, -0.1, 0]]), sq)
     assert np.allclose(d, [0.5, 1.0, 0.1])
+
+
+def test_enclosure_signs_distances_and_points_the_way_out():
+    t = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    rim = np.stack([0.1 * np.cos(t), 0.1 * np.sin(t), np.full(64, 0.5)], 1)
+    pts = np.array([[0.05, 0.0, 0.7], [0.0, 0.12, 0.7], [0.0, 0.0, 0.7]])
+    frame = g.make_transform(None, [0, 0, 0.6])
+    d, out = g.enclosure(rim, pts, frame)
+    assert d == pytest.approx([0.05, -0.02, 0.1], abs=2e-3)  # inside > 0, outside < 0, heights ignored
+    assert out[0] == pytest.approx([1, 0, 0], abs=0.05) and out[1] == pytest.approx([0, 1, 0], abs=0.05)
+    # seen along a tilted axis: the frame's z, not the world's
+    R = g.rpy_to_matrix([0.0, np.pi / 2, 0.0])  # F's z along world x
+    d2, out2 = g.enclosure(rim, pts, g.make_transform(R, [0, 0, 0.6]))
+    assert np.all(d2 < 0) and np.allclose(out2 @ R[:, 2], 0.0)  # the rim is a line in that view; pushes stay in F's plane
+    for bad in (rim[:2], np.full_like(rim, np.nan)):
+        with pytest.raises(ValueError):
+            g.enclosure(bad, pts, frame)

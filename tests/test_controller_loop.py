@@ -248,3 +248,42 @@ def test_with_max_pitch_no_gripper_turns_about_the_grippers_axis_past_it(kind):
     pitches.clear()
     _run(kind, m, _path(m, u_goal, 5), dagger=2, ticks=400, check=check)
     assert max(pitches) > np.radians(17)
+
+
+def _first_lift_margin(params: MethodParams) -> tuple[float, bool]:
+    """The synthetic rim's enclosure of an outline at the first tick of the lift (after g†): V has a
+    corner only 5 mm inside g†'s edge, less than the rule's margin, on the side the rim comes from."""
+    from bagit.common.geometry import enclosure, make_transform
+
+    m = SyntheticRim(32)
+    path = _path(m)
+    gd = path[5]
+    c0 = gd.mean(axis=0)
+    lead = gd.mean(axis=0) - path[0].mean(axis=0)
+    lead[2] = 0.0
+    lead /= np.linalg.norm(lead)
+    far = gd[np.argmax((gd - c0) @ lead)]  # g†'s edge in the approach direction
+    corner = far - 0.005 * lead
+    V = np.array([corner, c0 + [0.01, 0.01, 0], c0 - [0.01, 0.01, 0]])
+    frame = make_transform(None, c0)
+    c = make_controller("mpc", params, m.n_x)
+    g = m.home()
+    c.reset(m.rim(g), Path(nodes=path, dagger_index=5), g, outline=V, frame=frame)
+    t = 0.0
+    for _ in range(900):
+        out = c.step(m.rim(g), t, g, source_stamp=t)
+        assert np.all(np.abs(out.u) <= c7_limits(params) + 1e-15)
+        if out.stage == "bagging":
+            return float(enclosure(m.rim(g), V, frame)[0].min()), True
+        g = apply_increment(g, out.u)
+        t += c.dt
+    return float("nan"), False
+
+
+def test_the_lift_waits_until_the_rim_goes_round_the_outline():
+    rule = P.model_copy(update={"enclose_margin_m": 0.01, "enclose_push_m": 0.03})
+    on, lifted_on = _first_lift_margin(rule)
+    off, lifted_off = _first_lift_margin(P.model_copy(update={"enclose_margin_m": None}))
+    assert lifted_on and lifted_off
+    assert off < 0.01  # the paper's RMS rule lifts at g† with the corner just in, at best
+    assert on >= 0.01  # the rule holds the lift and pushes g† out until the corner is in by the margin

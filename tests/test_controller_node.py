@@ -12,12 +12,12 @@ from bus_support import session_pair, wait_until
 
 from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.geometry import matrix_to_rpy
-from bagit.common.messages import ArmState, Command, ControllerStatus, Path, RunState, SoiState
+from bagit.common.messages import ArmState, Command, ControllerStatus, EllipseParams, Goal, Path, RunState, SoiState
 from bagit.services.controller.node import ControllerNode, ControllerServiceConfig, DT_MAX_S
 from bagit.services.controller.synthetic import SyntheticRim, apply_increment
 
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
-FAST = {"max_linear_speed_mps": 0.15, "max_angular_speed_rps": 0.9, "control_rate_hz": 60.0}
+FAST = {"max_linear_speed_mps": 0.15, "max_angular_speed_rps": 0.9, "control_rate_hz": 60.0, "enclose_margin_m": 0.005}
 
 
 class Plant:
@@ -104,7 +104,7 @@ def loop(request):
     keys = Keys(rig)
     made = []
 
-    def make(cfg=None, n_x=16, n_nodes=6, dagger=4):
+    def make(cfg=None, n_x=16, n_nodes=6, dagger=4, with_goal=False):
         m = SyntheticRim(n_x)
         nodes = np.stack([m.rim(apply_increment(m.home(), U_GOAL * s)) for s in np.linspace(0, 1, n_nodes)])
         reports: list[str] = []
@@ -117,6 +117,17 @@ def loop(request):
         path_pub = Publisher(b, keys.planner_path, Path)
         assert wait_until(lambda: path_pub.matched and plant.soi.matched, 5.0)
         time.sleep(0.2)
+        if with_goal:  # the planner's goal, with the object's bottom V well inside g†
+            c = nodes[dagger].mean(axis=0)
+            frame = np.eye(4)
+            frame[:3, 3] = c
+            V = c + np.array([[0.02, 0.02, 0.0], [-0.02, 0.02, 0.0], [0.0, -0.02, 0.0]])
+            goal_pub = Publisher(b, keys.planner_goal, Goal)
+            assert wait_until(lambda: goal_pub.matched, 5.0)
+            goal_pub.put(Goal(run_id="r1", g_dagger=nodes[dagger], g_star=nodes[-1], frame=frame,
+                              ellipse=EllipseParams(center=(0.0, 0.0), a=0.1, b=0.08, alpha=0.0), perimeter=0.68,
+                              c1=0.3, c2=0.0, c3=1.0, vertices=V))
+            time.sleep(0.2)
         path_pub.put(Path(run_id="r1", nodes=nodes, dagger_index=dagger))
         made.append((node, plant, run))
         return node, plant, run, statuses, nodes
@@ -150,6 +161,14 @@ def test_the_controller_service_servos_a_synthetic_rim_to_the_goal_over_zenoh(lo
     time.sleep(0.3)
     assert len(plant.cmds) == n  # done: servoing stopped
     assert node.status()["runs_done"][0]["run_id"] == "r1"
+    assert any("no enclosure rule" in r for r in node.reports), node.reports  # no goal was published
+
+
+def test_the_planners_goal_gives_the_controller_the_objects_outline_for_the_enclosure_rule(loop):
+    node, plant, run, statuses, nodes = loop(with_goal=True)
+    assert wait_until(lambda: any(s.done for s in statuses), 60.0), (node.status(), statuses[-1:])
+    assert any("must go round the object's 3 bottom vertices by 5 mm" in r for r in node.reports), node.reports
+    assert not any("no enclosure rule" in r for r in node.reports)
 
 
 def test_stale_soi_holds_within_a_tick_of_the_age_limit_and_the_run_end_stops_servoing(loop):

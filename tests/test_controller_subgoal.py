@@ -93,3 +93,66 @@ def test_guard_holds_on_missing_stale_jumping_and_malformed_soi():
     assert "NaN" in g.check(np.full((8, 3), np.nan), 2.13)
     assert "shape" in g.check(np.zeros((7, 3)), 2.16)
     assert "stale" in g.check(x, 2.2, source_stamp=float("nan"))
+
+
+def _boxed_path():
+    """Rings rising 1 cm a node, g† at 2, and a square outline (half side 6 cm) inside every ring (r = 10 cm)."""
+    path = np.stack([_ring(32, 0.1, 0.01 * k) for k in range(5)])
+    square = np.array([[0.06, 0.06, 0.02], [-0.06, 0.06, 0.02], [-0.06, -0.06, 0.02], [0.06, -0.06, 0.02]])
+    frame = np.eye(4)
+    frame[2, 3] = 0.02
+    return path, square, frame
+
+
+def test_dagger_is_reached_only_once_the_rim_goes_round_the_outline():
+    path, square, frame = _boxed_path()
+    tr = SubgoalTracker(path, 2, subgoal_tol=0.02, goal_tol=0.005, dagger_settle_ticks=2,
+                        outline=square, frame=frame, enclose_margin=0.01, enclose_ticks=50, max_push=0.03)
+    off = path[2] + [0.03, 0.0, 0.0]  # 3 cm aside, then 1.5 cm: within the RMS tolerance, corner still out
+    assert tr.update(off) == 2 and not tr.settling
+    near = path[2] + [0.015, 0.0, 0.0]
+    assert tr.error(near, 2) < 0.02  # close enough by the RMS rule alone
+    for _ in range(3):
+        assert tr.update(near) == 2 and not tr.settling and tr.stage == "pre-bagging"
+    assert tr.held["dagger"] == 3
+    assert tr.push(near) @ [1.0, 0.0, 0.0] < -0.005  # the subgoal moves the way the rim must go
+    assert np.allclose(tr.push(path[2]), 0.0)  # a rim right on g† is pushed nowhere
+    # round the outline: the settle runs; a rim that drifted off it meanwhile servoes back first
+    assert tr.update(path[2]) == 2 and tr.settling
+    assert tr.update(path[2]) == 2 and tr.settling
+    assert tr.update(near) == 2 and not tr.settling and tr.settled_ticks == 0
+    for _ in range(3):
+        tr.update(path[2])
+    assert tr.stage == "bagging"
+    assert tr.update(path[4]) == 4 and tr.done(path[4])
+
+
+def test_at_the_goal_a_stalled_rim_is_done_only_round_the_outline():
+    path, square, frame = _boxed_path()
+    tr = SubgoalTracker(path, 2, 0.02, 0.005, stall_ticks=3, outline=square, frame=frame, enclose_margin=0.01, enclose_ticks=6)
+    for k in (2, 3, 4):
+        tr.update(path[k])
+    aside = path[4] + [0.035, 0.0, 0.0]  # within 2x the tolerance, stalled, a corner out
+    done = []
+    for _ in range(12):
+        tr.update(aside)
+        done.append(tr.done(aside))
+    assert done[:8] == [False] * 8 and all(done[9:])  # the stall, then the rule's 6 holds, then done anyway
+    assert tr.held["goal"] == 6
+
+
+def test_the_enclosure_rule_gives_up_after_its_ticks_and_is_off_without_an_outline():
+    path, square, frame = _boxed_path()
+    tr = SubgoalTracker(path, 2, 0.02, 0.005, outline=square, frame=frame, enclose_margin=0.01, enclose_ticks=4)
+    near = path[2] + [0.015, 0.0, 0.0]
+    tr.update(near)
+    for _ in range(3):
+        assert tr.update(near) == 2
+    assert tr.update(near) >= 3 and tr.stage == "bagging"  # held 4 updates: lifts anyway (the judge has the last word)
+    assert np.allclose(SubgoalTracker(path, 2, 0.02, 0.005, outline=square, frame=frame, enclose_margin=0.01).push(near), 0.0)  # no max_push
+    plain = SubgoalTracker(path, 2, 0.02, 0.005)
+    assert plain.update(near) >= 3 and np.allclose(plain.push(near), 0.0)
+    with pytest.raises(BadControlInput):
+        SubgoalTracker(path, 2, 0.02, 0.005, outline=square)  # an outline needs its frame
+    with pytest.raises(BadControlInput):
+        SubgoalTracker(path, 2, 0.02, 0.005, outline=np.full((4, 3), np.nan), frame=frame)

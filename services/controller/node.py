@@ -284,8 +284,14 @@ class ControllerNode:
         try:
             if not run.reset_done:
                 perimeter = goal.perimeter if goal is not None and goal.perimeter > 0 else None
-                c.reset(np.asarray(soi.rim, dtype=float), path, grippers, perimeter=perimeter)
+                outline, frame = (None, None) if goal is None else (np.asarray(goal.vertices, dtype=float), np.asarray(goal.frame, dtype=float))
+                c.reset(np.asarray(soi.rim, dtype=float), path, grippers, perimeter=perimeter, outline=outline, frame=frame)
                 run.reset_done = True
+                if run.params.enclose_margin_m is not None and c.tracker.outline is not None:
+                    self.report(f"run {run.run_id}: the rim must go round the object's {len(outline)} bottom vertices "
+                                f"by {run.params.enclose_margin_m * 1000:.0f} mm before the lift and at g*")
+                elif run.params.enclose_margin_m is not None and goal is None:
+                    self.report(f"run {run.run_id}: no goal (with the object's V) yet at the first tick: no enclosure rule")
             out = c.step(np.asarray(soi.rim, dtype=float), now, grippers)
         except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so
             self.counters["errors"] += 1

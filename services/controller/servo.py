@@ -167,11 +167,15 @@ class ServoBase:
         gripper_poses: dict[str, np.ndarray] | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
+        outline: np.ndarray | None = None,
+        frame: np.ndarray | None = None,
     ) -> None:
         """Start a run on `path` (a Path message, or nodes `(n_nodes, n_x, 3)` with `dagger_index`).
 
         x0 `(n_x, 3)`: the first SOI (its length is the rim perimeter for C6 unless `perimeter` is
         given; without either, the path's first node's). gripper_poses: {'left','right'}: 4x4 world.
+        outline `(m, 3)` and frame `(4, 4)`: the object's bottom vertices V and bottom frame (the goal's),
+        for the enclosure rule at g† and g* (`MethodParams.enclose_margin_m`); None: no such rule.
         """
         nodes, dagger = as_path(path, dagger_index)
         if nodes.ndim != 3 or nodes.shape[1:] != (self.n_x, 3):
@@ -184,7 +188,13 @@ class ServoBase:
             raise BadControlInput(why)
         # a law aiming straight at g* (ssvs) has no g† to settle at
         settle = 0 if self.aims_at_goal else int(round(self.p.dagger_settle_s * self.p.control_rate_hz))
-        self.tracker = SubgoalTracker(nodes, dagger, self.p.subgoal_tol_m, self.p.goal_tol_m, GOAL_STALL_TICKS, settle)
+        if self.aims_at_goal or self.p.enclose_margin_m is None:  # ssvs has no g†; None: the paper's rule
+            outline = None
+        self.tracker = SubgoalTracker(
+            nodes, dagger, self.p.subgoal_tol_m, self.p.goal_tol_m, GOAL_STALL_TICKS, settle,
+            outline=outline, frame=frame, enclose_margin=self.p.enclose_margin_m or 0.0,
+            enclose_ticks=int(round(self.p.enclose_timeout_s * self.p.control_rate_hz)), max_push=self.p.enclose_push_m,
+        )
         self.path = self.tracker.path
         if perimeter is None:
             perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
@@ -267,7 +277,7 @@ class ServoBase:
             return self._out(np.zeros(12), "settle", None, x)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]
         try:
-            target = slide_to(goal, x).ravel()
+            target = (slide_to(goal, x) + (0.0 if self.aims_at_goal else self.tracker.push(x))).ravel()
             u, solve_ms, why = self._law(self.jacobian.J, xf, target, gripper_poses)
         except NUMERIC_ERRORS as e:  # hold with the reason; never let a numerical error out of a tick
             return self._hold(f"the {self.name} law failed numerically: {e}", x)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from bagit.common.errors import BadControlInput
+from bagit.common.geometry import enclosure
 
 
 def rms_error(x: np.ndarray, g: np.ndarray) -> float:
@@ -16,10 +17,27 @@ class SubgoalTracker:
     """Walks along path `(n_nodes, n_x, 3)`: advance when close enough to the current subgoal or when a
     later node is already nearer, but never past g† (dagger_index) before g† itself was reached, that
     is, `dagger_settle_ticks` updates after the SOI first came within tolerance of it (while the
-    controller keeps the grippers still and the bag settles)."""
+    controller keeps the grippers still and the bag settles).
+
+    With the object's bottom `outline (m, 3)` and bottom `frame (4, 4)` (world <- F), closeness is not
+    enough at g† and at g*: the SOI, seen along the frame's z axis, must also go round the outline by
+    `enclose_margin` (it is what the RMS tolerance cannot promise, and what the lift needs), for at
+    most `enclose_ticks` updates at each of the two; `push` moves the subgoal outwards meanwhile, by
+    at most `max_push` (0: it only holds)."""
 
     def __init__(
-        self, path: np.ndarray, dagger_index: int, subgoal_tol: float, goal_tol: float, stall_ticks: int = 45, dagger_settle_ticks: int = 0
+        self,
+        path: np.ndarray,
+        dagger_index: int,
+        subgoal_tol: float,
+        goal_tol: float,
+        stall_ticks: int = 45,
+        dagger_settle_ticks: int = 0,
+        outline: np.ndarray | None = None,
+        frame: np.ndarray | None = None,
+        enclose_margin: float = 0.0,
+        enclose_ticks: int = 0,
+        max_push: float = 0.0,
     ):
         self.path = np.asarray(path, dtype=float)
         if self.path.ndim != 3 or len(self.path) < 1 or self.path.shape[2] != 3:
@@ -42,6 +60,20 @@ class SubgoalTracker:
             raise BadControlInput(f"dagger_settle_ticks must be >= 0, got {dagger_settle_ticks}")
         self.dagger_settle_ticks = dagger_settle_ticks
         self.settled_ticks = 0  # updates since the SOI first came within tolerance of g†
+        if outline is not None:
+            outline = np.asarray(outline, dtype=float)
+            frame = np.asarray(frame, dtype=float) if frame is not None else None
+            if outline.ndim != 2 or outline.shape[1] != 3 or len(outline) < 1 or not np.all(np.isfinite(outline)):
+                raise BadControlInput(f"outline must be finite points (m, 3), got shape {outline.shape}")
+            if frame is None or frame.shape != (4, 4) or not np.all(np.isfinite(frame)):
+                raise BadControlInput("an outline needs its finite bottom frame (4, 4)")
+        if enclose_margin < 0 or enclose_ticks < 0 or max_push < 0:
+            raise BadControlInput(f"enclose_margin, enclose_ticks and max_push must be >= 0, got {enclose_margin}, {enclose_ticks}, {max_push}")
+        self.outline, self.frame = outline, frame
+        self.enclose_margin = enclose_margin
+        self.enclose_ticks = enclose_ticks
+        self.max_push = max_push
+        self.held = {"dagger": 0, "goal": 0}  # updates the enclosure rule held the run at g† and at g*
 
     def _reached(self, x: np.ndarray, k: int) -> bool:
         e = self.error(x, k)
@@ -78,11 +110,41 @@ class SubgoalTracker:
         return self.index
 
     def _settle_at_dagger(self, x: np.ndarray) -> None:
-        """One update at g†: the settle starts when the SOI first comes within tolerance and then
-        counts every update; g† is reached when it is over."""
-        if self.settled_ticks > 0 or self._reached(x, self.dagger):
-            self.settled_ticks += 1
-        self.dagger_reached = self.settled_ticks > self.dagger_settle_ticks
+        """One update at g†: the settle starts when the SOI first comes within tolerance (and round
+        the outline) and then counts every update; g† is reached when it is over with the rim still
+        round the outline; a rim that settled off it servoes back to g† first."""
+        if self.settled_ticks == 0 and not (self._reached(x, self.dagger) and self._encloses(x, "dagger")):
+            return
+        self.settled_ticks += 1
+        if self.settled_ticks > self.dagger_settle_ticks:
+            if self._encloses(x, "dagger"):
+                self.dagger_reached = True
+            else:
+                self.settled_ticks = 0
+
+    def _encloses(self, x: np.ndarray, where: str) -> bool:
+        """Does the SOI `x (n_x, 3)` go round the outline by the margin? True without an outline, and
+        once the rule has held the run at `where` ('dagger' or 'goal') for enclose_ticks updates (it
+        then lets the run go on: the judge, not the rule, has the last word). Counts the holds."""
+        if self.outline is None or self.held[where] >= self.enclose_ticks:
+            return True
+        if float(enclosure(x, self.outline, self.frame)[0].min()) >= self.enclose_margin:
+            return True
+        self.held[where] += 1
+        return False
+
+    def push(self, x: np.ndarray) -> np.ndarray:
+        """`(3,)`: how far to move the current subgoal, from g† on and once the SOI `x (n_x, 3)` is near
+        it, so the rim goes round the outline: each outline point closer than 1.5x the margin to the
+        rim's edge (or outside it) pushes that edge outwards by its shortfall; opposite pushes cancel,
+        so a rim too small for both sides is not shaken between them. Zero when the rule is off."""
+        if self.outline is None or self.max_push <= 0 or self.index < self.dagger or self.error(x, self.index) > 2 * self.subgoal_tol:
+            return np.zeros(3)
+        signed, direction = enclosure(x, self.outline, self.frame)
+        shortfall = np.clip(1.5 * self.enclose_margin - signed, 0.0, None)
+        v = shortfall @ direction
+        n = float(np.linalg.norm(v))
+        return v * (self.max_push / n) if n > self.max_push else v
 
     @property
     def settling(self) -> bool:
@@ -103,11 +165,12 @@ class SubgoalTracker:
 
     def done(self, x: np.ndarray) -> bool:
         """At g*: within goal_tol, or as close as the bag gets (stalled within 2x the subgoal tolerance;
-        the run is then judged on what the rim really does round the object)."""
+        the run is then judged on what the rim really does round the object); and round the outline."""
         if not (self.dagger_reached and self.index == len(self.path) - 1):
             return False
         e = self.error(x, self.index)
-        return e <= self.goal_tol or (self._since_best >= self.stall_ticks and e <= 2 * self.subgoal_tol)
+        close = e <= self.goal_tol or (self._since_best >= self.stall_ticks and e <= 2 * self.subgoal_tol)
+        return close and self._encloses(x, "goal")
 
 
 def slide_to(target: np.ndarray, x: np.ndarray, steps: int = 16) -> np.ndarray:
