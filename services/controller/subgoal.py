@@ -73,7 +73,8 @@ class SubgoalTracker:
         self.enclose_margin = enclose_margin
         self.enclose_ticks = enclose_ticks
         self.max_push = max_push
-        self.held = {"dagger": 0, "goal": 0}  # updates the enclosure rule held the run at g† and at g*
+        self._updates = 0
+        self._held_since: dict[str, int | None] = {"dagger": None, "goal": None}  # update of the rule's first hold there
 
     def _reached(self, x: np.ndarray, k: int) -> bool:
         e = self.error(x, k)
@@ -83,6 +84,7 @@ class SubgoalTracker:
 
     def update(self, x: np.ndarray) -> int:
         """The index of g_next for the SOI `x (n_x, 3)`."""
+        self._updates += 1
         last = len(self.path) - 1
         e = self.error(x, self.index)
         if e < self._best - 1e-3:
@@ -111,27 +113,38 @@ class SubgoalTracker:
 
     def _settle_at_dagger(self, x: np.ndarray) -> None:
         """One update at g†: the settle starts when the SOI first comes within tolerance (and round
-        the outline) and then counts every update; g† is reached when it is over with the rim still
-        round the outline; a rim that settled off it servoes back to g† first."""
+        the outline by the margin) and then counts every update; g† is reached when it is over with
+        the rim still round the outline (by any margin: a rim at the threshold must not restart the
+        settle on every flicker of its noise); a rim that settled off it servoes back to g† first."""
         if self.settled_ticks == 0 and not (self._reached(x, self.dagger) and self._encloses(x, "dagger")):
             return
         self.settled_ticks += 1
         if self.settled_ticks > self.dagger_settle_ticks:
-            if self._encloses(x, "dagger"):
+            if self._encloses(x, "dagger", margin=0.0):
                 self.dagger_reached = True
             else:
                 self.settled_ticks = 0
 
-    def _encloses(self, x: np.ndarray, where: str) -> bool:
-        """Does the SOI `x (n_x, 3)` go round the outline by the margin? True without an outline, and
-        once the rule has held the run at `where` ('dagger' or 'goal') for enclose_ticks updates (it
-        then lets the run go on: the judge, not the rule, has the last word). Counts the holds."""
-        if self.outline is None or self.held[where] >= self.enclose_ticks:
+    def _encloses(self, x: np.ndarray, where: str, margin: float | None = None) -> bool:
+        """Does the SOI `x (n_x, 3)` go round the outline by `margin` (default: enclose_margin)? True
+        without an outline, and once enclose_ticks updates have passed since the rule first held the
+        run at `where` ('dagger' or 'goal'), settles included: it then lets the run go on, and the
+        judge, not the rule, has the last word."""
+        if self.outline is None:
             return True
-        if float(enclosure(x, self.outline, self.frame)[0].min()) >= self.enclose_margin:
+        since = self._held_since[where]
+        if since is not None and self._updates - since >= self.enclose_ticks:
             return True
-        self.held[where] += 1
+        if float(enclosure(x, self.outline, self.frame)[0].min()) >= (self.enclose_margin if margin is None else margin):
+            return True
+        if since is None:
+            self._held_since[where] = self._updates
         return False
+
+    @property
+    def held(self) -> dict[str, int]:
+        """Updates since the enclosure rule first held the run at g† and at g* (0: never; at most enclose_ticks)."""
+        return {k: 0 if v is None else min(self._updates - v + 1, self.enclose_ticks) for k, v in self._held_since.items()}
 
     def push(self, x: np.ndarray) -> np.ndarray:
         """`(3,)`: how far to move the current subgoal, from g† on and once the SOI `x (n_x, 3)` is near
