@@ -142,6 +142,43 @@ def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
     assert st_.at_rest and np.all(st_.vel == 0)
 
 
+def test_a_ruckig_refusal_while_tracking_brakes_instead_of_escaping_the_servo_loop():
+    """Ruckig raises RuckigError, which is not a RuntimeError: it once escaped as a driver fault
+    (`bagit up` on a loaded machine). A refused cycle must take the braking path and report it."""
+    from ruckig import RuckigError
+
+    st_ = Streamer(LIM, T)
+    start = home_poses()
+    st_.reset(start)
+    st_.track()
+    far = {k: v.copy() for k, v in start.items()}
+    far["left"][0, 3] += 0.2
+    for _ in range(20):
+        st_.step(far)
+    moving = st_.vel[0, 0]
+
+    class RefuseOnce:  # the real Ruckig, which refuses its next cycle
+        def __init__(self, otg):
+            self.otg, self.calls = otg, 0
+
+        def update(self, inp, out):
+            self.calls += 1
+            if self.calls == 1:
+                raise RuckigError("[ruckig] error in step 2 in dof: 0 for t_min. (injected)")
+            return self.otg.update(inp, out)
+
+    st_._otg = RefuseOnce(st_._otg)
+    out = st_.step(far)
+    assert out.error and "step 2" in out.error and st_.mode == "stopping"
+    assert 0 < st_.vel[0, 0] < moving  # the same cycle already brakes, within the limits
+    n = 0
+    while st_.mode != "idle":
+        assert not st_.step().error
+        n += 1
+        assert n < 100
+    assert st_.at_rest and st_.errors == 1
+
+
 def test_a_new_stream_starts_where_the_arms_are_not_at_an_old_target():
     pipe = MotionPipeline(ENV, T)
     start = home_poses()

@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization
 
 from bagit.common.rig import SafetyLimits
 from bagit.common.so3 import left_jacobian, rotvec_between, so3_exp
@@ -150,7 +150,7 @@ class Streamer:
         error = None
         try:
             result = self._otg.update(inp, self._out)
-        except RuntimeError as e:  # ruckig raises on input it refuses outright
+        except (RuckigError, RuntimeError) as e:  # ruckig raises on input it refuses (RuckigError is no RuntimeError)
             result, error = Result.Error, str(e)
         if result not in (Result.Working, Result.Finished):
             return self._fail(error or f"ruckig returned {result.name}")
