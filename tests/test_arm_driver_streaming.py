@@ -113,7 +113,8 @@ def test_target_integrator_spreads_each_increment_over_its_dt():
     assert ti.target(2.0)["left"][0, 3] == pytest.approx(start["left"][0, 3] + 0.02)
 
 
-def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
+def moving_streamer(ticks: int) -> tuple[Streamer, dict]:
+    """A streamer tracking both arms 0.2 m along x from home, `ticks` cycles into the motion; and that target."""
     st_ = Streamer(LIM, T)
     start = home_poses()
     st_.reset(start)
@@ -121,8 +122,13 @@ def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
     far = {k: v.copy() for k, v in start.items()}
     far["left"][0, 3] += 0.2
     far["right"][0, 3] += 0.2
-    for _ in range(40):  # up to cruise (0.25/sqrt(3) m/s per axis)
+    for _ in range(ticks):
         st_.step(far)
+    return st_, far
+
+
+def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
+    st_, _ = moving_streamer(40)  # up to cruise (0.25/sqrt(3) m/s per axis)
     assert st_.vel[0, 0] == pytest.approx(LIM.max_tcp_speed_mps / np.sqrt(3), rel=1e-6)
     x = [st_.p[0, 0]]
     st_.begin_stop()
@@ -147,14 +153,7 @@ def test_a_ruckig_refusal_while_tracking_brakes_instead_of_escaping_the_servo_lo
     (`bagit up` on a loaded machine). A refused cycle must take the braking path and report it."""
     from ruckig import RuckigError
 
-    st_ = Streamer(LIM, T)
-    start = home_poses()
-    st_.reset(start)
-    st_.track()
-    far = {k: v.copy() for k, v in start.items()}
-    far["left"][0, 3] += 0.2
-    for _ in range(20):
-        st_.step(far)
+    st_, far = moving_streamer(20)
     moving = st_.vel[0, 0]
 
     class RefuseOnce:  # the real Ruckig, which refuses its next cycle
