@@ -115,20 +115,29 @@ def resample_closed(points: np.ndarray, n: int) -> np.ndarray:
     return p[idx] + frac[:, None] * seg[idx]
 
 
-def points_to_polyline_distance(points: np.ndarray, polyline: np.ndarray, closed: bool = True) -> np.ndarray:
-    """Distance `(n,)` from each of `points (n, 3)` to the polyline through `polyline (m, 3)`."""
+def nearest_on_polyline(points: np.ndarray, polyline: np.ndarray, closed: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """For each of `points (n, d)`: the nearest point `(n, d)` on the polyline through `polyline (m, d)`
+    and its distance `(n,)`; any dimension d (3-D rims, or their 2-D projections)."""
     q = np.asarray(points, dtype=float)
     a = np.asarray(polyline, dtype=float)
     b = np.roll(a, -1, axis=0) if closed else a[1:]
     if not closed:
         a = a[:-1]
-    ab = b - a  # (m, 3)
+    ab = b - a  # (m, d)
     denom = np.einsum("ij,ij->i", ab, ab)
     denom = np.where(denom > 0, denom, 1.0)
     t = np.einsum("nmj,mj->nm", q[:, None, :] - a[None], ab) / denom
     t = np.clip(t, 0.0, 1.0)
-    proj = a[None] + t[..., None] * ab[None]
-    return np.linalg.norm(q[:, None, :] - proj, axis=2).min(axis=1)
+    proj = a[None] + t[..., None] * ab[None]  # (n, m, d)
+    dist = np.linalg.norm(q[:, None, :] - proj, axis=2)
+    j = dist.argmin(axis=1)
+    rows = np.arange(len(q))
+    return proj[rows, j], dist[rows, j]
+
+
+def points_to_polyline_distance(points: np.ndarray, polyline: np.ndarray, closed: bool = True) -> np.ndarray:
+    """Distance `(n,)` from each of `points (n, 3)` to the polyline through `polyline (m, 3)`."""
+    return nearest_on_polyline(points, polyline, closed)[1]
 
 
 def enclosure(rim: np.ndarray, points: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -151,21 +160,15 @@ def enclosure(rim: np.ndarray, points: np.ndarray, frame: np.ndarray) -> tuple[n
     axes = T[:3, :2]  # F's x and y axes in the world
     r2 = (r - T[:3, 3]) @ axes  # (n, 2)
     q2 = (q - T[:3, 3]) @ axes  # (m, 2)
-    a, ab = r2, np.roll(r2, -1, axis=0) - r2
-    denom = np.where((ab * ab).sum(1) > 0, (ab * ab).sum(1), 1.0)
-    t = np.clip(np.einsum("mnj,nj->mn", q2[:, None] - a[None], ab) / denom, 0.0, 1.0)  # (m, n)
-    near = a[None] + t[..., None] * ab[None]  # (m, n, 2)
-    d = np.linalg.norm(near - q2[:, None], axis=2)  # (m, n)
-    rows = np.arange(len(q2))
-    j = d.argmin(axis=1)
+    near, d = nearest_on_polyline(q2, r2)
     contour = r2.astype(np.float32).reshape(-1, 1, 2)
     inside = np.array([cv2.pointPolygonTest(contour, (float(x), float(y)), False) >= 0 for x, y in q2])
-    out2 = np.where(inside[:, None], near[rows, j] - q2, q2 - near[rows, j])  # towards where the edge must go
-    on_edge = np.linalg.norm(out2, axis=1) < 1e-9
+    out2 = np.where(inside[:, None], near - q2, q2 - near)  # towards where the edge must go
+    on_edge = d < 1e-9
     out2[on_edge] = q2[on_edge] - r2.mean(axis=0)  # on the outline: away from the rim's centre
     norm = np.linalg.norm(out2, axis=1, keepdims=True)
     out2 = np.divide(out2, norm, out=np.zeros_like(out2), where=norm > 1e-12)
-    return np.where(inside, d[rows, j], -d[rows, j]), out2 @ axes.T
+    return np.where(inside, d, -d), out2 @ axes.T
 
 
 def align_cyclic(rim: np.ndarray, reference: np.ndarray) -> np.ndarray:

@@ -277,7 +277,7 @@ class ServoBase:
             return self._out(np.zeros(12), "settle", None, x)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]
         try:
-            target = (slide_to(goal, x) + (0.0 if self.aims_at_goal else self.tracker.push(x))).ravel()
+            target = (slide_to(goal, x) + self.tracker.push(x)).ravel()  # push: zero without the enclosure rule (and for ssvs)
             u, solve_ms, why = self._law(self.jacobian.J, xf, target, gripper_poses)
         except NUMERIC_ERRORS as e:  # hold with the reason; never let a numerical error out of a tick
             return self._hold(f"the {self.name} law failed numerically: {e}", x)
