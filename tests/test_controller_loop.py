@@ -259,7 +259,7 @@ def _first_lift_margin(params: MethodParams) -> tuple[float, bool]:
     path = _path(m)
     gd = path[5]
     c0 = gd.mean(axis=0)
-    lead = gd.mean(axis=0) - path[0].mean(axis=0)
+    lead = c0 - path[0].mean(axis=0)
     lead[2] = 0.0
     lead /= np.linalg.norm(lead)
     far = gd[np.argmax((gd - c0) @ lead)]  # g†'s edge in the approach direction

@@ -74,15 +74,13 @@ def _why(log: str) -> str:
     """What a failed bagit up run said about itself: its alarm, fault, stale/implausible-SOI lines
     (first few of each kind) and how often the simulation fell behind real time and the watchdog fired."""
     keys = ("alarm", "fault", "stale", "implausible", "slowed", "error")
-    lines = [ln for ln in log.splitlines() if any(k in ln for k in keys) and "clipped" not in ln]
     kept: dict[str, list[str]] = {}
-    for ln in lines:
-        k = next(k for k in keys if k in ln)
-        if len(kept.setdefault(k, [])) < 3:
+    for ln in log.splitlines():
+        k = next((k for k in keys if k in ln), None)
+        if k is not None and "clipped" not in ln and len(kept.setdefault(k, [])) < 3:
             kept[k].append(ln.strip())
-    behind = sum("behind real time" in ln for ln in log.splitlines())
-    watchdog = sum("watchdog" in ln for ln in log.splitlines())
-    return f"{behind} behind-real-time and {watchdog} watchdog lines; " + " | ".join(ln for v in kept.values() for ln in v)
+    return (f"{log.count('behind real time')} behind-real-time and {log.count('watchdog')} watchdog lines; "
+            + " | ".join(ln for v in kept.values() for ln in v))
 
 
 def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
