@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bagit.common import cr5
+from bagit.common import cr5, dobot
 from bagit.common.rig import ARMS, RigConfig
 from bagit.services.arm_driver.frames import ArmFrames
-from bagit.services.arm_driver.reach import interpolate, joint_solver, solve_within
+from bagit.services.arm_driver.reach import ELBOW_MARGIN_RAD, interpolate, joint_solver, solve_within
 
 PERIOD = 0.03
 LIMIT = cr5.JOINT_SPEED_LIMIT * PERIOD * 0.5
@@ -104,3 +104,24 @@ def test_interpolate_ends_and_midpoints(s):
         assert np.allclose(out[arm][:3, 3], a[arm][:3, 3] + s * (b[arm][:3, 3] - a[arm][:3, 3]))
     if s in (0.0, 1.0):
         assert np.allclose(out["left"], (a, b)[int(s)]["left"], atol=1e-9)
+
+
+def test_creeping_at_the_edge_of_the_reach_every_pose_sent_is_solvable_as_the_wire_carries_it():
+    """Seen in CI: period after period the controller pushed both mounts out and up past the reach,
+    the pose sent crept up to the stretched elbow (J3 = 0), and one ServoP, rounded to the text's
+    6 decimals, had no solution: the CR5 alarmed. The driver keeps its margin from the straight elbow."""
+    frames, offsets, seeds, prev = _setup(Q_EASY, Q_EASY)
+    out_and_up = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    for _ in range(150):
+        cmd = {a: prev[a].copy() for a in ARMS}
+        for a in ARMS:
+            cmd[a][:3, 3] += 0.1 / 30 * out_and_up  # the controller's push, one period's worth
+        r = solve_within(prev, cmd, joint_solver(frames, seeds, offsets, LIMIT))
+        assert r.poses is not None
+        for a in ARMS:
+            assert abs(r.joints[a][2]) >= ELBOW_MARGIN_RAD
+            text = dobot.format_command("ServoP", *cr5.matrix_to_pose6(frames[a].flange_in_base(r.poses[a])))
+            wire = cr5.pose6_to_matrix(np.array(dobot.parse_command(text).args, dtype=float))
+            assert cr5.ik(wire, r.joints[a]) is not None and cr5.ik(wire, seeds[a]) is not None, text
+        seeds, prev = r.joints, r.poses
+    assert r.fraction == 0.0 and "out of the arm's reach" in r.why  # stopped at the edge, still pushed

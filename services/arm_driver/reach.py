@@ -29,6 +29,10 @@ Joints = dict[str, np.ndarray]  # arm -> (6,) rad
 Solver = Callable[[Poses], tuple[Joints | None, str | None]]
 
 BISECTIONS = 10  # the fraction sent is within 1/1024 of the longest that can be followed
+# An elbow stretched straight (J3 = 0) is the edge of the reach and a singularity: a target there,
+# rounded to the wire's 6 decimals or solved from the controller's own seed, may have no solution,
+# and the controller alarms. The driver keeps the elbow this far from straight.
+ELBOW_MARGIN_RAD = np.radians(2.0)
 
 
 @dataclass(frozen=True)
@@ -57,8 +61,9 @@ def joint_solver(
 ) -> Solver:
     """Solve each arm in `frames` nearest its `seeds`; refuse a step no joint could follow in a period.
 
-    Refused: a pose out of reach, one where some joint moves more than `max_joint_step_rad` from its
-    seed, or one that puts the tool (`mount_offsets`, in the flange frame) against the arm's body.
+    Refused: a pose out of reach (or with the elbow within `ELBOW_MARGIN_RAD` of straight), one where
+    some joint moves more than `max_joint_step_rad` from its seed, or one that puts the tool
+    (`mount_offsets`, in the flange frame) against the arm's body.
     """
 
     def solve(poses: Poses) -> tuple[Joints | None, str | None]:
@@ -66,7 +71,7 @@ def joint_solver(
         for a, fr in frames.items():
             seed = seeds[a]
             q = cr5.ik(fr.flange_in_base(poses[a]), seed)
-            if q is None:
+            if q is None or abs(q[2]) < ELBOW_MARGIN_RAD:
                 return None, f"{a}: out of the arm's reach"
             step = np.abs(q - seed)
             if step.max() > max_joint_step_rad:
