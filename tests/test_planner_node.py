@@ -7,6 +7,7 @@ and controller status; the planning itself is the real one.
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -53,8 +54,6 @@ def test_a_run_over_the_bus_from_start_to_done(pair):
 
         def perceive() -> None:
             while not stop.wait(0.05):
-                import time
-
                 t = time.time()
                 soi_pub.put(SoiState(rim=g0, source_stamp=t - 0.01))
 
@@ -62,7 +61,9 @@ def test_a_run_over_the_bus_from_start_to_done(pair):
         th.start()
         try:
             assert wait_until(lambda: watch.get().stage == "pre-bagging", 30), watch.get()
-            assert goal.get() is not None and goal.get().run_id == rep.run_id
+            # goal and path were put before that state, but each key is called back on its own thread
+            assert wait_until(lambda: goal.get() is not None and path.get() is not None, 5)
+            assert goal.get().run_id == rep.run_id
             p = path.get()
             assert p is not None and p.run_id == rep.run_id and p.nodes.shape[1:] == g0.shape
             assert np.allclose(p.nodes[0], g0)
@@ -117,3 +118,35 @@ def test_malformed_run_control_is_refused_not_fatal(pair):
         replies = list(b.get(keys.run_control, payload=b"\x00garbage", timeout=3))
         assert replies and replies[0].ok is not None  # answered with a refusal, the node lives on
         assert request_run_control(b, keys, RunControl(action="reset")).accepted
+
+
+def test_no_run_state_says_pre_bagging_before_the_path_is_out(pair):
+    """The periodic run/state once went out between the plan's state change and the path's put (its
+    encoding takes a while). Here the path's put is slowed on purpose and run/state republished
+    often; the order is checked where it is made, at the publishers (a subscriber cannot see it:
+    Zenoh calls each subscription back on its own thread)."""
+    a, b = pair
+    keys = _rig(pair)
+    cfg = PlannerServiceConfig(coordinator=CoordinatorConfig(settle_s=0.0, status_timeout_s=10), publish_hz=50)
+    sent: list[str] = []
+    with PlannerNode(a, keys, cfg) as node:
+        put_state, put_path = node._state_pub.put, node._path_pub.put
+
+        def state(msg: RunState) -> int:
+            sent.append(msg.stage)
+            return put_state(msg)
+
+        def slow_path(msg: Path) -> int:
+            time.sleep(0.3)
+            sent.append("path")
+            return put_path(msg)
+
+        node._state_pub.put, node._path_pub.put = state, slow_path
+        tokens = [declare_alive(b, keys, s) for s in ("controller", "arm-driver", "perception")]
+        soi_pub = Publisher(b, keys.perception_soi, SoiState)
+        assert request_run_control(b, keys, RunControl(action="start", scenario="exp02", seed=1)).accepted
+        g0 = sample_g0(Scenario.from_file(find_scenario("exp02")))
+        assert wait_until(lambda: (soi_pub.put(SoiState(rim=g0, source_stamp=time.time())), "pre-bagging" in sent)[1], 30)
+        assert "path" in sent and sent.index("path") < sent.index("pre-bagging"), sent
+        for t in tokens:
+            t.undeclare()

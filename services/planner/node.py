@@ -63,7 +63,8 @@ class PlannerNode:
         self._state_pub = Publisher(session, keys.run_state, RunState)
         self._goal_pub = Publisher(session, keys.planner_goal, Goal)
         self._path_pub = Publisher(session, keys.planner_path, Path)
-        self._pub_lock = threading.Lock()
+        self._pub_lock = threading.RLock()  # taken before _lock, never after it
+        self._closed = False
         self._last_stage: tuple[str | None, str] | None = None
         self._watcher = LivelinessWatcher(session, keys, self._on_alive)
         self._subs = [
@@ -81,56 +82,57 @@ class PlannerNode:
     # -- events --------------------------------------------------------------------------------
 
     def _on_control(self, req: RunControl) -> RunControlReply:
-        with self._lock:
-            rep, effects = self.coord.handle(req, self.clock())
-        self._after(effects)
+        with self._pub_lock:  # as in _apply
+            with self._lock:
+                rep, effects = self.coord.handle(req, self.clock())
+            self._after(effects)
         log.info("run/control %s -> %s%s", req.action, "accepted" if rep.accepted else "refused",
                  f" ({rep.reason})" if rep.reason else "")
         return rep
 
     def _on_soi(self, soi: SoiState) -> None:
-        with self._lock:
-            effects = self.coord.on_soi(soi, self.clock())
-        self._after(effects)
+        self._apply(lambda: self.coord.on_soi(soi, self.clock()))
 
     def _on_object(self, det: ObjectDetection) -> None:
-        with self._lock:
-            effects = self.coord.on_object(det, self.clock())
-        self._after(effects)
+        self._apply(lambda: self.coord.on_object(det, self.clock()))
 
     def _on_status(self, st: ControllerStatus) -> None:
-        with self._lock:
-            self.coord.on_status(st, self.clock())
-        self._after([])
+        self._apply(lambda: self.coord.on_status(st, self.clock()))
 
     def _on_estop(self, msg: EStop) -> None:
         log.warning("e-stop %s by %s%s", "engaged" if msg.engage else "released", msg.source, f": {msg.reason}" if msg.reason else "")
-        with self._lock:
-            self.coord.on_estop(msg.engage, msg.source, msg.reason, self.clock())
-        self._after([])
+        self._apply(lambda: self.coord.on_estop(msg.engage, msg.source, msg.reason, self.clock()))
 
     def _on_alive(self, service: str, alive: bool) -> None:
         log.info("service %s %s", service, "up" if alive else "gone")
-        with self._lock:
-            self.coord.on_liveliness(service, alive, self.clock())
-        self._after([])
+        self._apply(lambda: self.coord.on_liveliness(service, alive, self.clock()))
 
     def _tick_loop(self) -> None:
         period = 1.0 / self.cfg.publish_hz
         while not self._stop.wait(min(period, 0.1)):
-            with self._lock:
-                effects = self.coord.tick(self.clock())
-            self._after(effects)
+            self._apply(lambda: self.coord.tick(self.clock()))
             now = time.monotonic()
             if now >= getattr(self, "_next_periodic", 0.0):
                 self._next_periodic = now + period
-                with self._lock:
-                    state = self.coord.tick_state(self.clock())
-                self._publish(state)
+                with self._pub_lock:
+                    with self._lock:
+                        state = self.coord.tick_state(self.clock())
+                    self._publish(state)
 
     # -- effects -------------------------------------------------------------------------------
 
+    def _apply(self, change: Callable[[], list[Effect] | None]) -> None:
+        """Change the coordinator and publish what follows as one step: no run/state (the periodic one
+        included) that says a path exists goes out before the path itself."""
+        with self._pub_lock:
+            with self._lock:
+                effects = change()
+            self._after(effects or [])
+
     def _after(self, effects: list[Effect]) -> None:
+        """Start the plan and publish goal, path and run/state; called with _pub_lock held."""
+        if self._closed:  # a callback late for close(): its publishers are gone
+            return
         for e in effects:
             if e.kind == "plan" and e.job is not None:
                 threading.Thread(target=self._plan, args=(e.job,), name=f"plan-{e.job.run_id}", daemon=True).start()
@@ -142,9 +144,7 @@ class PlannerNode:
 
     def _plan(self, job: PlanJob) -> None:
         def on_goal(goal: Goal) -> None:
-            with self._lock:
-                effects = self.coord.on_goal(goal, self.clock())
-            self._after(effects)
+            self._apply(lambda: self.coord.on_goal(goal, self.clock()))
 
         log.info("run %s: planning with %s from g0", job.run_id, job.planner)
         try:
@@ -154,9 +154,7 @@ class PlannerNode:
             from bagit.services.planner.coordinator import PlanOutcome
 
             out = PlanOutcome(job.run_id, failed_stage="planning", reason=f"planning: internal error: {type(e).__name__}: {e}")
-        with self._lock:
-            effects = self.coord.on_plan(out, self.clock())
-        self._after(effects)
+        self._apply(lambda: self.coord.on_plan(out, self.clock()))
 
     def _publish_if_changed(self) -> None:
         with self._lock:
@@ -168,6 +166,8 @@ class PlannerNode:
 
     def _publish(self, state: RunState) -> None:
         with self._pub_lock:
+            if self._closed:
+                return
             try:
                 self._state_pub.put(state)
             except Exception:  # noqa: BLE001 - a closing session must not raise in a thread
@@ -188,8 +188,12 @@ class PlannerNode:
     def close(self) -> None:
         self._stop.set()
         self._ticker.join(timeout=2.0)
-        for x in (self._server, *self._subs, self._watcher, self._state_pub, self._goal_pub, self._path_pub):
+        for x in (self._server, *self._subs, self._watcher):
             x.close()
+        with self._pub_lock:  # never undeclare a publisher in the middle of a put
+            self._closed = True
+            for p in (self._state_pub, self._goal_pub, self._path_pub):
+                p.close()
         try:
             self._token.undeclare()
         except zenoh.ZError:
