@@ -150,8 +150,8 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         # the new controller servos the new run (a whole run to `done` is test_a_full_simulated_run's)
         n = len(cmds)
         assert wait_until(lambda: any(c.mode == "servo" and c.run_id == rep.run_id for _, c in cmds[n:]), 240, 0.2), (state.get(), _log(tmp_path)[-3000:])
-        s = state.get()
-        assert s.run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), s
+        # run/state comes on its own subscription thread: it may trail the commands by a moment
+        assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), 5, 0.05), state.get()
         stop = request_run_control(session, keys, RunControl(action="stop"), timeout=10)
         assert stop.accepted, stop.reason
         assert wait_until(lambda: state.get().stage in ("failed", "aborted"), 20, 0.1), state.get()
