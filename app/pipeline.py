@@ -20,7 +20,7 @@ from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.controller import ShapeServo
 from bagit.services.controller.servo import NUMERIC_ERRORS
-from bagit.services.controller.synthetic import apply_increment
+from bagit.services.controller.increment import apply_increment
 from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
 from bagit.services.perception.rgbd import solid_rim_segmenter
 from bagit.services.planner import bagging_soi, collision_model, plan_path

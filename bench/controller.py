@@ -23,7 +23,8 @@ from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits, make_controller
 from bagit.services.controller.mpc import separation_bounds, separation_gradient, uncondensed_qp
 from bagit.services.controller.subgoal import rms_error, slide_to
-from bagit.services.controller.synthetic import SyntheticRim, apply_increment
+from bagit.services.controller.increment import apply_increment
+from bagit.services.controller.synthetic import SyntheticRim
 
 N_X = 32
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2])

@@ -91,7 +91,7 @@ def _stage(role: str, connect: str, data: Path) -> int:
         keep = Subscriber(s, keys.camera_rgbd, RgbdFrame, _latest_worker(perceive))
     else:
         from bagit.services.controller import ShapeServo
-        from bagit.services.controller.synthetic import apply_increment
+        from bagit.services.controller.increment import apply_increment
         from bagit.common.params import MethodParams
 
         servo = ShapeServo("mpc", MethodParams(), d["path"], int(d["dagger_index"]), float(d["R"]))

@@ -6,7 +6,8 @@ import pytest
 from bagit.common.params import MethodParams
 from bagit.services.controller import BroydenJacobian, Exploration, c7_limits
 from bagit.services.controller.broyden import exploration_inputs, jacobian_from_exploration
-from bagit.services.controller.synthetic import SyntheticRim, apply_increment
+from bagit.services.controller.increment import apply_increment
+from bagit.services.controller.synthetic import SyntheticRim
 
 
 def test_converges_to_a_linear_model_under_random_inputs():

@@ -8,7 +8,8 @@ import pytest
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits
 from bagit.services.controller.mpc import prediction_matrices, separation_gradient, uncondensed_qp
-from bagit.services.controller.synthetic import SyntheticRim, apply_increment
+from bagit.services.controller.increment import apply_increment
+from bagit.services.controller.synthetic import SyntheticRim
 
 U_MAX = c7_limits(MethodParams())
 AXIS = np.array([0.0, 1.0, 0.0])

@@ -14,7 +14,8 @@ from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.geometry import matrix_to_rpy
 from bagit.common.messages import ArmState, Command, ControllerStatus, EllipseParams, Goal, Path, RunState, SoiState
 from bagit.services.controller.node import ControllerNode, ControllerServiceConfig, DT_MAX_S
-from bagit.services.controller.synthetic import SyntheticRim, apply_increment
+from bagit.services.controller.increment import apply_increment
+from bagit.services.controller.synthetic import SyntheticRim
 
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
 FAST = {"max_linear_speed_mps": 0.15, "max_angular_speed_rps": 0.9, "control_rate_hz": 60.0, "enclose_margin_m": 0.005}

@@ -112,8 +112,10 @@ class Exploration:
     SOI change over a whole push (not one tick, which is mostly camera noise) gives one finite
     difference; the 24 of them give J by least squares.
 
-    Use as a state machine: `next_input(x)` with each new SOI `x (3 n_x,)` returns the input to
-    apply this tick, or None once finished; then `jacobian()`.
+    Use as a state machine: `next_input(x, moved)` with each new SOI `x (3 n_x,)` and the grippers'
+    measured motion since the last call returns the input to apply this tick, or None once
+    finished; then `jacobian()`. Each push is measured by what the grippers did, not by what was
+    asked of them: an arm driver that slowed or dropped a command does not bias J.
     """
 
     def __init__(self, u_max: np.ndarray, push_ticks: int = 4, settle_ticks: int = 2):
@@ -134,6 +136,7 @@ class Exploration:
         self._finished = False
         self._x_start: np.ndarray | None = None
         self._u_sum = np.zeros(12)
+        self._u_last = np.zeros(12)
         self.inputs: list[np.ndarray] = []  # (12,) summed input of each finished push
         self.changes: list[np.ndarray] = []  # (3 n_x,) SOI change it caused
 
@@ -150,8 +153,9 @@ class Exploration:
     def progress(self) -> float:
         return len(self.inputs) / len(self._segments)
 
-    def next_input(self, x: np.ndarray) -> np.ndarray | None:
-        """The exploratory input for this tick given the current SOI `x (3 n_x,)`; None when finished.
+    def next_input(self, x: np.ndarray, moved: np.ndarray | None = None) -> np.ndarray | None:
+        """The exploratory input for this tick given the current SOI `x (3 n_x,)` and `moved (12,)`,
+        the grippers' motion since the last call (None: the last input, done exactly); None when finished.
 
         Ticks on which the caller holds (no valid SOI) simply do not call this: the push pauses with
         the arms still, and its SOI change is still measured between two valid SOIs.
@@ -159,6 +163,8 @@ class Exploration:
         if self._finished:
             return None
         x = np.asarray(x, dtype=float).ravel()
+        if self._x_start is not None:  # the motion since the last call belongs to the push it came from
+            self._u_sum += self._u_last if moved is None else np.asarray(moved, dtype=float).ravel()
         if self._tick == 0:
             if self._x_start is not None:  # x is the SOI after the previous push settled: measure it
                 self.inputs.append(self._u_sum.copy())
@@ -168,7 +174,7 @@ class Exploration:
                 return None
             self._x_start, self._u_sum = x.copy(), np.zeros(12)
         u = self._segments[self._seg][self._tick]
-        self._u_sum += u
+        self._u_last = u
         self._tick += 1
         if self._tick == len(self._segments[self._seg]):
             self._seg, self._tick = self._seg + 1, 0

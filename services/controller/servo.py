@@ -1,7 +1,9 @@
 """What every shape-servoing controller does each tick, whatever its control law.
 
 A tick: the guard vets the SOI (missing, stale, implausible -> zero input and the reason); the
-Broyden estimate learns from the inputs and the SOI change they caused; at the start of a run the
+Broyden estimate learns from the grippers' measured motion and the SOI change it caused (not from
+the inputs sent: an arm driver slows, clips or drops commands, and J must not learn that the rim
+ignored a motion that never happened); at the start of a run the
 exploration seeds J; the subgoal tracker picks g_next on the path; the law (MPC, IBVS, SSVS)
 gives u (12,), which never leaves C7.
 """
@@ -20,6 +22,7 @@ from bagit.common.params import MethodParams
 from bagit.common.so3 import so3_log
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
+from bagit.services.controller.increment import pose_increment
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
 
 EXPLORE_PUSH_TICKS = 4  # ticks each exploratory push lasts (at the C7 limit)
@@ -206,7 +209,8 @@ class ServoBase:
         self.exploration = Exploration(self.u_max, self.explore_push_ticks, self.explore_settle_ticks)
         self.jacobian = None
         self._x_prev: np.ndarray | None = None
-        self._u_prev = np.zeros(12)
+        self._u_prev = np.zeros(12)  # the last input sent (the MPC's move suppression starts from it)
+        self._poses_prev: dict[str, np.ndarray] | None = None  # the grippers at the last tick with a valid SOI
         self._win_u = np.zeros(12)
         self._win_s = np.zeros(3 * self.n_x)
         self._win_n = 0
@@ -254,10 +258,12 @@ class ServoBase:
             self._learn_separation_offset(x, gripper_poses)
         if self._start_rot is None:
             self._start_rot = {a: np.array(gripper_poses[a][:3, :3]) for a in ("left", "right")}
-        self._learn(xf)
+        moved = None if self._poses_prev is None else pose_increment(self._poses_prev, gripper_poses)
+        self._poses_prev = {a: np.array(gripper_poses[a], dtype=float) for a in ("left", "right")}
+        self._learn(xf, moved)
         self._x_prev = xf
         if self.jacobian is None:
-            u = self.exploration.next_input(xf)
+            u = self.exploration.next_input(xf, moved)
             if u is not None:
                 self._u_prev = u
                 return self._out(u, "explore", None, x)
@@ -321,11 +327,12 @@ class ServoBase:
             lower = float(np.clip(taut, lower, upper - TAUT_MARGIN_M))
         return lower, upper
 
-    def _learn(self, xf: np.ndarray) -> None:
-        """Broyden on windows of `broyden_window` ticks: the summed input and the SOI change it caused."""
+    def _learn(self, xf: np.ndarray, moved: np.ndarray | None) -> None:
+        """Broyden on windows of `broyden_window` ticks: the grippers' summed motion `moved (12,)`
+        (None: the last input, as sent) and the SOI change it caused."""
         if self._x_prev is None or self.jacobian is None:
             return
-        self._win_u += self._u_prev
+        self._win_u += self._u_prev if moved is None else moved
         self._win_s += xf - self._x_prev
         self._win_n += 1
         if self._win_n >= self.broyden_window:

@@ -9,7 +9,6 @@ come together: smooth, nonlinear and coupled, like a fabric rim held by two moun
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from bagit.common.geometry import make_transform, ramanujan_perimeter
 
@@ -47,14 +46,3 @@ class SyntheticRim:
         bump = 4 * self.w_right * self.w_left  # 1 mid-way along the free stretches, 0 at the clamps
         out[:, 2] -= self.sag_gain * slack**1.5 * bump / np.sqrt(self.sep0)
         return out
-
-
-def apply_increment(grippers: dict[str, np.ndarray], u: np.ndarray) -> dict[str, np.ndarray]:
-    """Gripper poses after the 12-D increment u = [left dp, drotvec, right dp, drotvec] (world frame)."""
-    out = {}
-    for name, off in (("left", 0), ("right", 6)):
-        T = grippers[name].copy()
-        T[:3, 3] += u[off : off + 3]
-        T[:3, :3] = Rotation.from_rotvec(u[off + 3 : off + 6]).as_matrix() @ T[:3, :3]
-        out[name] = T
-    return out
