@@ -1,5 +1,7 @@
 """SOI extraction on generated clouds with a known true rim: accuracy, coverage, order, warm start, bad input."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -306,3 +308,14 @@ def test_a_blob_is_not_a_rim():
     except BadCloud:
         return
     assert soi.shape == (N_X, 3) and np.all(np.isfinite(soi))
+
+
+def test_a_half_hidden_rim_is_refused_for_what_it_is_not_as_a_numerical_failure():
+    """A rim cloud of 117 points from a simulated run (exp09, the bag's rim mostly out of view):
+    cold EM leaves half its components without points, the median support is ~1e-10, and one
+    component with a trace of support but no mean of its own used to count as fed and put NaN
+    into the bridge ("failed numerically"). Now the cloud is refused because it shows too little rim."""
+    case = np.load(Path(__file__).parent / "data" / "half-hidden-rim.npz")
+    for init in (case["init"], None):
+        with pytest.raises(BadCloud, match="not show enough of a rim"):
+            extract_soi(case["points"], N_X, init=init)

@@ -177,7 +177,9 @@ def _repair(fit: ChainFit, p: SoiParams) -> tuple[np.ndarray, np.ndarray]:
     """
     k = len(fit.mu)
     support, sigma = fit.support, fit.sigma
-    fed = support >= p.starved_fraction * max(float(np.median(support)), 1e-9)
+    # Fed: a fair share of the median support, and points of its own (EM leaves data_mu NaN below
+    # its own floor, which a median of ~0 on a half-hidden rim would otherwise let through).
+    fed = (support >= p.starved_fraction * max(float(np.median(support)), 1e-9)) & np.isfinite(fit.data_mu).all(axis=1)
     if fed.sum() < max(4, p.min_supported * k):
         raise BadCloud(
             f"only {int(fed.sum())} of {k} rim components are supported by points: "
