@@ -90,10 +90,10 @@ def _time_solver(solver: MpcSolver, qps: list[tuple]) -> tuple[list[float], list
 
 
 def _unpack(args: tuple) -> tuple:
-    """A recorded MpcSolver.solve call as (J, x, target, u_max, axis, sep, limits, recover, W)."""
-    full = list(args) + [None] * (9 - len(args))
-    J, x, target, u_max, axis, sep, lim, recover, W = full
-    return J, x, target, u_max, axis, 0.0 if sep is None else sep, (0.0, np.inf) if lim is None else lim, recover or 0.0, W
+    """A recorded MpcSolver.solve call as (J, x, target, u_max, axis, sep, limits, recover, W, u_prev)."""
+    full = list(args) + [None] * (10 - len(args))
+    J, x, target, u_max, axis, sep, lim, recover, W, u_prev = full
+    return J, x, target, u_max, axis, 0.0 if sep is None else sep, (0.0, np.inf) if lim is None else lim, recover or 0.0, W, u_prev
 
 
 def _stacked_constraints(ref: MpcSolver, axis: np.ndarray) -> sp.csc_matrix:
@@ -113,8 +113,8 @@ def _osqp(qps: list[tuple], p: MethodParams, warm: bool, ref: MpcSolver, eps: fl
     T = p.horizon
     prob, prev = None, None
     for args in qps:
-        J, x, target, u_max, axis, sep, lim, recover, W = _unpack(args)
-        H, c = ref.condensed(J, x, target, W)
+        J, x, target, u_max, axis, sep, lim, recover, W, u_prev = _unpack(args)
+        H, c = ref.condensed(J, x, target, W, u_prev)
         A = _stacked_constraints(ref, axis)
         h_l, h_u = separation_bounds(sep, lim, recover, T)
         lo = np.concatenate([-np.tile(u_max, T), h_l])
@@ -129,7 +129,7 @@ def _osqp(qps: list[tuple], p: MethodParams, warm: bool, ref: MpcSolver, eps: fl
             prob.update(q=c, l=lo, u=hi, Px=Pu.data, Ax=A.data)
             if prev is not None:
                 prob.warm_start(x=np.concatenate([prev[12:], prev[-12:]]))
-        res = prob.solve()
+        res = prob.solve(raise_error=False)  # a failed solve shows as a large difference, not an exception
         ms.append((time.perf_counter() - t0) * 1e3)
         cpu.append((time.thread_time() - c0) * 1e3)
         prev = res.x
@@ -143,7 +143,7 @@ def _sparse_uncondensed(qps: list[tuple], p: MethodParams, r_diag: np.ndarray) -
     formulation a sparse solver would usually get, 1080 variables at n_x = 32. Solver calls timed."""
     ms, cpu, solver = [], [], None
     for args in qps:
-        J, x, target, u_max, axis, sep, lim, recover, W = _unpack(args)
+        J, x, target, u_max, axis, sep, lim, recover, W, _ = _unpack(args)  # no move suppression here (du_weight 0 by default)
         qp = uncondensed_qp(J, x, target, u_max, p.horizon, p.q_weight, r_diag, axis, sep, lim, recover, W)
         t0, c0 = time.perf_counter(), time.thread_time()
         if solver is None:
