@@ -246,7 +246,7 @@ def test_a_silent_controller_times_out_and_a_late_reply_is_not_misdelivered(fake
 
     c = client_for(fake(script))
     t0 = time.monotonic()
-    with pytest.raises(ProtocolError, match="within 150 ms"):
+    with pytest.raises(ProtocolError, match=r"within 1[5-9]\d ms"):  # how long it went unanswered: 150 ms or a little more
         c.request("GetAngle()", timeout=0.15)
     assert 0.14 < time.monotonic() - t0 < 1.0
     assert c.robot_mode() == 5  # the stale GetAngle reply arrives first and is dropped, not handed to RobotMode

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from bagit.common.errors import BadScenario, BagItError, SafetyViolation
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
+from bagit.services.controller.increment import apply_increment
 from bagit.services.sim.objects import ConvexPart
 from bagit.services.sim.truth import PENETRATION_TOL_M, PenetrationMonitor
 from bagit.services.sim.world import MAX_MOUNT_SPEED_MPS, SimWorld
@@ -79,13 +80,7 @@ def test_every_mount_input_moves_the_rim_and_the_response_is_learnable(coffee):
 
     def rim_after(u: np.ndarray) -> np.ndarray:
         w.restore_state(base)
-        targets = {}
-        for name, off in (("left", 0), ("right", 6)):
-            T = start[name].copy()
-            T[:3, 3] += u[off : off + 3]
-            T[:3, :3] = Rotation.from_rotvec(u[off + 3 : off + 6]).as_matrix() @ T[:3, :3]
-            targets[name] = T
-        w.set_mount_targets(targets)
+        w.set_mount_targets(apply_increment(start, u))
         w.step(0.3)
         return w.true_rim().ravel()
 
