@@ -3,9 +3,8 @@
 A tick: the guard vets the SOI (missing, stale, implausible -> zero input and the reason); the
 Broyden estimate learns from the grippers' measured motion and the SOI change it caused (not from
 the inputs sent: an arm driver slows, clips or drops commands, and J must not learn that the rim
-ignored a motion that never happened); at the start of a run the
-exploration seeds J; the subgoal tracker picks g_next on the path; the law (MPC, IBVS, SSVS)
-gives u (12,), which never leaves C7.
+ignored a motion that never happened); at the start of a run the exploration seeds J; the subgoal
+tracker picks g_next on the path; the law (MPC, IBVS, SSVS) gives u (12,), which never leaves C7.
 """
 
 from __future__ import annotations
@@ -329,10 +328,10 @@ class ServoBase:
 
     def _learn(self, xf: np.ndarray, moved: np.ndarray | None) -> None:
         """Broyden on windows of `broyden_window` ticks: the grippers' summed motion `moved (12,)`
-        (None: the last input, as sent) and the SOI change it caused."""
-        if self._x_prev is None or self.jacobian is None:
+        and the SOI change it caused (None on a run's first valid tick: nothing to learn yet)."""
+        if self._x_prev is None or moved is None or self.jacobian is None:
             return
-        self._win_u += self._u_prev if moved is None else moved
+        self._win_u += moved
         self._win_s += xf - self._x_prev
         self._win_n += 1
         if self._win_n >= self.broyden_window:
