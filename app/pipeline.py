@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.path import Path as MplPath
 
 from bagit.common.errors import BagItError, SimulationFailed
-from bagit.common.geometry import closed_polyline_length, transform_points
+from bagit.common.geometry import closed_polyline_length, enclosure, transform_points
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.controller import ShapeServo
@@ -49,6 +49,9 @@ class RunResult:
     wall_s: float
     path_nodes: int = 0
     max_penetration_mm: float = 0.0
+    # the true rim's margin round V (seen along the object's axis, cm, < 0: a vertex outside) when the
+    # lift from g† began: how close the run came to catching the bottom (None: it never got there)
+    lift_margin_cm: float | None = None
     history: dict[str, list[float]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -111,11 +114,14 @@ def run_bagging(
     dt = 1.0 / p.control_rate_hz
     history: dict[str, list[float]] = {"t": [], "err_sub": [], "err_goal": [], "u_norm": [], "solve_ms": []}
 
+    lift_margin: list[float] = []
+
     def finish(ok: bool, stage: str, reason: str | None, err: float = float("nan"), plan_t: float = 0.0, ticks: int = 0, nodes: int = 0) -> RunResult:
         gt = world.ground_truth()
         world.close()
         return RunResult(ok, stage, reason, err, max(world.time - SETTLE_S, 0.0), plan_t, ticks, gt.rim, V, gt.passed_through,
-                         controller, planner, seed, time.perf_counter() - t_wall, nodes, gt.max_penetration_m * 1e3, history)
+                         controller, planner, seed, time.perf_counter() - t_wall, nodes, gt.max_penetration_m * 1e3,
+                         lift_margin[0] if lift_margin else None, history)
 
     # How the rim looks is a property of the bag the rig is set up for, not ground truth.
     segmenter = red_rim_mask if scenario.bag.kind == "red-edged" else solid_rim_segmenter(scenario.bag.color)
@@ -154,6 +160,8 @@ def run_bagging(
         if np.any(np.abs(out.u) > limit + 1e-12) or not np.all(np.isfinite(out.u)):
             return finish(False, stage, "the controller commanded outside the arm limits", ticks=ticks)
         if out.stage != stage and out.mode == "servo":
+            if out.stage == "bagging" and not lift_margin:  # judged on the truth, like the end; never fed back
+                lift_margin.append(float(enclosure(world.true_rim(), V, goal.frame)[0].min()) * 100)
             stage = out.stage
             progress(f"{stage}: subgoal {out.subgoal_index}/{len(plan.path) - 1}")
         history["t"].append(world.time)

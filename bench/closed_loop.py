@@ -8,6 +8,7 @@ resumes where it was. `bagit bench paper` reads such files (`--closed-loop FILE`
 
     python -m bagit.bench.closed_loop [--quick] [--seeds N] [--controllers mpc,ibvs,ssvs] [--planners cbirrt]
                                       [--only exp02,...] [--seed-from S] [--jsonl FILE] [--workers 1] [--timeout-s 900]
+                                      [--params JSON] [--time-limit-s 40]
 """
 
 from __future__ import annotations
@@ -27,19 +28,28 @@ PAPER = {"mpc_error_cm": "2.10 ± 0.77", "mpc_time_s": "53.09 ± 2.92"}
 RUN_TIMEOUT_S = 900.0  # wall time one run may take before its worker is stopped
 
 
-def run_one(scenario: str, controller: str, planner: str, seed: int, time_limit_s: float = 40.0) -> dict[str, Any]:
-    """One whole run as a JSON-able record (no arrays but the final rim), in this process."""
+def run_one(
+    scenario: str, controller: str, planner: str, seed: int, time_limit_s: float = 40.0, params: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """One whole run as a JSON-able record (no arrays but the final rim), in this process.
+    `params`: method parameters overriding the scenario's (an ablation), kept in the record."""
+    from bagit.common.params import MethodParams
     from bagit.common.scenario import Scenario
     from bagit.pipeline import run_bagging
     from bagit.scenarios import find_scenario
 
-    r = run_bagging(Scenario.from_file(find_scenario(scenario)), controller, planner, seed, time_limit_s)
+    sc = Scenario.from_file(find_scenario(scenario))
+    if params:
+        sc = sc.model_copy(update={"params": MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **params})})
+    r = run_bagging(sc, controller, planner, seed, time_limit_s)
     solve = np.asarray(r.history.get("solve_ms", []), dtype=float)
     solve = solve[solve > 0]
     d = r.to_dict()
     d.pop("object_vertices", None)
     d["final_rim"] = np.round(np.asarray(d["final_rim"], dtype=float), 5).tolist()
     d.update(scenario=scenario, solve_ms_median=float(np.median(solve)) if solve.size else None)
+    if params:
+        d["params"] = dict(params)
     return {k: (v.item() if isinstance(v, np.generic) else (None if isinstance(v, float) and not np.isfinite(v) else v)) for k, v in d.items()}
 
 
@@ -70,6 +80,7 @@ def sweep(
     workers: int = 1,
     timeout_s: float = RUN_TIMEOUT_S,
     time_limit_s: float = 40.0,
+    params: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Run every (scenario, controller, planner, seed) not already in `jsonl`, `workers` at a time, each in
     a fresh process; returns all records of these keys (old and new)."""
@@ -87,7 +98,7 @@ def sweep(
         print(json.dumps({k: rec.get(k) for k in ("scenario", "controller", "planner", "seed", "success", "stage_reached", "reason", "error_cm")}), flush=True)
 
     try:
-        _drive(todo, running, ctx, record, workers, timeout_s, time_limit_s)
+        _drive(todo, running, ctx, record, workers, timeout_s, time_limit_s, params)
     finally:  # stopped (Ctrl-C, an error): no worker outlives the sweep
         for _, p, _, _ in running:
             if p.is_alive():
@@ -95,13 +106,15 @@ def sweep(
     return [out[k] for k in keys if k in out]
 
 
-def _drive(todo: list, running: list, ctx: Any, record: Any, workers: int, timeout_s: float, time_limit_s: float) -> None:
+def _drive(
+    todo: list, running: list, ctx: Any, record: Any, workers: int, timeout_s: float, time_limit_s: float, params: dict[str, Any] | None
+) -> None:
     """Start workers while there is work and room, collect results, kill runs over `timeout_s`."""
     while todo or running:
         while todo and len(running) < max(1, workers):
             key = todo.pop(0)
             recv, send = ctx.Pipe(duplex=False)
-            p = ctx.Process(target=_worker, args=(send, (*key, time_limit_s)), daemon=True)
+            p = ctx.Process(target=_worker, args=(send, (*key, time_limit_s, params)), daemon=True)
             p.start()
             send.close()
             running.append((key, p, recv, time.monotonic()))
@@ -157,6 +170,8 @@ def run(
     workers: int = 1,
     timeout_s: float = RUN_TIMEOUT_S,
     seed_from: int = 0,
+    params: dict[str, Any] | None = None,
+    time_limit_s: float = 40.0,
 ) -> dict:
     n = seeds or (1 if quick else 8)
     ctrls = controllers or (["mpc"] if quick else ["mpc", "ibvs", "ssvs"])
@@ -164,7 +179,7 @@ def run(
     if quick and not only:
         scen = scen[:2]
     keys = [(s, c, pl, seed) for s in scen for c in ctrls for pl in (planners or ["cbirrt"]) for seed in range(seed_from, seed_from + n)]
-    records = sweep(keys, jsonl, workers, timeout_s)
+    records = sweep(keys, jsonl, workers, timeout_s, time_limit_s, params)
     return {"seeds": n, "rows": aggregate(records), "runs": records}
 
 
@@ -189,9 +204,11 @@ def main() -> None:
     ap.add_argument("--seed-from", type=int, default=0, help="seeds seed_from .. seed_from + seeds - 1")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--timeout-s", type=float, default=RUN_TIMEOUT_S)
+    ap.add_argument("--time-limit-s", type=float, default=40.0, help="simulated seconds a run may take")
+    ap.add_argument("--params", type=json.loads, default=None, help='method parameters for every run, JSON, e.g. \'{"du_weight": 100}\'')
     a = ap.parse_args()
     split = lambda s: s.split(",") if s else None  # noqa: E731
-    r = run(a.quick, a.seeds, split(a.controllers), split(a.only), split(a.planners), a.jsonl, a.workers, a.timeout_s, a.seed_from)
+    r = run(a.quick, a.seeds, split(a.controllers), split(a.only), split(a.planners), a.jsonl, a.workers, a.timeout_s, a.seed_from, a.params, a.time_limit_s)
     print(table(r))
 
 

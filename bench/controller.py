@@ -138,13 +138,13 @@ def _osqp(qps: list[tuple], p: MethodParams, warm: bool, ref: MpcSolver, eps: fl
     return ms, cpu, sols, its
 
 
-def _sparse_uncondensed(qps: list[tuple], p: MethodParams, r_diag: np.ndarray) -> tuple[list[float], list[float]]:
+def _sparse_uncondensed(qps: list[tuple], p: MethodParams, R: np.ndarray) -> tuple[list[float], list[float]]:
     """PIQP's sparse solver on the MPC with the states kept as variables (C8 as equalities): the
     formulation a sparse solver would usually get, 1080 variables at n_x = 32. Solver calls timed."""
     ms, cpu, solver = [], [], None
     for args in qps:
         J, x, target, u_max, axis, sep, lim, recover, W, _ = _unpack(args)  # no move suppression here (du_weight 0 by default)
-        qp = uncondensed_qp(J, x, target, u_max, p.horizon, p.q_weight, r_diag, axis, sep, lim, recover, W)
+        qp = uncondensed_qp(J, x, target, u_max, p.horizon, p.q_weight, R, axis, sep, lim, recover, W)
         t0, c0 = time.perf_counter(), time.thread_time()
         if solver is None:
             solver = piqp.SparseSolver()
@@ -165,13 +165,13 @@ def run(quick: bool = False) -> dict:
     u_max = c7_limits(p)
     scale = np.tile(u_max, p.horizon)
     out: dict = {"horizon": p.horizon, "n_x": N_X, "variables": 12 * p.horizon, "qps": len(qps)}
-    dense_ms, dense_cpu, dense_x, dense_it = _time_solver(MpcSolver(p.horizon, p.q_weight, p.r_weight, "dense"), qps)
-    sparse_ms, sparse_cpu, sparse_x, _ = _time_solver(MpcSolver(p.horizon, p.q_weight, p.r_weight, "sparse"), qps)
-    ref = MpcSolver(p.horizon, p.q_weight, p.r_weight)
+    dense_ms, dense_cpu, dense_x, dense_it = _time_solver(MpcSolver(p.horizon, p.q_weight, p.r_weight, "dense", twist=p.twist_weight), qps)
+    sparse_ms, sparse_cpu, sparse_x, _ = _time_solver(MpcSolver(p.horizon, p.q_weight, p.r_weight, "sparse", twist=p.twist_weight), qps)
+    ref = MpcSolver(p.horizon, p.q_weight, p.r_weight, twist=p.twist_weight)
     cold_ms, cold_cpu, cold_x, cold_it = _osqp(qps, p, warm=False, ref=ref)
     warm_ms, warm_cpu, warm_x, warm_it = _osqp(qps, p, warm=True, ref=ref)
     loose_ms, loose_cpu, loose_x, loose_it = _osqp(qps, p, warm=True, ref=ref, eps=1e-4)
-    unc_ms, unc_cpu = _sparse_uncondensed(qps[: 30 if quick else 100], p, ref.r_diag)
+    unc_ms, unc_cpu = _sparse_uncondensed(qps[: 30 if quick else 100], p, ref.R)
 
     def diff(xs):  # largest difference to PIQP dense, as a share of each input's C7 range
         return float(max(np.max(np.abs(a - b) / scale) for a, b in zip(xs, dense_x)))

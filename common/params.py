@@ -6,6 +6,8 @@ is validated in one place; unknown keys are rejected so a typo never silently fa
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field
 
 # lambda_d when only V is known (no object height): a 4 cm lift of the rim along the object.
@@ -34,6 +36,13 @@ class MethodParams(BaseModel):
     # the far side of the object from the camera (perception bridges it); the grippers keep still
     # at g† for a moment so it catches up before the lift, instead of being pinned under the bottom.
     dagger_settle_s: float = Field(1.0, ge=0.0, le=10.0, description="grippers still at g† this long before the lift (s)")
+    # Which of the ellipses that minimise |L - R|² under C1 is the bagging ellipse (the paper's objective
+    # has a whole family of minimisers, L = R exactly). 'bag' (not in the paper's text, which only asks
+    # the opening to stay close to Q0's): the one closest in shape to the bag's own opening g0 that keeps
+    # dagger_margin_share of the margin round V the 'tight' one has; the bag's orientation replaces C3.
+    # 'tight': the smallest C1-C3 ellipse scaled up to R (the largest margin, C3 kept).
+    dagger_shape: Literal["bag", "tight"] = Field("bag", description="bagging ellipse: nearest the bag's opening, or the tight one scaled up")
+    dagger_margin_share: float = Field(0.8, ge=0.0, le=1.0, description="'bag' keeps this share of the tight ellipse's margin round V")
     # Not in the paper either: an SOI within the RMS tolerance of g† can still leave a corner of the
     # object outside the rim, and the lift then catches it where the camera cannot see. With a value,
     # the rim must go round V (seen along the object's axis) by this much before the lift and at the
@@ -60,6 +69,11 @@ class MethodParams(BaseModel):
     # Not in the paper: the cost of changing the input from one tick to the next (move suppression);
     # 0 (the paper's cost) is the default: measured, 100 did not pay.
     du_weight: float = Field(0.0, ge=0.0, le=1e4, description="MPC cost of the input's change per tick")
+    # A choice of the paper's R: the cost of the two grippers turning differently, |ω_L - ω_R|² per tick
+    # (rad²). Each mount clamps a rigid stretch of the rim, so a differential turn only creases the
+    # fabric between them; with it the rim moves as a body (measured: the fold that caught the
+    # object's bottom during the lift is gone). 0: R is the plain diagonal.
+    twist_weight: float = Field(1000.0, ge=0.0, le=1e6, description="MPC cost of the grippers turning differently (per rad²)")
     max_linear_speed_mps: float = Field(0.05, gt=0.0, le=0.25, description="C7: gripper speed (m/s)")
     max_angular_speed_rps: float = Field(0.3, gt=0.0, le=2.0, description="C7: gripper angular speed (rad/s)")
     subgoal_tol_m: float = Field(0.02, gt=0.0, le=0.2, description="advance along the path below this RMS error")

@@ -24,7 +24,7 @@ class FieldSpec:
     hint: str
 
 
-# λ1-λ5, λd, g†'s depth, the MPC's horizon and weights (R and the move suppression), the speed
+# λ1-λ5, λd, g†'s depth and margin share, the MPC's horizon and weights (R, its twist term and the move suppression), the speed
 # limits (C7), the tolerances and the settle at g†.
 FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("lambda_1", "λ1 C1 margin", 0.001, "max F_e of any vertex inside the ellipse (< 1)"),
@@ -34,10 +34,12 @@ FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("lambda_5", "λ5 C5 centre (m)", 0.001, "max regularised-ellipse centre offset"),
     FieldSpec("lambda_d", "λd lift (m)", 0.005, "g* = g† + λd a_z; tick 'λd auto' for half the object height"),
     FieldSpec("dagger_depth_m", "g† depth (m)", 0.005, "g† this far below the object's bottom; g* stays λd above it"),
+    FieldSpec("dagger_margin_share", "g† margin share", 0.05, "the bag-shaped g† keeps this share of the tight ellipse's margin round V"),
     FieldSpec("horizon", "MPC horizon T", 1, "steps the MPC looks ahead"),
     FieldSpec("q_weight", "MPC Q weight", 0.05, "weight of the SOI error"),
     FieldSpec("r_weight", "MPC R weight", 0.01, "weight of the command size"),
     FieldSpec("du_weight", "MPC Δu weight", 1.0, "weight of the command's change per tick"),
+    FieldSpec("twist_weight", "MPC twist weight", 10.0, "weight of the two grippers turning differently"),
     FieldSpec("epsilon", "Broyden ε", 0.05, "Jacobian update rate"),
     FieldSpec("control_rate_hz", "control rate (Hz)", 1, "controller ticks per second"),
     FieldSpec("max_linear_speed_mps", "max speed (m/s)", 0.005, "C7: gripper linear speed limit"),

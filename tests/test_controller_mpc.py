@@ -7,7 +7,7 @@ import pytest
 
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits
-from bagit.services.controller.mpc import prediction_matrices, separation_gradient, uncondensed_qp
+from bagit.services.controller.mpc import prediction_matrices, rotation_weighted_r, separation_gradient, uncondensed_qp
 from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.synthetic import SyntheticRim
 
@@ -24,17 +24,23 @@ def _problem(rng, n_x=32):
     return J, x, x + rng.normal(size=x.size) * 0.02, g
 
 
-def test_condensed_cost_is_the_papers_cost():
-    """(x̄ - k̄)ᵀQ(x̄ - k̄) + ūᵀRū with x̄ = A x + B ū equals ½ūᵀ(2H)ū + 2cᵀū + const for every ū."""
+@pytest.mark.parametrize("twist", [0.0, 40.0])
+def test_condensed_cost_is_the_papers_cost(twist):
+    """(x̄ - k̄)ᵀQ(x̄ - k̄) + ūᵀRū with x̄ = A x + B ū equals ½ūᵀ(2H)ū + 2cᵀū + const for every ū;
+    R is the rotation-weighted diagonal plus twist |ω_L - ω_R|² per tick."""
     rng = np.random.default_rng(0)
     T, q, r = 4, 2.0, 0.1
     J = rng.normal(size=(18, 12))
     x, k = rng.normal(size=18), rng.normal(size=18)
-    s = MpcSolver(T, q, r)
+    s = MpcSolver(T, q, r, twist=twist)
     H, c = s.condensed(J, x, k)
     A, B = prediction_matrices(J, T)
     assert A.shape == (18 * T, 18) and B.shape == (18 * T, 12 * T)
-    R = np.diag(s.r_diag)
+    R = s.R
+    for _ in range(3):  # R's own meaning, term by term
+        u = rng.normal(size=(T, 12))
+        diag = sum(r * (ui[[0, 1, 2, 6, 7, 8]] @ ui[[0, 1, 2, 6, 7, 8]]) + 10 * r * (ui[[3, 4, 5, 9, 10, 11]] @ ui[[3, 4, 5, 9, 10, 11]]) for ui in u)
+        assert np.isclose(u.ravel() @ R @ u.ravel(), diag + twist * sum(np.sum((ui[3:6] - ui[9:12]) ** 2) for ui in u))
     assert np.allclose(H, q * B.T @ B + R)
     assert np.allclose(c, q * B.T @ (A @ x - np.tile(k, T)))
     for _ in range(5):
@@ -56,7 +62,7 @@ def test_move_suppression_is_the_cost_of_the_input_change():
     s = MpcSolver(T, q, r, du=du)
     H, c = s.condensed(J, x, k, u_prev=u_prev)
     H0, c0 = MpcSolver(T, q, r).condensed(J, x, k)
-    W = np.diag(s.r_diag[:12] / r)  # rotations weighed like R
+    W = np.diag(rotation_weighted_r(1.0, 1))  # rotations weighed like R
     for _ in range(5):
         u = rng.normal(size=12 * T)
         steps = np.diff(np.vstack([u_prev, u.reshape(T, 12)]), axis=0)
@@ -97,6 +103,25 @@ def test_unconstrained_solution_is_the_least_squares_one():
     sol = s.solve(J, x, target, np.full(12, 10.0))
     H, c = s.condensed(J, x, target)
     assert sol.ok and np.allclose(sol.u_bar, np.linalg.solve(H, -c), atol=1e-6)
+
+
+def test_twist_weight_makes_the_grippers_turn_together():
+    """A target that only turning the two grippers in opposite ways reaches: without the twist term
+    the MPC does just that, with it the two hardly turn differently (it settles for less)."""
+    rng = np.random.default_rng(11)
+    J = rng.normal(size=(96, 12)) * 0.02  # a turn of 0.01 rad moves a rim point by a fraction of a mm
+    x = rng.normal(size=96) * 0.05
+    turn = np.zeros(12)
+    turn[3:6], turn[9:12] = 0.01, -0.01  # one tick's differential turn at the C7 limit
+    target = x + 5 * J @ turn
+    twist = lambda sol: np.abs(sol.u[3:6] - sol.u[9:12]).max()  # noqa: E731
+    free = MpcSolver(10, 1.0, 0.05).solve(J, x, target, U_MAX)
+    tied = MpcSolver(10, 1.0, 0.05, twist=1000.0).solve(J, x, target, U_MAX)
+    assert free.ok and tied.ok
+    assert twist(free) > U_MAX[3]  # the differential turn was the answer
+    assert twist(tied) < 0.1 * twist(free)
+    with pytest.raises(ValueError, match="twist"):
+        MpcSolver(10, 1.0, 0.05, twist=-1.0)
 
 
 def test_c7_and_c6_hold_on_every_solve():
@@ -145,7 +170,7 @@ def test_dense_sparse_and_uncondensed_agree():
         args = (J, x, target, U_MAX, axis, sep, (0.18, 0.285), recover, W)
         a, b = dense.solve(*args), sparse.solve(*args)
         assert a.ok and b.ok and np.all(np.abs(a.u_bar - b.u_bar) <= tol)
-        qp = uncondensed_qp(J, x, target, U_MAX, 10, 1.0, dense.r_diag, axis, sep, (0.18, 0.285), recover, W)
+        qp = uncondensed_qp(J, x, target, U_MAX, 10, 1.0, dense.R, axis, sep, (0.18, 0.285), recover, W)
         solver = piqp.SparseSolver()
         solver.settings.verbose = False
         solver.settings.eps_abs = solver.settings.eps_rel = 1e-9
@@ -194,5 +219,5 @@ def test_point_weight_is_q_kron_w_in_the_papers_cost():
     H, c = s.condensed(J, x, k, W)
     A, B = prediction_matrices(J, T)
     Q = q * np.kron(np.eye(8 * T), W)
-    assert np.allclose(H, B.T @ Q @ B + np.diag(s.r_diag))
+    assert np.allclose(H, B.T @ Q @ B + s.R)
     assert np.allclose(c, B.T @ Q @ (A @ x - np.tile(k, T)))

@@ -87,12 +87,73 @@ def test_c3_dropped_for_a_disc_and_a_regular_polygon():
     assert not bagging_soi(hexagon, 0.68, 32).c3_applied
 
 
-def test_order_aligned_to_g0():
+@pytest.mark.parametrize("shape", ["tight", "bag"])
+def test_order_aligned_to_g0(shape):
     v = np.array([[0.05, 0.03, 0.4], [-0.05, 0.03, 0.4], [-0.05, -0.03, 0.4], [0.05, -0.03, 0.4]])
-    free = bagging_soi(v, 0.68, 32)
+    p = MethodParams(dagger_shape=shape)
+    free = bagging_soi(v, 0.68, 32, p)
     g0 = np.roll(free.g_dagger[::-1], 7, axis=0) + [0.0, 0.0, -0.1]
-    g = bagging_soi(v, 0.68, 32, g0=g0)
-    assert np.allclose(g.g_dagger, g0 + [0.0, 0.0, 0.1])
+    g = bagging_soi(v, 0.68, 32, p, g0=g0)
+    assert np.allclose(g.g_dagger, g0 + [0.0, 0.0, 0.1], atol=2e-3)  # the bag's g0 is g† itself (up to its grid)
+
+
+def ring(a, b, alpha, z=0.3, n=32):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    xy = np.stack([a * np.cos(t), b * np.sin(t)], 1) @ np.array([[np.cos(alpha), np.sin(alpha)], [-np.sin(alpha), np.cos(alpha)]])
+    return np.column_stack([xy, np.full(n, z)])
+
+
+def margin(g, v):
+    """Smallest distance of V inside g†'s ellipse (m), measured on a dense outline."""
+    e = g.ellipse
+    t = np.linspace(0, 2 * np.pi, 4000, endpoint=False)
+    pts = np.stack([e.a * np.cos(t), e.b * np.sin(t)], 1) @ np.array([[np.cos(e.alpha), np.sin(e.alpha)], [-np.sin(e.alpha), np.cos(e.alpha)]])
+    xy = transform_points(invert_transform(g.frame), v)[:, :2]
+    return float(np.linalg.norm(xy[:, None] - pts[None], axis=2).min())
+
+
+def test_bag_opening_keeps_the_bags_shape_across_an_elongated_base():
+    """A box lying across the grippers' axis (world y) and a bag whose opening is 1.3:1 along it: the
+    tight ellipse stretches the opening along the box (across the bag), the 'bag' one keeps the bag's
+    orientation, as long as V keeps dagger_margin_share of the tight ellipse's margin."""
+    v = np.array([[0.06, 0.035, 0.4], [-0.06, 0.035, 0.4], [-0.06, -0.035, 0.4], [0.06, -0.035, 0.4]])
+    g0 = ring(0.094, 0.122, 0.0)  # the bag's rest opening, perimeter ~0.68
+    R = closed_polyline_length(g0)
+    tight = bagging_soi(v, R, 32, MethodParams(dagger_shape="tight"), g0=g0)
+    bag = bagging_soi(v, R, 32, MethodParams(dagger_shape="bag", dagger_margin_share=0.6), g0=g0)
+    major = lambda g: abs(np.cos(g.ellipse.alpha + g.ellipse.alpha * 0))  # noqa: E731
+    assert tight.c3_applied and major(tight) > 0.99  # along the box, x
+    assert not bag.c3_applied and bag.c3 < 0.2  # along the bag, y
+    assert bag.ellipse.a / bag.ellipse.b == pytest.approx(1.3, abs=0.08)
+    for g in (tight, bag):
+        e = g.ellipse
+        xy = transform_points(invert_transform(g.frame), v)[:, :2]
+        assert f_e(xy, e.a, e.b, e.alpha).max() <= P.lambda_1 + 1e-9  # C1
+        assert g.perimeter == pytest.approx(R, rel=1e-6)
+    assert margin(bag, v) >= 0.6 * margin(tight, v) - 1e-3
+    # a stricter share buys margin back with a rounder opening
+    round_ = bagging_soi(v, R, 32, MethodParams(dagger_shape="bag", dagger_margin_share=0.9), g0=g0)
+    assert margin(round_, v) >= 0.9 * margin(tight, v) - 1e-3 and margin(round_, v) > margin(bag, v)
+    assert round_.ellipse.a / round_.ellipse.b < bag.ellipse.a / bag.ellipse.b
+
+
+def test_bag_opening_is_the_bags_own_when_that_holds_v():
+    """g0 itself an ellipse of perimeter R that holds V well: g† is g0's ellipse, moved under V."""
+    v = np.array([[0.03, 0.03, 0.4], [-0.03, 0.03, 0.4], [-0.03, -0.03, 0.4], [0.03, -0.03, 0.4]])
+    g0 = ring(0.09, 0.12, np.radians(20))
+    R = float(np.pi * (3 * (0.09 + 0.12) - np.sqrt((3 * 0.09 + 0.12) * (0.09 + 3 * 0.12))))
+    g = bagging_soi(v, R, 32, g0=g0)
+    e = g.ellipse
+    assert e.a == pytest.approx(0.12, abs=2e-3) and e.b == pytest.approx(0.09, abs=2e-3)
+    major = g.frame[:3, :2] @ [np.cos(e.alpha), np.sin(e.alpha)]
+    assert abs(major @ [-np.sin(np.radians(20)), np.cos(np.radians(20)), 0.0]) > np.cos(np.radians(1.5))
+
+
+def test_bag_opening_without_g0_is_the_tight_one():
+    v = np.array([[0.06, 0.03, 0.4], [-0.06, 0.03, 0.4], [-0.06, -0.03, 0.4], [0.06, -0.03, 0.4]])
+    a = bagging_soi(v, 0.68, 32, MethodParams(dagger_shape="bag")).ellipse
+    b = bagging_soi(v, 0.68, 32, MethodParams(dagger_shape="tight")).ellipse
+    assert (a.a, a.b, a.alpha) == (b.a, b.b, b.alpha)
 
 
 def test_too_large_object_is_infeasible_with_the_needed_perimeter():

@@ -84,3 +84,5 @@ def test_a_whole_simulated_bagging_run_succeeds():
     assert r.success, (r.stage_reached, r.reason)
     assert r.stage_reached == "done" and not r.passed_through
     assert r.error_cm < 2.0 and r.duration_s < 40.0
+    # the true rim went round V with room to spare when the lift from g† began (cm)
+    assert r.lift_margin_cm is not None and r.lift_margin_cm > 1.0, r.lift_margin_cm

@@ -1,7 +1,8 @@
 """MPC shape servoing (paper section VI-B) as a condensed QP solved with PIQP.
 
 Prediction over the horizon T: x̄ = A x_t + B ū with A = 1_{T x 1} ⊗ I_{3 n_x} and B = L_h ⊗ J
-(L_h the lower-triangular matrix of ones). With Q = q I and R diagonal, eliminating x̄ (C8)
+(L_h the lower-triangular matrix of ones). With Q = q I and R block-diagonal over the ticks
+(`input_weight`: a diagonal plus the twist term below), eliminating x̄ (C8)
 leaves a QP in ū alone whose Hessian and gradient only need the small factors:
 
     H = Bᵀ Q B + R = q (L_hᵀ L_h) ⊗ (Jᵀ J) + R,      c = Bᵀ Q (A x_t - k̄) = q (L_hᵀ 1) ⊗ (Jᵀ (x_t - g)),
@@ -21,6 +22,11 @@ and a few millimetres of SOI noise move it to another corner from one tick to th
 the simulator as grippers shaking up and down at full speed instead of lifting the rim). The term
 adds the constant du (DᵀD ⊗ W) to H and -du (e_0 ⊗ W) u_{-1} to c (D the first difference, W the
 rotation weighting of R); `uncondensed_qp` stays the paper's QP, for the solver comparison.
+
+R's twist term (`MethodParams.twist_weight`; the paper leaves R open): per tick, twist |ω_L - ω_R|²
+on the difference of the two grippers' rotation increments, so they turn together and the rim
+moves as a body instead of being creased between its clamps (see `input_weight`). The paper's QP
+form is unchanged: it is a choice of R, and `uncondensed_qp` takes the same R.
 
 PIQP is an interior-point solver and takes no primal start in its Python API (v0.7), so the
 "warm start" it can use is its set-up: the KKT structure and workspace are kept between ticks and
@@ -75,6 +81,23 @@ def rotation_weighted_r(r: float, horizon: int) -> np.ndarray:
     return r * np.tile(per_tick, horizon)
 
 
+def input_weight(r: float, horizon: int, twist: float = 0.0) -> np.ndarray:
+    """R `(12T, 12T)`: `rotation_weighted_r` on the diagonal plus, per tick, twist |ω_L - ω_R|², the
+    cost of the two grippers turning differently (ω: each gripper's rotation increment, u[3:6], u[9:12]).
+
+    Why: each mount clamps a rigid quarter of the rim, so turning both alike moves the rim as a body,
+    while turning them differently bends the free fabric between the clamps, which buckles into a fold
+    (inwards, under the object's bottom, as often as outwards) that a linear J cannot predict: traced
+    in the simulator, the MPC yawed the mounts apart to widen the rim's near side and creased it instead."""
+    R = np.diag(rotation_weighted_r(r, horizon))
+    if twist > 0:
+        D = np.zeros((3, 12))
+        D[:, 3:6] = np.eye(3)
+        D[:, 9:12] = -np.eye(3)
+        R += twist * np.kron(np.eye(horizon), D.T @ D)
+    return R
+
+
 def move_suppression(s: float, horizon: int) -> tuple[np.ndarray, np.ndarray]:
     """The cost s Σ_k |u_k - u_{k-1}|² (u_{-1} the input applied last tick, rotations weighted like R)
     as its Hessian `(12T, 12T)` = s (DᵀD ⊗ W) and the gradient's factor `(12T, 12)` = -s (e_0 ⊗ W),
@@ -119,7 +142,9 @@ class MpcSolver:
     'sparse' (piqp.SparseSolver on the same QP, for comparison).
     """
 
-    def __init__(self, horizon: int, q: float, r: float, backend: str = "dense", eps: float = 1e-7, du: float = 0.0):
+    def __init__(
+        self, horizon: int, q: float, r: float, backend: str = "dense", eps: float = 1e-7, du: float = 0.0, twist: float = 0.0
+    ):
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
         if backend not in ("dense", "sparse"):
@@ -133,8 +158,9 @@ class MpcSolver:
         self._L = L
         self._LtL = L.T @ L
         self._Lt1 = L.T @ np.ones(horizon)
-        self.r_diag = rotation_weighted_r(r, horizon)
-        self._R = np.diag(self.r_diag)
+        if not (np.isfinite(twist) and twist >= 0):
+            raise ValueError(f"twist must be a finite weight >= 0, got {twist}")
+        self.R = input_weight(r, horizon, twist)
         if not (np.isfinite(du) and du >= 0):
             raise ValueError(f"du must be a finite weight >= 0, got {du}")
         self.du = float(du)
@@ -165,7 +191,7 @@ class MpcSolver:
         point's (x, y, z) error (e.g. less on the direction out of the rim's plane). u_prev `(12,)`: the
         input applied last tick, the start of the move suppression (`du`; None: zero)."""
         WJ = J if point_weight is None else np.einsum("ab,ibk->iak", point_weight, J.reshape(-1, 3, J.shape[1])).reshape(J.shape)
-        H = self.q * np.kron(self._LtL, J.T @ WJ) + self._R
+        H = self.q * np.kron(self._LtL, J.T @ WJ) + self.R
         c = self.q * np.outer(self._Lt1, WJ.T @ (x - target)).ravel()
         if self.du > 0:
             H = H + self._H_du
@@ -299,7 +325,7 @@ def uncondensed_qp(
     u_max: np.ndarray,
     horizon: int,
     q: float,
-    r_diag: np.ndarray,
+    R: np.ndarray,
     sep_axis: np.ndarray,
     sep_now: float,
     sep_limits: tuple[float, float],
@@ -313,7 +339,7 @@ def uncondensed_qp(
     target = np.asarray(target, dtype=float).ravel()
     W = np.eye(3) if point_weight is None else np.asarray(point_weight, dtype=float)
     Qx = sp.kron(sp.eye(n // 3 * T), sp.csc_matrix(q * W))
-    P = sp.triu(sp.block_diag([Qx, sp.diags(r_diag)])).tocsc()
+    P = sp.triu(sp.block_diag([Qx, sp.csc_matrix(np.asarray(R, dtype=float))])).tocsc()
     c = np.concatenate([np.tile(-q * (target.reshape(-1, 3) @ W).ravel(), T), np.zeros(12 * T)])
     # x_k - x_{k-1} - J u_k = 0 (x_{-1} = x_t): [I - shift] ⊗ I_n on x̄, -I_T ⊗ J on ū. Built from
     # explicit coordinates so the patterns (zeros in J or the axis included) never change.
@@ -346,10 +372,12 @@ class MpcController(ServoBase):
 
     def __init__(self, params: MethodParams, n_x: int, backend: str = "dense", **kwargs):
         super().__init__(params, n_x, **kwargs)
-        self.solver = MpcSolver(params.horizon, params.q_weight, params.r_weight, backend, du=params.du_weight)
+        self.solver = MpcSolver(params.horizon, params.q_weight, params.r_weight, backend, du=params.du_weight, twist=params.twist_weight)
 
     def _on_reset(self) -> None:
-        self.solver = MpcSolver(self.p.horizon, self.p.q_weight, self.p.r_weight, self.solver.backend, du=self.p.du_weight)
+        self.solver = MpcSolver(
+            self.p.horizon, self.p.q_weight, self.p.r_weight, self.solver.backend, du=self.p.du_weight, twist=self.p.twist_weight
+        )
 
     def _law(self, J, x, target, grippers):
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]

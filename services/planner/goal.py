@@ -12,14 +12,23 @@ so C1-C3 hold. Only when that ellipse is already longer than R are the centre (C
 (C3) let move too, to find the true shortest ellipse; if even that is longer than R the bag is too
 small, and InfeasibleGoal names the rim perimeter that would do. The achieved c2 is therefore 0
 whenever the centred ellipse fits, which is the safest choice for C1's margin.
+
+That ellipse is one of a whole family of minimisers (every centred ellipse of perimeter R holding V
+under C1 has L = R). With the bag's opening g0 known and `dagger_shape: bag` (the default), the
+bagging ellipse is instead the member closest in shape to g0's own opening (Frobenius distance of
+the shape matrices) that keeps `dagger_margin_share` of the tight ellipse's margin round V, and the
+bag's orientation takes C3's place: the paper asks the opening to stay close to Q0's, and a bag
+held by two clamps folds when its opening is stretched across them (see `bag_ellipse`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
+from scipy.spatial import ConvexHull, QhullError
 
 from bagit.common.errors import BadVertices, InfeasibleGoal
 from bagit.common.geometry import (
@@ -38,6 +47,7 @@ from bagit.common.params import DEFAULT_LAMBDA_D_M, MethodParams
 N_ELLIPSE = 720  # n_e: dense ellipse samples before farthest point sampling
 ISOTROPY_RATIO = 1.08  # principal variances closer than this: no principal axis, C3 is dropped
 MAX_ASPECT = 8.0
+MAX_BAG_ASPECT = 2.5  # the bag-shaped opening is searched up to this aspect ratio
 
 
 @dataclass
@@ -173,6 +183,79 @@ def smallest_ellipse_moved(
     return centre, a, b, alpha, float(ramanujan_perimeter(a, b))
 
 
+def shape_matrix(a: np.ndarray | float, b: np.ndarray | float, alpha: np.ndarray | float) -> np.ndarray:
+    """M `(..., 2, 2)` = R(alpha) diag(a, b) R(alpha)ᵀ: the centred ellipse is M applied to the unit circle,
+    so |M1 - M2| (Frobenius) measures how far apart two ellipses' shapes are."""
+    a, b, alpha = np.broadcast_arrays(np.asarray(a, float), np.asarray(b, float), np.asarray(alpha, float))
+    c, s = np.cos(alpha), np.sin(alpha)
+    m11 = a * c**2 + b * s**2
+    m22 = a * s**2 + b * c**2
+    m12 = (a - b) * c * s
+    return np.stack([np.stack([m11, m12], -1), np.stack([m12, m22], -1)], -2)
+
+
+def opening_shape(points_xy: np.ndarray) -> np.ndarray:
+    """M `(2, 2)` of the ellipse that fits the closed rim `points_xy (n >= 5, 2)` best (OpenCV's direct
+    least-squares conic fit, exact for points on an ellipse however they are spaced)."""
+    p = np.asarray(points_xy, dtype=float)
+    while len(p) < 5:  # the fit needs five points: add the midpoints of the sides
+        p = np.stack([p, 0.5 * (p + np.roll(p, -1, axis=0))], axis=1).reshape(-1, 2)
+    (_, _), (w, h), angle = cv2.fitEllipse(p.astype(np.float32).reshape(-1, 1, 2))
+    return shape_matrix(w / 2, h / 2, np.radians(angle))
+
+
+def signed_margins(xy: np.ndarray, a: np.ndarray, b: np.ndarray, alpha: np.ndarray, n: int = 256) -> np.ndarray:
+    """`(k,)`: for each of k centred ellipses (a, b, alpha: `(k,)`), the smallest signed distance (> 0
+    inside) of `xy (m, 2)` to its outline, from n outline samples."""
+    th = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    pts = ellipse_points_2d(np.zeros(2), a[:, None], b[:, None], alpha[:, None], th)  # (k, n, 2)
+    d = np.linalg.norm(pts[:, :, None, :] - xy[None, None], axis=-1).min(axis=1)  # (k, m)
+    inside = _f_e(xy, np.zeros(2), a[:, None], b[:, None], alpha[:, None]) < 1.0
+    return np.where(inside, d, -d).min(axis=1)
+
+
+def bag_ellipse(
+    xy: np.ndarray, perimeter: float, lambda_1: float, g0_xy: np.ndarray, reference: tuple[float, float, float], margin_share: float
+) -> tuple[float, float, float]:
+    """(a, b, alpha) of the centred ellipse of the given perimeter, closest in shape to the bag's own
+    opening `g0_xy (n, 2)`, that holds `xy (m, 2)` under C1 and keeps at least `margin_share` of the
+    margin round it that the `reference` ellipse (a, b, alpha) has.
+
+    Why: every centred ellipse of perimeter R holding V under C1 minimises the paper's |L - R|², and
+    of them the bag takes the one nearest its own opening with the least folding. Its mounts clamp
+    stretches of the rim, so an opening stretched across the mounts' axis (the paper's C3 for an
+    object lying across them) or squeezed round must bow the free fabric between the clamps outwards,
+    and it buckled inwards under the object as often (traced in the simulator)."""
+    hull = xy
+    if len(xy) > 3:
+        try:
+            hull = xy[ConvexHull(xy).vertices]  # F_e and the margin are extreme at the hull's corners
+        except QhullError:
+            pass
+    alphas = np.radians(np.arange(0.0, 180.0, 1.0))
+    qs = np.exp(np.linspace(0.0, np.log(MAX_BAG_ASPECT), 81))
+    A, Q = (g.ravel() for g in np.meshgrid(alphas, qs, indexing="ij"))
+    b = perimeter / ramanujan_perimeter(Q, 1.0)
+    a = Q * b
+    fits = _f_e(hull, np.zeros(2), a[:, None], b[:, None], A[:, None]).max(axis=1) <= lambda_1
+    try:
+        opening = opening_shape(g0_xy)
+    except cv2.error:  # no ellipse through g0 (all its points on a line): nothing to stay close to
+        return reference
+    if not np.all(np.isfinite(opening)):
+        return reference
+    distance = np.linalg.norm(shape_matrix(a, b, A) - opening, axis=(-2, -1))
+    need = margin_share * float(signed_margins(hull, *(np.array([v]) for v in reference))[0])
+    order = np.flatnonzero(fits)[np.argsort(distance[fits], kind="stable")]
+    for start in range(0, len(order), 64):  # nearest first; the first batch nearly always holds one
+        k = order[start : start + 64]
+        ok = np.flatnonzero(signed_margins(hull, a[k], b[k], A[k]) >= need)
+        if len(ok):
+            i = k[ok[0]]
+            return float(a[i]), float(b[i]), float(A[i])
+    return reference
+
+
 def bagging_soi(
     vertices: np.ndarray,
     rim_perimeter: float,
@@ -201,7 +284,8 @@ def bagging_soi(
     centre = np.zeros(2)
     alpha = 0.0
     a, b, L_min = smallest_ellipse(xy, p.lambda_1)
-    if L_min > rim_perimeter:  # the centred, parallel ellipse is too long: use C2's and C3's slack
+    moved = L_min > rim_perimeter
+    if moved:  # the centred, parallel ellipse is too long: use C2's and C3's slack
         max_angle = float(np.arccos(p.lambda_3)) if c3_applied else None
         centre, a, b, alpha, L_min = smallest_ellipse_moved(xy, p.lambda_1, p.lambda_2, max_angle)
     if L_min > rim_perimeter:
@@ -216,6 +300,10 @@ def bagging_soi(
         # no principal axis to follow: turn the ellipse by 90 degrees if that holds V better
         if _f_e(xy, centre, a, b, np.pi / 2).max() < _f_e(xy, centre, a, b, 0.0).max() - 1e-9:
             alpha = np.pi / 2
+    if p.dagger_shape == "bag" and g0 is not None and not moved:
+        g0_xy = transform_points(np.linalg.inv(T), np.asarray(g0, dtype=float))[:, :2]
+        a, b, alpha = bag_ellipse(xy, rim_perimeter, p.lambda_1, g0_xy, (a, b, alpha), p.dagger_margin_share)
+        c3_applied = False  # the bag's own opening sets the orientation, not V's axis
     c1 = float(_f_e(xy, centre, a, b, alpha).max())
     if c1 > p.lambda_1 + 1e-9:
         raise InfeasibleGoal(f"internal: the bagging ellipse breaks C1 (max F_e {c1:.3f} > {p.lambda_1})")
