@@ -1,6 +1,7 @@
 """The arm driver's cycle: what it costs to turn the controller's increments into two ServoP commands.
 
 Offline (no sockets), per servo period for both arms:
+  ruckig      one 12-DoF Ruckig update alone (the driver's limits, a target moving every cycle)
   pipeline    targets -> 12-DoF Ruckig step -> safety gate (check_and_clip)
   format      mount pose -> flange in each base -> Dobot pose6 -> `ServoP(...)` text
   reach       the driver's IK check of both targets (bagit.common.cr5.ik, on by default)
@@ -26,6 +27,7 @@ from bagit.services.arm_driver.client import DobotClient
 from bagit.services.arm_driver.frames import ArmFrames
 from bagit.services.arm_driver.pipeline import MotionPipeline
 from bagit.services.arm_driver.safety import Envelope
+from bagit.services.arm_driver.streaming import N_DOF, Streamer
 
 PERIOD = 0.03
 
@@ -41,6 +43,32 @@ def _home() -> dict[str, np.ndarray]:
         T[:3, 3] = [0.15, s * 0.106, 0.475]
         out[name] = T
     return out
+
+
+def _ruckig(n: int) -> dict:
+    """One Ruckig update of the 12 axes, as the streamer calls it: its per-axis limits, time
+    synchronisation, and a target that moves each cycle (a streamed command never lets it finish)."""
+    from ruckig import InputParameter, OutputParameter, Result, Ruckig, Synchronization
+
+    limits = Streamer(RigConfig().safety, PERIOD)  # the driver's per-axis limits, nothing else of it
+    otg, inp, out = Ruckig(N_DOF, PERIOD), InputParameter(N_DOF), OutputParameter(N_DOF)
+    inp.max_velocity = limits.max_velocity.tolist()
+    inp.max_acceleration = limits.max_acceleration.tolist()
+    inp.max_jerk = limits.max_jerk.tolist()
+    inp.synchronization = Synchronization.Time
+    inp.current_position = [0.0] * N_DOF
+    amplitude = np.tile([0.04, 0.04, 0.02, 0.1, 0.1, 0.1], 2)
+    state = {"k": 0}
+
+    def update() -> None:
+        k = state["k"]
+        inp.target_position = (amplitude * np.sin(k / 40 + np.arange(N_DOF))).tolist()
+        if otg.update(inp, out) not in (Result.Working, Result.Finished):
+            raise RuntimeError("ruckig refused the benchmark's input")
+        out.pass_to_input(inp)
+        state["k"] += 1
+
+    return timeit(update, n)
 
 
 def _offline(n: int) -> dict:
@@ -88,6 +116,7 @@ def _offline(n: int) -> dict:
         fmt()
 
     return {
+        "ruckig": _ruckig(n),
         "pipeline": timeit(lambda: last.__setitem__("cmd", pipeline_step()), n),
         "format": timeit(fmt, n),
         "reach": timeit(reach, n),
@@ -154,7 +183,9 @@ def _live(seconds: float, estops: int) -> dict:
 
 
 def run(quick: bool = False) -> dict:
-    return {"offline": _offline(300 if quick else 2000), "live": _live(2.0 if quick else 6.0, 3 if quick else 10)}
+    offline = _offline(300 if quick else 2000)
+    ratios = {f"{k}_over_ruckig": offline[k]["median_ms"] / offline["ruckig"]["median_ms"] for k in ("pipeline", "cycle")}
+    return {"offline": offline, "ratios": ratios, "live": _live(2.0 if quick else 6.0, 3 if quick else 10)}
 
 
 def main() -> None:
@@ -164,6 +195,8 @@ def main() -> None:
     for group in ("offline", "live"):
         for name, s in r[group].items():
             print(f"{group}.{name}: min {s['min_ms']:.3f} / median {s['median_ms']:.3f} / p95 {s['p95_ms']:.3f} ms (n={s['n']})")
+    for name, v in r["ratios"].items():
+        print(f"{name}: {v:.2f}x (medians)")
 
 
 if __name__ == "__main__":

@@ -231,6 +231,25 @@ def manipulation_summary(runs: list[dict[str, Any]], rows: list[dict[str, Any]])
     return out
 
 
+def same_runs_as_mpc(runs: list[dict[str, Any]]) -> dict[str, list[int]]:
+    """method -> [runs identical to mpc's (same scenario and seed: same ticks and error), runs compared].
+
+    Why: where every planner's trimmed, smoothed path is the same (no obstacle between g0 and g†),
+    MPC along it is the same run, so those rows add no evidence about the planners; the report says so."""
+    mpc = {(r["scenario"], int(r.get("seed", 0))): r for r in runs if method_of(str(r.get("controller", "mpc")), str(r.get("planner", "cbirrt"))) == "mpc"}
+    out: dict[str, list[int]] = {}
+    for r in runs:
+        method = method_of(str(r.get("controller", "mpc")), str(r.get("planner", "cbirrt")))
+        ref = mpc.get((r["scenario"], int(r.get("seed", 0))))
+        if not method.startswith("mpc+") or ref is None:
+            continue
+        same = r.get("ticks") == ref.get("ticks") and r.get("error_cm") == ref.get("error_cm") and r["success"] == ref["success"]
+        k = out.setdefault(method, [0, 0])
+        k[0] += int(same)
+        k[1] += 1
+    return out
+
+
 def find_closed_loop(out_dir: Path) -> list[Path]:
     """Closed-loop result files kept next to the report: closed-loop*.jsonl / closed-loop*.json."""
     return sorted(p for p in out_dir.glob("closed-loop*.json*") if p.suffix in (".json", ".jsonl"))
@@ -285,6 +304,7 @@ def run(
         "planning": planning_summary(plan_runs),
         "placements": placement_summary(place_runs),
         "manipulation": manipulation_summary(cl_runs, cl_rows),
+        "manipulation_same_as_mpc": same_runs_as_mpc(cl_runs),
         "closed_loop_files": [str(f) for f in cl_files],
         "paper": {"planning": P.PLANNING, "manipulation": P.MANIPULATION, "table1": P.TABLE1, "soi": P.SOI_STATS},
         "planning_runs": plan_runs,

@@ -88,6 +88,18 @@ def manipulation_table(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _same_as_mpc(r: dict[str, Any]) -> list[str]:
+    same = r.get("manipulation_same_as_mpc") or {}
+    if not same:
+        return []
+    parts = [f"{method}: {k} of {n}" for method, (k, n) in sorted(same.items())]
+    return [
+        "",
+        "Runs along another planner's path that are the same run as `mpc`'s on the same scenario and seed (same "
+        f"ticks and error; the planners' trimmed, smoothed paths coincide when nothing lies between g0 and g†): {', '.join(parts)}.",
+    ]
+
+
 def manipulation_failures(r: dict[str, Any]) -> list[str]:
     lines = [f"- {stem} / {method}: {why}" for stem, row in r["manipulation"].items() for method, c in row.items() for why in c["failures"]]
     return lines or ["- none"]
@@ -119,7 +131,8 @@ def soi_section(r: dict[str, Any]) -> list[str]:
         f"{s['placements']} placements of {s['shapes']} bottom shapes (`bench/goal.py`'s outlines scaled by a random "
         f"factor in [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}], tilted up to 20°, turned and moved at random; R = 0.68 m, n_x = 32): "
         f"{s['valid']} valid goals, the other {s['placements'] - s['valid']} too large for the bag (InfeasibleGoal); "
-        f"median {f(s['time_ms_median'], 2)} ms per goal.",
+        f"median {f(s['time_ms_median'], 2)} ms per goal. No bag opening g0 is given here, so each goal is the paper's "
+        "tight C1-C3 ellipse; the runs' own g† is the bag-shaped member of the same family (README, Conventions).",
         "",
         "| | mean c1 (max F_e) | mean c2 (m) | mean c3 (abs(d_e·d_v)) | placements |",
         "|---|---|---|---|---|",
@@ -167,6 +180,7 @@ def markdown(r: dict[str, Any]) -> str:
         "judged on the simulator's ground truth; `mpc+ffg-rrt` is MPC along FFG-RRT's path, as in the paper's "
         f"planner rows. Read from: {', '.join(f'`{Path(c).name}`' for c in cl) if cl else 'no closed-loop results'}. "
         f"Experiments or methods without runs say *{NOT_RUN}*; k/n counts the n runs present (the paper ran 8 per cell).",
+        *_same_as_mpc(r),
         "",
         *manipulation_table(r),
         "",

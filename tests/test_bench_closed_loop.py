@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from bagit.bench import closed_loop
-from bagit.bench.paper import load_closed_loop, manipulation_summary
+from bagit.bench.paper import load_closed_loop, manipulation_summary, same_runs_as_mpc
 
 
 def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):
@@ -22,3 +22,16 @@ def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):
     runs, rows = load_closed_loop([out])
     cell = manipulation_summary(runs, rows)["no-such-scenario"]["mpc"]
     assert (cell["success"], cell["of"]) == (0, 1) and "error: " in cell["failures"][0]
+
+
+def test_planner_rows_that_repeat_mpcs_runs_are_counted():
+    def run(planner, seed, ticks, err, ok=True, controller="mpc"):
+        return {"scenario": "exp01", "controller": controller, "planner": planner, "seed": seed, "ticks": ticks, "error_cm": err, "success": ok}
+
+    runs = [
+        run("cbirrt", 0, 300, 0.4), run("cbirrt", 1, 310, 0.5),
+        run("ffg-rrt", 0, 300, 0.4), run("ffg-rrt", 1, 320, 0.5),  # seed 1 took another path: not the same run
+        run("ts-rrt", 0, 300, 0.4), run("ts-rrt", 2, 300, 0.4),  # no mpc run with seed 2 to compare
+        run("cbirrt", 0, 300, 0.4, controller="ibvs"),
+    ]
+    assert same_runs_as_mpc(runs) == {"mpc+ffg-rrt": [1, 2], "mpc+ts-rrt": [1, 1]}
