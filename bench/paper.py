@@ -236,11 +236,12 @@ def same_runs_as_mpc(runs: list[dict[str, Any]]) -> dict[str, list[int]]:
 
     Why: where every planner's trimmed, smoothed path is the same (no obstacle between g0 and g†),
     MPC along it is the same run, so those rows add no evidence about the planners; the report says so."""
-    mpc = {(r["scenario"], int(r.get("seed", 0))): r for r in runs if method_of(str(r.get("controller", "mpc")), str(r.get("planner", "cbirrt"))) == "mpc"}
+    keyed = [(_run_key(r), r) for r in runs]
+    mpc = {(sc, seed): r for (sc, ctrl, planner, seed), r in keyed if method_of(ctrl, planner) == "mpc"}
     out: dict[str, list[int]] = {}
-    for r in runs:
-        method = method_of(str(r.get("controller", "mpc")), str(r.get("planner", "cbirrt")))
-        ref = mpc.get((r["scenario"], int(r.get("seed", 0))))
+    for (sc, ctrl, planner, seed), r in keyed:
+        method = method_of(ctrl, planner)
+        ref = mpc.get((sc, seed))
         if not method.startswith("mpc+") or ref is None:
             continue
         same = r.get("ticks") == ref.get("ticks") and r.get("error_cm") == ref.get("error_cm") and r["success"] == ref["success"]

@@ -372,12 +372,14 @@ class MpcController(ServoBase):
 
     def __init__(self, params: MethodParams, n_x: int, backend: str = "dense", **kwargs):
         super().__init__(params, n_x, **kwargs)
-        self.solver = MpcSolver(params.horizon, params.q_weight, params.r_weight, backend, du=params.du_weight, twist=params.twist_weight)
+        self.solver = self._new_solver(backend)
+
+    def _new_solver(self, backend: str) -> MpcSolver:
+        p = self.p
+        return MpcSolver(p.horizon, p.q_weight, p.r_weight, backend, du=p.du_weight, twist=p.twist_weight)
 
     def _on_reset(self) -> None:
-        self.solver = MpcSolver(
-            self.p.horizon, self.p.q_weight, self.p.r_weight, self.solver.backend, du=self.p.du_weight, twist=self.p.twist_weight
-        )
+        self.solver = self._new_solver(self.solver.backend)
 
     def _law(self, J, x, target, grippers):
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]

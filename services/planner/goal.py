@@ -226,6 +226,12 @@ def bag_ellipse(
     stretches of the rim, so an opening stretched across the mounts' axis (the paper's C3 for an
     object lying across them) or squeezed round must bow the free fabric between the clamps outwards,
     and it buckled inwards under the object as often (traced in the simulator)."""
+    try:
+        opening = opening_shape(g0_xy)
+    except cv2.error:  # no ellipse through g0 (all its points on a line): nothing to stay close to
+        return reference
+    if not np.all(np.isfinite(opening)):
+        return reference
     hull = xy
     if len(xy) > 3:
         try:
@@ -238,12 +244,6 @@ def bag_ellipse(
     b = perimeter / ramanujan_perimeter(Q, 1.0)
     a = Q * b
     fits = _f_e(hull, np.zeros(2), a[:, None], b[:, None], A[:, None]).max(axis=1) <= lambda_1
-    try:
-        opening = opening_shape(g0_xy)
-    except cv2.error:  # no ellipse through g0 (all its points on a line): nothing to stay close to
-        return reference
-    if not np.all(np.isfinite(opening)):
-        return reference
     distance = np.linalg.norm(shape_matrix(a, b, A) - opening, axis=(-2, -1))
     need = margin_share * float(signed_margins(hull, *(np.array([v]) for v in reference))[0])
     order = np.flatnonzero(fits)[np.argsort(distance[fits], kind="stable")]
@@ -277,7 +277,8 @@ def bagging_soi(
     if n_x < 4:
         raise BadVertices(f"n_x must be at least 4, got {n_x}")
     T = bottom_frame(v)
-    xy = transform_points(np.linalg.inv(T), v)[:, :2]
+    T_inv = np.linalg.inv(T)  # not invert_transform: the closed loop is sensitive at the float level
+    xy = transform_points(T_inv, v)[:, :2]
     _, var, _ = pca(xy)
     c3_applied = var[0] > ISOTROPY_RATIO * var[1]
 
@@ -301,7 +302,7 @@ def bagging_soi(
         if _f_e(xy, centre, a, b, np.pi / 2).max() < _f_e(xy, centre, a, b, 0.0).max() - 1e-9:
             alpha = np.pi / 2
     if p.dagger_shape == "bag" and g0 is not None and not moved:
-        g0_xy = transform_points(np.linalg.inv(T), np.asarray(g0, dtype=float))[:, :2]
+        g0_xy = transform_points(T_inv, np.asarray(g0, dtype=float))[:, :2]
         a, b, alpha = bag_ellipse(xy, rim_perimeter, p.lambda_1, g0_xy, (a, b, alpha), p.dagger_margin_share)
         c3_applied = False  # the bag's own opening sets the orientation, not V's axis
     c1 = float(_f_e(xy, centre, a, b, alpha).max())
