@@ -71,6 +71,8 @@ def test_goal_and_plan_commands(capsys):
     assert main(["goal", "exp04", "--json"]) == 0
     g = json.loads(capsys.readouterr().out)
     assert g["c1"] <= 0.912 and np.asarray(g["g_star"]).shape == (32, 3)
+    assert main(["goal", "exp01"]) == 0  # the coffee box has a principal axis: C3 gives way to the bag's opening
+    assert "oriented like the bag's opening" in capsys.readouterr().out
     assert main(["plan", "exp04", "--seed", "2", "--json"]) == 0
     p = json.loads(capsys.readouterr().out)
     assert p["success"] and len(p["path"]) == p["n_nodes"] and 0 < p["dagger_index"] < p["n_nodes"]

@@ -82,6 +82,7 @@ def test_c3_dropped_for_a_disc_and_a_regular_polygon():
     t = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     disc = np.stack([0.05 * np.cos(t), 0.05 * np.sin(t), 0.4 + 0 * t], 1)
     assert not bagging_soi(disc, 0.68, 32).c3_applied
+    assert bagging_soi(disc, 0.68, 32).oriented_by == "none"
     t6 = np.linspace(0, 2 * np.pi, 6, endpoint=False)
     hexagon = np.stack([0.05 * np.cos(t6), 0.05 * np.sin(t6), 0.4 + 0 * t6], 1)
     assert not bagging_soi(hexagon, 0.68, 32).c3_applied
@@ -121,9 +122,10 @@ def test_bag_opening_keeps_the_bags_shape_across_an_elongated_base():
     R = closed_polyline_length(g0)
     tight = bagging_soi(v, R, 32, MethodParams(dagger_shape="tight"), g0=g0)
     bag = bagging_soi(v, R, 32, MethodParams(dagger_shape="bag", dagger_margin_share=0.6), g0=g0)
-    major = lambda g: abs(np.cos(g.ellipse.alpha + g.ellipse.alpha * 0))  # noqa: E731
+    major = lambda g: abs(np.cos(g.ellipse.alpha))  # noqa: E731
     assert tight.c3_applied and major(tight) > 0.99  # along the box, x
     assert not bag.c3_applied and bag.c3 < 0.2  # along the bag, y
+    assert (tight.oriented_by, bag.oriented_by) == ("axis", "bag")
     assert bag.ellipse.a / bag.ellipse.b == pytest.approx(1.3, abs=0.08)
     for g in (tight, bag):
         e = g.ellipse

@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "c2": g.c2,
         "c3": g.c3,
         "c3_applied": g.c3_applied,
+        "oriented_by": g.oriented_by,
         "lambda_d": g.lambda_d,
         "frame": g.frame,
         "g_dagger": g.g_dagger,
@@ -46,11 +47,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+# why c3 is or is not held to lambda_3, by what set the ellipse's orientation
+C3_NOTE = {
+    "axis": "",
+    "bag": " (C3 not applied: oriented like the bag's opening, dagger_shape: bag)",
+    "none": " (C3 dropped: no principal axis)",
+}
+
+
 def human(r: dict[str, Any]) -> str:
     e = r["ellipse"]
     return (
         f"{r['scenario']}: bagging ellipse a={e['a']:.4f} m b={e['b']:.4f} m, perimeter {r['perimeter']:.4f} m "
         f"(R = {r['rim_perimeter']:.4f} m)\n"
-        f"c1 = {r['c1']:.3f}  c2 = {r['c2']:.4f} m  c3 = {r['c3']:.4f}{'' if r['c3_applied'] else ' (C3 dropped: no principal axis)'}\n"
+        f"c1 = {r['c1']:.3f}  c2 = {r['c2']:.4f} m  c3 = {r['c3']:.4f}{C3_NOTE[r['oriented_by']]}\n"
         f"g* = g† + {r['lambda_d']:.3f} m along the object; {len(r['g_dagger'])} points; {r['time_ms']:.1f} ms"
     )

@@ -66,6 +66,9 @@ class BaggingGoal:
     lambda_d: float
     vertices: np.ndarray = field(repr=False)
     dagger_depth: float = 0.0  # g† lies this far below V's plane (m); g* lies lambda_d above it
+    # what set the ellipse's orientation: 'axis' (V's principal axis, C3), 'bag' (the bag's own opening,
+    # `dagger_shape: bag`) or 'none' (V has no principal axis)
+    oriented_by: str = "axis"
 
     @property
     def up(self) -> np.ndarray:
@@ -281,6 +284,7 @@ def bagging_soi(
     xy = transform_points(T_inv, v)[:, :2]
     _, var, _ = pca(xy)
     c3_applied = var[0] > ISOTROPY_RATIO * var[1]
+    oriented_by = "axis" if c3_applied else "none"
 
     centre = np.zeros(2)
     alpha = 0.0
@@ -304,7 +308,7 @@ def bagging_soi(
     if p.dagger_shape == "bag" and g0 is not None and not moved:
         g0_xy = transform_points(T_inv, np.asarray(g0, dtype=float))[:, :2]
         a, b, alpha = bag_ellipse(xy, rim_perimeter, p.lambda_1, g0_xy, (a, b, alpha), p.dagger_margin_share)
-        c3_applied = False  # the bag's own opening sets the orientation, not V's axis
+        c3_applied, oriented_by = False, "bag"  # the bag's own opening sets the orientation, not V's axis
     c1 = float(_f_e(xy, centre, a, b, alpha).max())
     if c1 > p.lambda_1 + 1e-9:
         raise InfeasibleGoal(f"internal: the bagging ellipse breaks C1 (max F_e {c1:.3f} > {p.lambda_1})")
@@ -334,6 +338,7 @@ def bagging_soi(
         c3=c3,
         c3_applied=bool(c3_applied),
         lambda_d=ld,
+        oriented_by=oriented_by,
         vertices=v,
         dagger_depth=p.dagger_depth_m,
     )
