@@ -14,6 +14,8 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
+from bagit.common.names import Stage
+
 SCHEMA_VERSION = 1
 
 
@@ -225,9 +227,6 @@ class ControllerStatus(Message):
     error_to_goal: float | None = None
     solve_ms: float = 0.0
     done: bool = False
-
-
-Stage = Literal["idle", "perceiving", "goal", "planning", "pre-bagging", "bagging", "done", "failed", "aborted"]
 
 
 class RunState(Message):

@@ -53,17 +53,12 @@ from bagit.common.rig import ARMS, RigConfig
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
-from bagit.services.arm_driver.pipeline import MotionPipeline
-from bagit.services.arm_driver.reach import Joints, Reach, joint_solver, solve_within
-from bagit.services.arm_driver.safety import Envelope, Violation, violations
+from bagit.services.arm_driver.motion import ArmMotion
 
 _RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
 _MAX_EVENTS = 200
 SETTLE_TIMEOUT_S = 1.0  # a restart waits at most this long for the arms to report idle
 SETTLED_MM_S = 1.0
-# A step whose joints would move faster than this fraction of the CR5's joint speed limit is shortened
-# (the controller alarms at the limit, measured from its own lagging reference: keep well clear).
-REACH_JOINT_SPEED_FRACTION = 0.5
 
 
 class ArmDriver:
@@ -81,11 +76,15 @@ class ArmDriver:
         self.limits = self.rig.safety
         self.period = float(self.limits.servo_period_s)
         self.servo_t = self.period * self.cfg.servo_t_factor
-        self.env = Envelope.from_rig(self.rig)
         self.frames = {a: ArmFrames.from_config(self.rig.arms[a]) for a in ARMS}
         self.on_state = on_state
         self.on_event = on_event  # (kind, detail) for estop, fault, watchdog, link_lost, ...; must not block
-        self.pipe = MotionPipeline(self.env, self.period, self.cfg.max_target_lead_m, self.cfg.max_target_lead_rad)
+        self.counters: Counter[str] = Counter()
+        self.events: deque[tuple[float, str, str]] = deque(maxlen=_MAX_EVENTS)
+        # the motion rules (pipeline, watchdog, reach), shared with the in-process run; it counts into ours
+        self.motion = ArmMotion(self.rig, self.cfg, on_event=self._event, counters=self.counters)
+        self.pipe = self.motion.pipe
+        self.env = self.motion.env
         self.clients = {
             a: DobotClient(
                 a,
@@ -115,18 +114,12 @@ class ArmDriver:
         self._needs_reset = False
         self._stale: set[str] = set()  # arms not to command until the pipeline restarts from the measured poses
         self._reset_asked = -np.inf  # when the restart was first possible (it waits for the arms to settle)
-        self._last_cmd_t = -np.inf
         self._last_seq: int | None = None
         self._in_flight: dict[str, deque[PendingReply]] = {a: deque() for a in ARMS}
         self._last_send = -np.inf
         self._failed_requests = {a: 0 for a in ARMS}
-        self._q_seed: dict[str, np.ndarray] = {}
-        self._slowing = False  # the last period's step was shortened to the joints' speed
-        self.counters: Counter[str] = Counter()
-        self.violation_counts: Counter[str] = Counter()
+        self.violation_counts = self.motion.violation_counts
         self.rejections: Counter[str] = Counter()
-        self.events: deque[tuple[float, str, str]] = deque(maxlen=_MAX_EVENTS)
-        self.last_violations: list[str] = []
         self.cycle_ms: deque[float] = deque(maxlen=1000)  # compute time of each cycle
         self.cycle_starts: deque[float] = deque(maxlen=1000)  # monotonic start of each cycle
         self.send_times: deque[float] = deque(maxlen=1000)  # when each period's motion commands went out
@@ -247,9 +240,7 @@ class ArmDriver:
         if cmd.mode == "hold":
             with self._lock:
                 self.counters["commands"] += 1
-                self._last_cmd_t = time.monotonic()
-                self.pipe.stop()
-                self._event("hold", cmd.reason or "controller asked to hold")
+                self.motion.hold(cmd.reason or "controller asked to hold", time.monotonic())
             return True
         return self.submit_increment(np.asarray(cmd.u), float(cmd.dt), seq=cmd.seq)
 
@@ -279,16 +270,10 @@ class ArmDriver:
             if seq is not None and self._last_seq is not None and seq <= self._last_seq:
                 self.counters["out_of_order"] += 1
             self._last_seq = seq if seq is not None else self._last_seq
-            found = self.pipe.submit(u, dt, now)
-            self._record(found)
+            found = self.motion.submit(u, dt, now)
             if any(v.kind == "non_finite" for v in found):
                 self.rejections["non_finite"] += 1
-                self.counters["rejected"] += 1
                 return False
-            if found:
-                self.counters["clipped"] += 1
-            self._last_cmd_t = now
-            self.counters["accepted"] += 1
             return True
 
     def _refusal(self) -> str | None:
@@ -445,7 +430,7 @@ class ArmDriver:
                 "counters": dict(self.counters),
                 "rejections": dict(self.rejections),
                 "violations": dict(self.violation_counts),
-                "last_violations": list(self.last_violations),
+                "last_violations": list(self.motion.last_violations),
                 "cycle_ms": {"median": float(np.median(cycle)), "max": float(cycle.max())},
                 "period_ms": {"median": float(np.median(period)), "max": float(period.max())},
                 "send_interval_ms": {"min": float(sends.min()), "median": float(np.median(sends))},
@@ -462,11 +447,9 @@ class ArmDriver:
             except Exception as e:  # a subscriber's bug must not stop the arms' loop
                 self.events.append((time.monotonic(), "event_callback", repr(e)))
 
-    def _record(self, found: list[Violation]) -> None:
-        if found:
-            for v in found:
-                self.violation_counts[v.kind] += 1
-            self.last_violations = [str(v) for v in found]
+    @property
+    def last_violations(self) -> list[str]:
+        return self.motion.last_violations
 
     def _set_fault(self, why: str) -> None:
         if self._fault is None:
@@ -486,19 +469,14 @@ class ArmDriver:
         recs = {a: self.clients[a].latest()[0] for a in ARMS}
         if any(r is None for r in recs.values()):
             return False
-        poses = {a: self.frames[a].mount_from_pose6(recs[a]["ToolVectorTarget"]) for a in ARMS}
-        q = {a: np.radians(np.asarray(recs[a]["QTarget"], dtype=float)) for a in ARMS}
-        if not all(np.all(np.isfinite(poses[a])) and np.all(np.isfinite(q[a])) for a in ARMS):
+        found = self.motion.restart(recs)
+        if found is None:
             self._set_fault("the feedback reports a non-finite pose; cannot restart from it")
             return False
-        found = self.pipe.reset(poses)
-        self._q_seed = q
         self._needs_reset = False
         self._reset_asked = -np.inf
         self._stale.clear()
-        self._last_cmd_t = -np.inf
         if found:
-            self._record(found)
             self._set_fault("the arms are outside the safety envelope: " + "; ".join(str(v) for v in found))
         return True
 
@@ -544,17 +522,13 @@ class ArmDriver:
                     self._reset_asked = now
                 if self._settled() or now - self._reset_asked > SETTLE_TIMEOUT_S:
                     self._restart_from_measured()
-            prev = self.pipe.last_sent
-            tick = self.pipe.tick(now)  # a stop in progress carries on whatever else is wrong
-            self._record(tick.violations)
-            if tick.command is None:
-                return False
             active = [a for a in ARMS if a not in self._links_down and a not in self._stale and not self._arm_in_error(a)]
-            command, joints = tick.command, None
-            if active and (self.cfg.servo_command == "servoj" or self.cfg.check_reach):
-                command, joints = self._within_reach(prev, tick.command, active)
-                if command is None:
-                    return False
+            out = self.motion.cycle(now, active, check_reach=self.cfg.servo_command == "servoj" or self.cfg.check_reach)
+            if out.fault is not None:
+                self._set_fault(out.fault)
+            command, joints = out.poses, out.joints
+            if command is None:
+                return False
             for a in active:
                 sends[a] = self._servo_text(a, command[a], None if joints is None else joints[a])
         wait = self._last_send + self.period - time.monotonic()
@@ -570,43 +544,6 @@ class ArmDriver:
                 with self._lock:
                     self._link_lost(a, str(e))
         return bool(sends)
-
-    def _within_reach(self, prev: Poses, cmd: Poses, active: list[str]) -> tuple[Poses | None, Joints | None]:
-        """`cmd`, or the longest part of the step from `prev` the joints of the `active` arms can follow.
-
-        Each target is solved nearest the joints of the last one (see `reach`): near a singularity the
-        arms slow down to the joints' speed instead of making a controller alarm; a target out of
-        reach or with the tool against the arm's body stops them short of it. Only when not even the
-        last command can be held is it a fault.
-        """
-        limit = cr5.JOINT_SPEED_LIMIT * self.period * REACH_JOINT_SPEED_FRACTION
-        solve = joint_solver(
-            {a: self.frames[a] for a in active},
-            {a: self._q_seed[a] for a in active},
-            {a: np.asarray(self.rig.arms[a].mount_offset, dtype=float) for a in active},
-            limit,
-        )
-        r = solve_within(prev, cmd, solve)
-        if r.poses is None:
-            self._set_fault(f"cannot hold the last command either: {r.why}")
-            return None, None
-        if r.why is not None:
-            if r.fraction > 0 and violations(r.poses, prev, self.period, self.env):
-                r = solve_within(prev, prev, solve)  # the shortened step left the envelope (it never should): hold
-                if r.poses is None:
-                    self._set_fault("cannot hold the last command either: its joints are unreachable now")
-                    return None, None
-                r = Reach(prev, r.joints, 0.0, "the shortened step left the safety envelope")
-            self.pipe.replace_last(r.poses, prev)
-            self.counters["slowed"] += 1
-            if not self._slowing:
-                self._event("slowed", f"{r.why}: {r.fraction:.0%} of the step sent")
-        elif self._slowing:
-            self._event("slowed", f"full speed again after {self.counters['slowed']} slowed periods in all")
-        self._slowing = r.why is not None
-        for a in active:
-            self._q_seed[a] = r.joints[a]
-        return r.poses, r.joints
 
     def _servo_text(self, arm: str, T_world_mount: np.ndarray, q: np.ndarray | None) -> str:
         """The ServoP for one arm's mount pose, or the ServoJ for its joints `q (6,)` (rad)."""
@@ -678,10 +615,7 @@ class ArmDriver:
                 self._set_fault(f"{a}: {why}")
             elif not int(rec["EnableStatus"]):
                 self._set_fault(f"{a}: disabled (robot mode {int(rec['RobotMode'])})")
-        if self.pipe.mode == "position" and now + self.period - self._last_cmd_t > self.limits.watchdog_s:
-            self.pipe.stop()
-            self.counters["watchdog_stops"] += 1
-            self._event("watchdog", f"no command for {(now - self._last_cmd_t) * 1000:.0f} ms: stopping")
+        self.motion.watchdog(now)
 
     def _link_lost(self, arm: str, why: str) -> None:
         self._stale.add(arm)

@@ -1,0 +1,28 @@
+"""The enumerations every part shares: run stages, controller, planner and arm names.
+
+Defined once here and imported everywhere (the CLI's choices, the coordinator's checks, the
+controller's registry, the benchmark's sweeps), so adding a name is one change.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, get_args
+
+Stage = Literal["idle", "perceiving", "goal", "planning", "pre-bagging", "bagging", "done", "failed", "aborted"]
+STAGES: tuple[str, ...] = get_args(Stage)
+ACTIVE_STAGES: tuple[str, ...] = ("perceiving", "goal", "planning", "pre-bagging", "bagging")
+SERVO_STAGES: tuple[str, ...] = ("pre-bagging", "bagging")  # the controller moves the arms
+FINAL_STAGES: tuple[str, ...] = ("done", "failed", "aborted")
+
+ControllerName = Literal["mpc", "ibvs", "ssvs"]  # mpc is the paper's; ibvs and ssvs its baselines
+CONTROLLER_NAMES: tuple[str, ...] = get_args(ControllerName)
+DEFAULT_CONTROLLER: ControllerName = "mpc"
+
+PlannerName = Literal["cbirrt", "ffg-rrt", "ts-rrt"]  # cbirrt is the paper's
+PLANNER_NAMES: tuple[str, ...] = get_args(PlannerName)
+DEFAULT_PLANNER: PlannerName = "cbirrt"
+
+# What moves the bag's mounts in a simulated run: the two CR5s through the arm driver's motion rules
+# (the rig as deployed), or floating grippers that take each increment at once (an ablation).
+ArmsMode = Literal["cr5", "ideal"]
+ARMS_MODES: tuple[str, ...] = get_args(ArmsMode)

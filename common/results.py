@@ -1,0 +1,143 @@
+"""The result of one bagging run: one model for `bagit run --json`, `bagit up --json`, the
+coordinator's run/state, the dashboard's history, the recorder and the benchmark's records.
+
+Two views of a run sit side by side. What the rig itself perceived (its coordinator's stage, the
+final SOI's error, the controller's error to g*) is all a real rig has. With the simulator,
+`truth` judges the same run on the world's ground truth (the true rim, whether the fabric went
+through the object), which no service ever reads; the headline `success` and `error_cm` are then
+the truth's, as the paper's numbers are measured on the bag itself.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import socket
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from bagit.common.names import ArmsMode, Stage
+
+# Counters of the arm side every result carries (zero when nothing happened): the increments
+# clipped by the envelope or the lead limit, the periods slowed to the joints' speed, the watchdog's
+# stops, the commands refused, the controllers' alarms and the driver's faults.
+ARM_EVENT_KINDS = ("clipped", "slowed", "watchdog_stops", "rejected", "alarms", "faults")
+
+
+def axis_error_cm(rim: np.ndarray, vertices: np.ndarray, up: np.ndarray) -> float:
+    """The paper's error (Table I): how far the rim's centre is from the object's centre, across the
+    object's axis `up (3,)`, in cm. rim: (n, 3); vertices: V (m, 3), the object's bottom outline."""
+    rel = np.asarray(rim, dtype=float).mean(axis=0) - np.asarray(vertices, dtype=float).mean(axis=0)
+    up = np.asarray(up, dtype=float) / np.linalg.norm(up)
+    return float(np.linalg.norm(rel - (rel @ up) * up)) * 100.0
+
+
+class RunTruth(BaseModel):
+    """The run judged on the simulator's ground truth (None on a real rig)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    success: bool
+    reason: str | None = None
+    error_cm: float | None = None
+    passed_through: bool = False
+    max_penetration_mm: float = 0.0
+    lift_margin_cm: float | None = Field(
+        None, description="the true rim's margin round V when the lift from g† began (cm; < 0: a vertex outside)")
+    realtime_factor: float | None = None
+
+
+class Provenance(BaseModel):
+    """Where a result comes from: the code, the machine and the effective method parameters."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    commit: str | None = None
+    dirty: bool | None = None
+    host: str = ""
+    cpu: str = ""
+    cores: int = 0
+    python: str = ""
+    params: dict[str, Any] = Field(default_factory=dict, description="every method parameter the run used")
+
+
+class RunResult(BaseModel):
+    """One run, as every part of BagIt reports it (see the module docstring)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    run_id: str | None = None
+    scenario: str | None = None
+    controller: str | None = None
+    planner: str | None = None
+    seed: int | None = None
+    arms: ArmsMode | None = Field(None, description="cr5: the two CR5s through the arm driver; ideal: floating grippers (ablation)")
+    overrides: dict[str, Any] = Field(default_factory=dict, description="method parameters set for this run over the scenario's")
+    success: bool = False
+    stage_reached: Stage = "idle"
+    reason: str | None = None
+    error_cm: float | None = Field(None, description="the paper's error: truth's with a simulator, else from the final SOI")
+    perceived_error_cm: float | None = Field(None, description="the same measure on the rig's own final SOI")
+    error_to_goal_m: float | None = Field(None, description="the controller's RMS distance of the SOI to g* at the end")
+    duration_s: float | None = Field(None, description="servoing time, on the rig's clock (simulated seconds in simulation)")
+    wall_s: float = 0.0
+    planning_time_s: float = 0.0
+    path_nodes: int = 0
+    ticks: int = 0
+    solve_ms_median: float | None = None
+    arm_events: dict[str, int] = Field(default_factory=lambda: dict.fromkeys(ARM_EVENT_KINDS, 0))
+    final_rim: list[list[float]] | None = Field(None, description="(n_x, 3): the simulator's true rim at the end (else the final SOI)")
+    object_vertices: list[list[float]] | None = Field(None, description="V (m, 3) the run's goal used")
+    object_from: str | None = Field(None, description="marker | scenario: where V came from")
+    object_reason: str | None = None
+    marker: dict[str, Any] | None = Field(None, description="the marker detection behind V: id, name, height, V error to the scenario's")
+    lift_margin_cm: float | None = None
+    truth: RunTruth | None = None
+    provenance: Provenance | None = None
+
+    def headline(self) -> str:
+        """One line for people: verdict, error, time."""
+        verdict = "SUCCESS" if self.success else f"FAILED at {self.stage_reached}: {self.reason}"
+        err = f"error {self.error_cm:.2f} cm, " if self.error_cm is not None else ""
+        dur = f"{self.duration_s:.1f} s servoing, " if self.duration_s is not None else ""
+        return (f"{self.scenario} ({self.controller}, {self.planner}, seed {self.seed}, arms {self.arms}): {verdict}\n"
+                f"{err}{dur}{self.wall_s:.1f} s wall, {self.ticks} ticks, planning {self.planning_time_s:.2f} s")
+
+
+def points_list(a: np.ndarray | None, decimals: int = 5) -> list[list[float]] | None:
+    """An (n, 3) array as JSON-able rounded lists (None stays None)."""
+    if a is None:
+        return None
+    return np.round(np.asarray(a, dtype=float), decimals).tolist()
+
+
+_PROVENANCE_CACHE: dict[str, Any] = {}
+
+
+def provenance(params: dict[str, Any] | None = None) -> Provenance:
+    """This code's commit (and whether the tree had changes), the host and its CPU, and `params`."""
+    if not _PROVENANCE_CACHE:
+        root = Path(__file__).resolve().parent.parent
+        commit, dirty = None, None
+        try:
+            commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5).stdout.strip() or None
+            if commit:
+                st = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=5)
+                dirty = bool(st.stdout.strip())
+        except (OSError, subprocess.SubprocessError):
+            pass
+        cpu = platform.processor()
+        try:
+            for line in Path("/proc/cpuinfo").read_text().splitlines():
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+        except OSError:
+            pass
+        _PROVENANCE_CACHE.update(commit=commit, dirty=dirty, host=socket.gethostname(), cpu=cpu,
+                                 cores=os.cpu_count() or 0, python=platform.python_version())
+    return Provenance(**_PROVENANCE_CACHE, params=dict(params or {}))
