@@ -22,7 +22,6 @@ the loop thread never dies.
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import time
@@ -35,12 +34,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState
+from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams
-from bagit.common.scenario import Scenario
-from bagit.services.controller.controller import CONTROLLERS, make_controller
+from bagit.common.rig import SafetyLimits
+from bagit.services.controller.controller import CONTROLLERS
+from bagit.services.controller.session import Outbox, ServoSession
 
-ACTIVE_STAGES = ("perceiving", "goal", "planning", "pre-bagging", "bagging")
-DT_MAX_S = 0.18  # a command's dt stays under the arm driver's 0.2 s watchdog
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 
 
@@ -54,30 +53,12 @@ class ControllerServiceConfig(BaseModel):
     soi_max_age_s: float = Field(0.5, gt=0.0, le=10.0, description="a SOI older than this: hold")
     arm_max_age_s: float = Field(0.3, gt=0.0, le=10.0, description="an arm state older than this: hold")
     params: dict[str, Any] = Field(default_factory=dict, description="method parameter overrides laid over the run's")
+    driver_watchdog_s: float = Field(SafetyLimits().watchdog_s, gt=0.0, le=5.0,
+                                     description="the arm driver's watchdog: a command's dt stays under it")
 
 
 def stderr_report(text: str) -> None:
     print(f"bagit controller: {text}", file=sys.stderr, flush=True)
-
-
-def _finite_or_none(v: float) -> float | None:
-    return float(v) if v is not None and math.isfinite(v) else None
-
-
-class _Run:
-    """One run being servoed: its id, controller, rate and counters."""
-
-    def __init__(self, run_id: str | None, name: str, controller: Any, params: MethodParams, rate_hz: float):
-        self.run_id = run_id
-        self.name = name
-        self.controller = controller
-        self.params = params
-        self.dt = 1.0 / rate_hz
-        self.last_soi_seq: int | None = None
-        self.last_soi_stamp: float | None = None
-        self.last_cmd_t: float | None = None  # monotonic time of the last servo command
-        self.reset_done = False
-        self.finished: str | None = None  # why servoing ended (done, the run's stage, e-stop)
 
 
 class ControllerNode:
@@ -97,12 +78,13 @@ class ControllerNode:
             raise BadControlInput(f"unknown controller {self.cfg.controller!r}; choose from {', '.join(CONTROLLERS)}")
         self.keys = keys
         self.report = report
+        self.rig_watchdog_s = self.cfg.driver_watchdog_s
         self._lock = threading.Lock()
         self._run_state: RunState | None = None
         self._paths: dict[str | None, Path] = {}
         self._goals: dict[str | None, Goal] = {}
         self._estop = False
-        self._run: _Run | None = None
+        self._run: ServoSession | None = None
         self._seq = 0
         self.counters: dict[str, int] = {"ticks": 0, "servo": 0, "hold": 0, "skipped": 0, "errors": 0, "runs": 0}
         self.last_reason: str | None = None
@@ -190,35 +172,18 @@ class ControllerNode:
         if run.finished is None:
             self._servo(run, path, goal)
 
-    def _build(self, state: RunState, path: Path, goal: Goal | None) -> _Run | None:
-        """The run's controller from its run state and path; None (and a status saying why) if it cannot be."""
-        if not path.success:
-            self._publish_status(state.run_id, reason=f"the planner found no path for run {state.run_id}")
-            return _finished_run(state.run_id, "no path")
-        try:
-            scen_params: dict[str, Any] = {}
-            if state.scenario_doc is not None:
-                scen_params = Scenario.model_validate(state.scenario_doc).params.model_dump(exclude_unset=True)
-            over = {**state.params, **self.cfg.params}
-            fields = MethodParams.model_fields
-            ignored = sorted(k for k in over if k not in fields)
-            params = MethodParams(**{**scen_params, **{k: v for k, v in over.items() if k in fields}})
-            name = self.cfg.controller or state.controller or "mpc"
-            rate = self.cfg.control_rate_hz or params.control_rate_hz
-            if rate != params.control_rate_hz:
-                params = params.model_copy(update={"control_rate_hz": rate})
-            nodes = np.asarray(path.nodes, dtype=float)
-            ctrl = make_controller(name, params, nodes.shape[1])
-        except Exception as e:  # noqa: BLE001 - a bad run must not take the node down
-            reason = f"cannot build the controller for run {state.run_id}: {type(e).__name__}: {str(e).splitlines()[0]}"
-            self.report(reason)
-            self._publish_status(state.run_id, reason=reason)
-            return _finished_run(state.run_id, reason)
-        if ignored:
-            self.report(f"run {state.run_id}: parameters not for the controller ignored: {', '.join(ignored)}")
-        self.counters["runs"] += 1
-        self.report(f"run {state.run_id}: {name} at {rate:g} Hz on a path of {len(nodes)} nodes (g† at {path.dagger_index})")
-        return _Run(state.run_id, name, ctrl, params, rate)
+    def _build(self, state: RunState, path: Path, goal: Goal | None) -> ServoSession:
+        """The run's session (a finished one, with a status saying why, if it cannot be built)."""
+        run, out = ServoSession.build(state, path, goal, self.cfg.params, self._next_seq, self.cfg.controller,
+                                      self.cfg.control_rate_hz, self.rig_watchdog_s)
+        if run.controller is not None:
+            self.counters["runs"] += 1
+        self._send(out)
+        return run
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
 
     def _grippers(self) -> tuple[dict[str, np.ndarray] | None, str | None]:
         out = {}
@@ -254,100 +219,53 @@ class ControllerNode:
             return max(by_stamp, by_arrival)
         return by_arrival
 
-    def _servo(self, run: _Run, path: Path, goal: Goal | None) -> None:
+    def _servo(self, run: ServoSession, path: Path, goal: Goal | None) -> None:
         self.counters["ticks"] += 1
         item = self.soi.get_with_time()
         grippers, arm_problem = self._grippers()
-        now = time.time()
-        if item is None:
-            self._hold("no SOI received", run, step_none=True)
-            return
-        soi, received = item
-        age = self.soi_age(soi, received)
-        if age > self.cfg.soi_max_age_s:
-            self._hold(f"SOI is stale ({age:.2f} s old, limit {self.cfg.soi_max_age_s:g} s)", run, step_none=True)
-            return
-        if arm_problem is not None:
-            self._hold(arm_problem, run, step_none=True)
-            return
-        fault = self._arm_fault()
-        if fault is not None:
-            # a latched fault (the driver's or a controller's) will not clear by itself: the run has failed
-            self._end(run, fault)
-            self._publish_status(run.run_id, controller=run.name, mode="hold", stage="failed", reason=fault)
-            return
-        if soi.seq == run.last_soi_seq and soi.source_stamp == run.last_soi_stamp:
-            self.counters["skipped"] += 1  # fresh but not new: nothing to learn from, nothing to send
-            return
-        run.last_soi_seq, run.last_soi_stamp = soi.seq, soi.source_stamp
-        c = run.controller
-        try:
-            if not run.reset_done:
-                perimeter = goal.perimeter if goal is not None and goal.perimeter > 0 else None
-                outline, frame = (None, None) if goal is None else (np.asarray(goal.vertices, dtype=float), np.asarray(goal.frame, dtype=float))
-                c.reset(np.asarray(soi.rim, dtype=float), path, grippers, perimeter=perimeter, outline=outline, frame=frame)
-                run.reset_done = True
-                if run.params.enclose_margin_m is not None and c.tracker.outline is not None:
-                    self.report(f"run {run.run_id}: the rim must go round the object's {len(outline)} bottom vertices "
-                                f"by {run.params.enclose_margin_m * 1000:.0f} mm before the lift and at g*")
-                elif run.params.enclose_margin_m is not None and goal is None:
-                    self.report(f"run {run.run_id}: no goal (with the object's V) yet at the first tick: no enclosure rule")
-            out = c.step(np.asarray(soi.rim, dtype=float), now, grippers)
-        except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so
-            self.counters["errors"] += 1
-            self._hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", run)
-            return
-        self._seq += 1
-        cmd = out.to_command(self._command_dt(run), seq=self._seq, run_id=run.run_id, source_stamp=soi.source_stamp)
-        self._cmd.put(cmd)
-        self.counters["servo" if cmd.mode == "servo" else "hold"] += 1
-        self.last_reason = out.reason
-        self._publish_status(run.run_id, controller=run.name, mode=out.mode, stage=out.stage, reason=out.reason,
-                             subgoal_index=out.subgoal_index, progress=out.progress,
-                             error_to_subgoal=_finite_or_none(out.error_to_subgoal),
-                             error_to_goal=_finite_or_none(out.error_to_goal), solve_ms=out.solve_ms, done=out.done)
-        if out.done:
-            run.finished = "done"
-            self.runs_done.append({"run_id": run.run_id, "error_to_goal": _finite_or_none(out.error_to_goal), "ticks": c.ticks})
-            self.report(f"run {run.run_id}: at g* (error {out.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)")
+        soi, age = (None, None) if item is None else (item[0], self.soi_age(*item))
+        fault = self._arm_fault() if soi is not None and arm_problem is None else None
+        out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, time.time())
+        if out.command is None and soi is not None and age is not None and age <= self.cfg.soi_max_age_s and arm_problem is None and fault is None:
+            self.counters["skipped"] += 1
+        self._send(out)
+        if run.finished == "done" and out.status is not None and out.status.done:
+            self.runs_done.append({"run_id": run.run_id, "error_to_goal": run.error_to_goal, "ticks": run.ticks})
 
-    def _command_dt(self, run: _Run) -> float:
-        """Over how long the driver spreads this increment: the time since the last command (a tick
-        comes with each new SOI, so a slow camera gives longer, slower steps rather than a dash and
-        a stop), at least the control period and at most DT_MAX_S, under the driver's 0.2 s watchdog.
-        u is bounded per tick (C7 at the control rate), so a longer dt only ever means slower."""
-        now = time.monotonic()
-        last, run.last_cmd_t = run.last_cmd_t, now
-        if last is None:
-            return run.dt
-        return float(min(max(now - last, run.dt), max(DT_MAX_S, run.dt)))
+    def _send(self, out: Outbox) -> None:
+        """Publish what the session asks for (command, status) and log its line."""
+        if out.command is not None:
+            self._cmd.put(out.command)
+            self.counters["servo" if out.command.mode == "servo" else "hold"] += 1
+            self.last_reason = out.command.reason
+        if out.status is not None:
+            self._publish_status_msg(out.status)
+        if out.report:
+            self.report(out.report)
 
     # -- out ---------------------------------------------------------------------------------------
 
-    def _hold(self, reason: str, run: _Run | None, step_none: bool = False) -> None:
-        """A hold command (u = 0) with the reason, and the status saying so."""
-        if run is not None and step_none and run.reset_done:
-            try:
-                run.controller.step(None, time.time(), {})  # the controller forgets the gap (no learning across it)
-            except Exception:  # noqa: BLE001
-                pass
-        self._seq += 1
-        run_id = run.run_id if run is not None else None
-        self._cmd.put(Command(u=np.zeros(12), dt=run.dt if run is not None else 1 / 30, seq=self._seq, run_id=run_id,
-                              mode="hold", reason=reason))
+    def _hold(self, reason: str, run: ServoSession | None) -> None:
+        """A hold command (u = 0) with the reason, outside any run's session (a node error)."""
+        if run is not None:
+            self._send(run.hold(reason, time.time()))
+            return
+        self._cmd.put(Command(u=np.zeros(12), dt=1 / 30, seq=self._next_seq(), mode="hold", reason=reason))
         self.counters["hold"] += 1
         if reason != self.last_reason:
             self.report(f"hold: {reason}")
         self.last_reason = reason
-        self._publish_status(run_id, controller=run.name if run is not None else "mpc", mode="hold", reason=reason)
+        self._publish_status(None, controller=DEFAULT_CONTROLLER, mode="hold", reason=reason)
 
-    def _end(self, run: _Run, why: str) -> None:
-        run.finished = why
-        self._hold(why, run)
+    def _end(self, run: ServoSession, why: str) -> None:
+        self._send(run.end(why, time.time()))
 
     def _publish_status(self, run_id: str | None, **kw: Any) -> None:
+        self._publish_status_msg(ControllerStatus(run_id=run_id, seq=self._seq, **kw))
+
+    def _publish_status_msg(self, st: ControllerStatus) -> None:
         try:
-            self._status.put(ControllerStatus(run_id=run_id, seq=self._seq, **kw))
+            self._status.put(st)
         except Exception as e:  # noqa: BLE001
             self.report(f"cannot publish the status: {type(e).__name__}: {e}")
 
@@ -368,11 +286,3 @@ class ControllerNode:
         self._cmd.close()
         self._status.close()
         return self.status()
-
-
-def _finished_run(run_id: str | None, why: str) -> _Run:
-    """A placeholder run that is never servoed (no path, or no controller): remembered so the
-    reason is reported once, not every tick."""
-    r = _Run(run_id, "none", None, MethodParams(), MethodParams().control_rate_hz)
-    r.finished = why
-    return r

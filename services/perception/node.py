@@ -44,8 +44,9 @@ from bagit.common.geometry import points_to_polyline_distance, transform_points
 from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState
 from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import LibraryObject, ObjectLibrary, detect_object
-from bagit.services.perception.rgbd import back_project, red_rim_mask, rim_cloud, solid_rim_segmenter
-from bagit.services.perception.soi import SoiParams, extract_soi
+from bagit.services.perception.rgbd import back_project
+from bagit.services.perception.soi import SoiParams
+from bagit.services.perception.tracker import RimTracker
 from bagit.services.perception.sources import SourceConfig, open_source
 
 REPORT_EVERY_S = 5.0
@@ -117,7 +118,8 @@ class PerceptionNode:
         self.last_bad: str | None = None
         self._last_report = {"bad": -1e9, "object": -1e9}
         self.last_object_error: str | None = None
-        self._prev: np.ndarray | None = None
+        self._rim: RimTracker | None = None  # the SOI over frames (warm starts), for the run's bag
+        self._rim_bag: tuple[int, str, tuple[float, float, float]] | None = None
         self._run_id: str | None = None
         self._scenario: Scenario | None = None
         self._last_cloud = -1e9
@@ -260,7 +262,8 @@ class PerceptionNode:
                 self.report(f"run {msg.run_id}: scenario not readable, using the config's bag: {str(e).splitlines()[0]}")
         with self._cond:
             self._run_id, self._scenario = msg.run_id, scen
-            self._prev = None  # a new run: start cold
+            if self._rim is not None:
+                self._rim.reset()  # a new run: start cold
         if scen is not None:
             self._add_run_object(scen)
         if msg.run_id is not None and msg.stage == "perceiving":
@@ -300,35 +303,27 @@ class PerceptionNode:
         p = np.asarray(item[0].tool_pose[:3], dtype=float)
         return p if np.all(np.isfinite(p)) else None
 
+    def _tracker(self) -> RimTracker:
+        """The run's rim tracker (a new one when the bag changes: n_x, kind or colour)."""
+        bag = self._bag()
+        if self._rim is None or self._rim_bag != bag:
+            n_x, kind, color = bag
+            self._rim, self._rim_bag = RimTracker(n_x, kind, color, self.cfg.soi, self.cfg.max_jump_m), bag
+        return self._rim
+
     def _process(self, frame: RgbdFrame) -> None:
         t0 = time.perf_counter()
-        n_x, kind, color = self._bag()
-        segmenter = red_rim_mask if kind == "red-edged" else solid_rim_segmenter(color)
+        tracker = self._tracker()
         self.counters["processed"] += 1
         self._maybe_cloud(frame)
+        cold = tracker.cold
         try:
-            cloud = rim_cloud(frame, segmenter)
+            rim, cloud = tracker.update(frame, hint=self._hint())
         except BagItError as e:
-            self._bad(frame, str(e))
+            self.counters["cold"] += tracker.cold - cold
+            self._bad(frame, f"no SOI: {e}")
             return
-        prev = self._prev if self._prev is not None and self._prev.shape == (n_x, 3) else None
-        rim = None
-        if prev is not None:
-            try:
-                rim = extract_soi(cloud, n_x, init=prev, params=self.cfg.soi)
-                if float(np.linalg.norm(rim - prev, axis=1).max()) > self.cfg.max_jump_m:
-                    rim = None  # jumped: start again cold
-            except BagItError:
-                rim = None
-        if rim is None:
-            self.counters["cold"] += 1
-            try:
-                rim = extract_soi(cloud, n_x, start_hint=self._hint(), params=self.cfg.soi)
-            except BagItError as e:
-                self._prev = None
-                self._bad(frame, f"no SOI: {e}")
-                return
-        self._prev = rim
+        self.counters["cold"] += tracker.cold - cold
         inl = float(np.mean(points_to_polyline_distance(cloud, rim) <= self.cfg.inlier_m)) if len(cloud) else 0.0
         ms = (time.perf_counter() - t0) * 1000.0
         self.solve_ms.append(ms)

@@ -1,0 +1,196 @@
+"""One run's servoing, with no bus and no clock of its own: what the controller does with each SOI.
+
+Whoever hosts it (the `bagit controller` node on Zenoh, `bagit run`'s in-process loop on the
+simulator's clock) hands it the newest SOI, the grippers' poses and what the arms report, and
+publishes what it returns: the command for the arm driver and the status for the coordinator.
+
+    s, out = ServoSession.build(run_state, path, goal, overrides, next_seq)   # s None: out says why
+    out = s.tick(soi, soi_age_s, grippers, arm_problem, arm_fault, now)   # out.command, out.status
+    out = s.end("run aborted", now)                                  # one hold, then nothing
+
+It never extrapolates: a stale SOI (`soi_max_age_s`), missing or stale arm states -> a hold
+command (u = 0) with the reason. A latched arm fault ends the run (it will not clear by itself).
+Each new SOI is one control tick; the same SOI twice sends nothing (the driver keeps streaming the
+last targets, and Broyden never learns from a repeated SOI). Any exception in the controller ->
+hold with the reason.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from bagit.common.messages import Command, ControllerStatus, Goal, Path, RunState, SoiState
+from bagit.common.names import DEFAULT_CONTROLLER
+from bagit.common.params import MethodParams
+from bagit.common.scenario import Scenario
+from bagit.services.controller.controller import Controller, make_controller
+
+# A command's dt (the time the driver spreads its increment over) stays this far under the arm
+# driver's watchdog (`SafetyLimits.watchdog_s`, 0.2 s), so a slow SOI gives slower motion, never a stop.
+WATCHDOG_MARGIN = 0.9
+
+
+def _finite_or_none(v: float | None) -> float | None:
+    return float(v) if v is not None and math.isfinite(v) else None
+
+
+@dataclass
+class Outbox:
+    """What a session asks its host to send: a command, a status, a line for the operator's log."""
+
+    command: Command | None = None
+    status: ControllerStatus | None = None
+    report: str | None = None
+
+
+class ServoSession:
+    """One run being servoed (see the module docstring)."""
+
+    def __init__(self, run_id: str | None, name: str, controller: Controller | None, params: MethodParams,
+                 rate_hz: float, next_seq: Callable[[], int], watchdog_s: float = 0.2):
+        self.run_id = run_id
+        self.name = name
+        self.controller = controller
+        self.params = params
+        self.dt = 1.0 / rate_hz
+        self.dt_max = max(WATCHDOG_MARGIN * watchdog_s, self.dt)
+        self.next_seq = next_seq
+        self.seq = 0  # the last command's
+        self.last_soi: tuple[int, float] | None = None  # (seq, source stamp) of the last SOI acted on
+        self.last_cmd_t: float | None = None
+        self.reset_done = False
+        self.finished: str | None = None  # why servoing ended (done, the run's stage, e-stop)
+        self.last_reason: str | None = None
+        self.ticks = 0
+        self.error_to_goal: float | None = None
+        self.final_soi: np.ndarray | None = None  # (n_x, 3) the SOI of the last tick
+
+    # -- building ----------------------------------------------------------------------------------
+
+    @classmethod
+    def build(cls, state: RunState, path: Path, goal: Goal | None, overrides: dict[str, Any], next_seq: Callable[[], int],
+              controller: str | None = None, rate_hz: float | None = None, watchdog_s: float = 0.2) -> tuple["ServoSession", Outbox]:
+        """The run's session from its run state and path (params: the scenario's, the run's overrides,
+        then `overrides`); a finished one whose outbox says why when it cannot be built."""
+        if not path.success:
+            why = f"the planner found no path for run {state.run_id}"
+            return cls._finished(state.run_id, why, next_seq), Outbox(status=ControllerStatus(run_id=state.run_id, reason=why))
+        try:
+            scen_params: dict[str, Any] = {}
+            if state.scenario_doc is not None:
+                scen_params = Scenario.model_validate(state.scenario_doc).params.model_dump(exclude_unset=True)
+            over = {**state.params, **overrides}
+            fields = MethodParams.model_fields
+            ignored = sorted(k for k in over if k not in fields)
+            params = MethodParams(**{**scen_params, **{k: v for k, v in over.items() if k in fields}})
+            name = controller or state.controller or DEFAULT_CONTROLLER
+            rate = rate_hz or params.control_rate_hz
+            if rate != params.control_rate_hz:
+                params = params.model_copy(update={"control_rate_hz": rate})
+            nodes = np.asarray(path.nodes, dtype=float)
+            ctrl = make_controller(name, params, nodes.shape[1])
+        except Exception as e:  # noqa: BLE001 - a bad run must not take the host down
+            reason = f"cannot build the controller for run {state.run_id}: {type(e).__name__}: {str(e).splitlines()[0]}"
+            return cls._finished(state.run_id, reason, next_seq), Outbox(status=ControllerStatus(run_id=state.run_id, reason=reason), report=reason)
+        note = f"run {state.run_id}: {name} at {rate:g} Hz on a path of {len(nodes)} nodes (g† at {path.dagger_index})"
+        if ignored:
+            note += f"; parameters not for the controller ignored: {', '.join(ignored)}"
+        return cls(state.run_id, name, ctrl, params, rate, next_seq, watchdog_s), Outbox(report=note)
+
+    @classmethod
+    def _finished(cls, run_id: str | None, why: str, next_seq: Callable[[], int]) -> "ServoSession":
+        """A run that is never servoed (no path, or no controller): the reason is told once, not every tick."""
+        s = cls(run_id, "none", None, MethodParams(), MethodParams().control_rate_hz, next_seq)
+        s.finished = why
+        return s
+
+    # -- one tick ----------------------------------------------------------------------------------
+
+    def tick(self, soi: SoiState | None, soi_age_s: float | None, soi_max_age_s: float, grippers: dict[str, np.ndarray] | None,
+             arm_problem: str | None, arm_fault: str | None, path: Path, goal: Goal | None, now: float) -> Outbox:
+        """The newest SOI (None: none yet) `soi_age_s` old, the grippers' poses (or why there are none),
+        a latched arm fault: the command and status for this tick (an empty outbox: nothing new)."""
+        if self.finished is not None or self.controller is None:
+            return Outbox()
+        if soi is None:
+            return self.hold("no SOI received", now, forget=True)
+        if soi_age_s is not None and soi_age_s > soi_max_age_s:
+            return self.hold(f"SOI is stale ({soi_age_s:.2f} s old, limit {soi_max_age_s:g} s)", now, forget=True)
+        if arm_problem is not None or grippers is None:
+            return self.hold(arm_problem or "no arm state", now, forget=True)
+        if arm_fault is not None:
+            out = self.end(arm_fault, now)
+            out.status = self._status(mode="hold", stage="failed", reason=arm_fault)
+            return out
+        key = (soi.seq, soi.source_stamp)
+        if key == self.last_soi:
+            return Outbox()  # fresh but not new: nothing to learn from, nothing to send
+        self.last_soi = key
+        c = self.controller
+        report = None
+        x = np.asarray(soi.rim, dtype=float)
+        try:
+            if not self.reset_done:
+                perimeter = goal.perimeter if goal is not None and goal.perimeter > 0 else None
+                outline, frame = (None, None) if goal is None else (np.asarray(goal.vertices, dtype=float), np.asarray(goal.frame, dtype=float))
+                c.reset(x, path, grippers, perimeter=perimeter, outline=outline, frame=frame)
+                self.reset_done = True
+                if self.params.enclose_margin_m is not None and outline is not None:
+                    report = (f"run {self.run_id}: the rim must go round the object's {len(outline)} bottom vertices "
+                              f"by {self.params.enclose_margin_m * 1000:.0f} mm before the lift and at g*")
+                elif self.params.enclose_margin_m is not None:
+                    report = f"run {self.run_id}: no goal (with the object's V) yet at the first tick: no enclosure rule"
+            out = c.step(x, now, grippers)
+        except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so
+            return self.hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", now)
+        self.ticks = c.ticks
+        self.final_soi = x
+        self.error_to_goal = _finite_or_none(out.error_to_goal)
+        self.seq = self.next_seq()
+        cmd = out.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp)
+        self.last_reason = out.reason
+        status = self._status(mode=out.mode, stage=out.stage, reason=out.reason, subgoal_index=out.subgoal_index,
+                              progress=out.progress, error_to_subgoal=_finite_or_none(out.error_to_subgoal),
+                              error_to_goal=self.error_to_goal, solve_ms=out.solve_ms, done=out.done)
+        if out.done:
+            self.finished = "done"
+            report = f"run {self.run_id}: at g* (error {out.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"
+        return Outbox(cmd, status, report)
+
+    def command_dt(self, now: float) -> float:
+        """Over how long the driver spreads this increment: the time since the last command (a tick
+        comes with each new SOI, so a slow camera gives longer, slower steps rather than a dash and a
+        stop), at least the control period and at most `dt_max`, under the driver's watchdog. u is
+        bounded per tick (C7 at the control rate), so a longer dt only ever means slower."""
+        last, self.last_cmd_t = self.last_cmd_t, now
+        if last is None:
+            return self.dt
+        return float(min(max(now - last, self.dt), self.dt_max))
+
+    # -- holding -----------------------------------------------------------------------------------
+
+    def hold(self, reason: str, now: float, forget: bool = False) -> Outbox:
+        """A hold command (u = 0) with the reason, and the status saying so; `forget`: the controller
+        also forgets the gap (no learning across it)."""
+        if forget and self.reset_done and self.controller is not None:
+            try:
+                self.controller.step(None, now, {})
+            except Exception:  # noqa: BLE001
+                pass
+        self.seq = self.next_seq()
+        cmd = Command(u=np.zeros(12), dt=self.dt, seq=self.seq, run_id=self.run_id, mode="hold", reason=reason)
+        report = f"hold: {reason}" if reason != self.last_reason else None
+        self.last_reason = reason
+        return Outbox(cmd, self._status(mode="hold", reason=reason), report)
+
+    def end(self, why: str, now: float) -> Outbox:
+        """Servoing ends (the run ended, a new one began, an e-stop, a fault): one hold, then nothing."""
+        self.finished = why
+        return self.hold(why, now)
+
+    def _status(self, **kw: Any) -> ControllerStatus:
+        return ControllerStatus(run_id=self.run_id, seq=self.seq, controller=self.name if self.controller is not None else DEFAULT_CONTROLLER, **kw)

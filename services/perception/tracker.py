@@ -1,0 +1,73 @@
+"""Frame after frame, the rim as `n_x` ordered points: warm from the last SOI, cold when that fails.
+
+The per-frame rule perception applies wherever it runs (the `bagit perception` node, `bagit run`'s
+in-process loop): the rim cloud from the bag's colour, then the SOI by EM started from the last
+one (keeping the point order, so the controller sees the same points move); a warm fit that fails
+or jumps further than `max_jump_m` is redone cold, seeded near `hint` (the left gripper), which
+fixes where the ordering starts.
+
+    tr = RimTracker(n_x=32, kind="red-edged")
+    rim, cloud = tr.update(frame, hint=left_gripper_xyz)    # BagItError when the frame shows no rim
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bagit.common.errors import BagItError
+from bagit.common.messages import RgbdFrame
+from bagit.services.perception.rgbd import Segmenter, red_rim_mask, rim_cloud, solid_rim_segmenter
+from bagit.services.perception.soi import SoiParams, extract_soi
+
+MAX_JUMP_M = 0.05  # a warm SOI further than this from the last one: refit cold
+
+
+def segmenter_for(kind: str, color: tuple[float, float, float] | None = None) -> Segmenter:
+    """The rim's segmenter for a bag: its red edge, or the solid bag's own colour (RGB 0..1)."""
+    if kind == "red-edged":
+        return red_rim_mask
+    return solid_rim_segmenter(color if color is not None else (0.15, 0.35, 0.75))
+
+
+class RimTracker:
+    """One camera's SOI over time (see the module docstring)."""
+
+    def __init__(self, n_x: int, kind: str = "red-edged", color: tuple[float, float, float] | None = None,
+                 params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M):
+        self.n_x = int(n_x)
+        self.segmenter = segmenter_for(kind, color)
+        self.params = params
+        self.max_jump_m = float(max_jump_m)
+        self.prev: np.ndarray | None = None  # (n_x, 3), the last SOI
+        self.cold = 0  # cold fits so far
+
+    def reset(self) -> None:
+        """Forget the last SOI (a new run, a new world): the next frame is fitted cold."""
+        self.prev = None
+
+    def update(self, frame: RgbdFrame, hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The SOI `(n_x, 3)` and the rim cloud `(m, 3)` it came from; BagItError (and the next frame
+        cold) when the frame shows no usable rim."""
+        try:
+            cloud = rim_cloud(frame, self.segmenter)
+        except BagItError:
+            self.prev = None
+            raise
+        prev = self.prev if self.prev is not None and self.prev.shape == (self.n_x, 3) else None
+        rim = None
+        if prev is not None:
+            try:
+                rim = extract_soi(cloud, self.n_x, init=prev, params=self.params)
+                if float(np.linalg.norm(rim - prev, axis=1).max()) > self.max_jump_m:
+                    rim = None  # jumped: start again cold
+            except BagItError:
+                rim = None
+        if rim is None:
+            self.cold += 1
+            try:
+                rim = extract_soi(cloud, self.n_x, start_hint=hint, params=self.params)
+            except BagItError:
+                self.prev = None
+                raise
+        self.prev = rim
+        return rim, cloud
