@@ -227,6 +227,7 @@ class ControllerStatus(Message):
     error_to_goal: float | None = None
     solve_ms: float = 0.0
     done: bool = False
+    ticks: int = Field(0, ge=0, description="control ticks of this run so far")
 
 
 class RunState(Message):

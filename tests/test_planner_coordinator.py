@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bagit.common.results import RunResult
+
 from bagit.common.messages import ControllerStatus, Goal, RunControl, SoiState
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
@@ -111,12 +113,15 @@ def test_a_full_run_follows_the_controller_to_done_with_a_result():
     assert c.state.stage == "bagging"
     c.on_status(ControllerStatus(run_id="another", stage="bagging", done=True), T0 + 4.5)  # not this run
     assert c.state.stage == "bagging"
-    c.on_status(status(c, stage="bagging", progress=1.0, done=True, error_to_goal=0.006, seq=120), T0 + 5)
+    c.on_status(status(c, stage="bagging", progress=1.0, done=True, error_to_goal=0.006, seq=130, ticks=120), T0 + 5)
     s = c.state
     assert s.stage == "done" and s.progress == 1.0 and s.reason is None
     r = s.result
     assert r["success"] and r["error_to_goal_m"] == pytest.approx(0.006) and r["ticks"] == 120
     assert r["duration_s"] == pytest.approx(2.5) and r["path_nodes"] > 2 and r["planning_time_s"] > 0
+    res = RunResult.model_validate(r)  # one result model, whoever hosts the coordinator
+    assert res.stage_reached == "done" and res.object_from == "scenario" and len(res.object_vertices) >= 3
+    assert res.final_rim is not None and res.perceived_error_cm is not None  # the rig's own view of the end
     # the next run may start
     assert c.start(RunControl(action="start", scenario="exp01"), T0 + 6).accepted
 

@@ -69,7 +69,7 @@ def test_a_run_over_the_bus_from_start_to_done(pair):
             assert np.allclose(p.nodes[0], g0)
             st_pub.put(ControllerStatus(run_id=rep.run_id, stage="bagging", progress=0.6))
             assert wait_until(lambda: watch.get().stage == "bagging" and watch.get().progress == pytest.approx(0.6), 5)
-            st_pub.put(ControllerStatus(run_id=rep.run_id, stage="bagging", progress=1.0, done=True, error_to_goal=0.005, seq=77))
+            st_pub.put(ControllerStatus(run_id=rep.run_id, stage="bagging", progress=1.0, done=True, error_to_goal=0.005, seq=90, ticks=77))
             assert wait_until(lambda: watch.get().stage == "done", 5)
         finally:
             stop.set()

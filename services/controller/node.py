@@ -32,13 +32,12 @@ import zenoh  # noqa: F401 - the node is where the service meets the bus
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
-from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams
-from bagit.common.rig import SafetyLimits
+from bagit.common.rig import ARMS, SafetyLimits
 from bagit.services.controller.controller import CONTROLLERS
-from bagit.services.controller.session import Outbox, ServoSession
+from bagit.services.controller.session import Outbox, ServoSession, arm_fault, gripper_poses
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 
@@ -185,31 +184,19 @@ class ControllerNode:
         self._seq += 1
         return self._seq
 
-    def _grippers(self) -> tuple[dict[str, np.ndarray] | None, str | None]:
+    def _states(self) -> tuple[dict[str, ArmState], str | None]:
+        """Both arms' newest states, or why there are none fresh enough."""
         out = {}
-        for a in ("left", "right"):
+        for a in ARMS:
             item = self.arms.get_with_time(self.keys.arm_state(a))
             if item is None:
-                return None, f"no state from the {a} arm"
+                return out, f"no state from the {a} arm"
             msg, t = item
             age = time.monotonic() - t
             if age > self.cfg.arm_max_age_s:
-                return None, f"the {a} arm's state is stale ({age:.2f} s old)"
-            if msg.estopped:
-                return None, f"the {a} arm is e-stopped"
-            p = np.asarray(msg.tool_pose, dtype=float)
-            if p.shape != (6,) or not np.all(np.isfinite(p)):
-                return None, f"the {a} arm's tool pose is not 6 finite numbers"
-            out[a] = pose_to_matrix(p[:3], p[3:])
+                return out, f"the {a} arm's state is stale ({age:.2f} s old)"
+            out[a] = msg
         return out, None
-
-    def _arm_fault(self) -> str | None:
-        """An arm reporting an error other than a lost link (which the driver reconnects by itself)."""
-        for a in ("left", "right"):
-            item = self.arms.get_with_time(self.keys.arm_state(a))
-            if item is not None and item[0].error and not (item[0].error_reason or "").startswith("link lost"):
-                return f"the {a} arm reports an error: {item[0].error_reason or 'unknown'}"
-        return None
 
     def soi_age(self, soi: SoiState, received: float) -> float:
         """Seconds since the SOI's camera frame was taken (by arrival when stamped on another clock)."""
@@ -222,9 +209,10 @@ class ControllerNode:
     def _servo(self, run: ServoSession, path: Path, goal: Goal | None) -> None:
         self.counters["ticks"] += 1
         item = self.soi.get_with_time()
-        grippers, arm_problem = self._grippers()
+        states, arm_problem = self._states()
+        grippers, arm_problem = (None, arm_problem) if arm_problem else gripper_poses(states)
         soi, age = (None, None) if item is None else (item[0], self.soi_age(*item))
-        fault = self._arm_fault() if soi is not None and arm_problem is None else None
+        fault = arm_fault(states) if soi is not None and arm_problem is None else None
         out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, time.time())
         if out.command is None and soi is not None and age is not None and age <= self.cfg.soi_max_age_s and arm_problem is None and fault is None:
             self.counters["skipped"] += 1

@@ -23,9 +23,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bagit.common.messages import Command, ControllerStatus, Goal, Path, RunState, SoiState
+from bagit.common.geometry import pose_to_matrix
+from bagit.common.messages import ArmState, Command, ControllerStatus, Goal, Path, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams
+from bagit.common.rig import ARMS
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
 
@@ -45,6 +47,32 @@ class Outbox:
     command: Command | None = None
     status: ControllerStatus | None = None
     report: str | None = None
+
+
+def gripper_poses(states: dict[str, ArmState]) -> tuple[dict[str, np.ndarray] | None, str | None]:
+    """Both grippers' 4x4 world poses from the arms' states (tool_pose: world [x y z roll pitch yaw]),
+    or why they cannot be used."""
+    out = {}
+    for a in ARMS:
+        msg = states.get(a)
+        if msg is None:
+            return None, f"no state from the {a} arm"
+        if msg.estopped:
+            return None, f"the {a} arm is e-stopped"
+        p = np.asarray(msg.tool_pose, dtype=float)
+        if p.shape != (6,) or not np.all(np.isfinite(p)):
+            return None, f"the {a} arm's tool pose is not 6 finite numbers"
+        out[a] = pose_to_matrix(p[:3], p[3:])
+    return out, None
+
+
+def arm_fault(states: dict[str, ArmState]) -> str | None:
+    """An arm reporting an error other than a lost link (which the driver reconnects by itself)."""
+    for a in ARMS:
+        msg = states.get(a)
+        if msg is not None and msg.error and not (msg.error_reason or "").startswith("link lost"):
+            return f"the {a} arm reports an error: {msg.error_reason or 'unknown'}"
+    return None
 
 
 class ServoSession:
@@ -155,7 +183,7 @@ class ServoSession:
         self.last_reason = out.reason
         status = self._status(mode=out.mode, stage=out.stage, reason=out.reason, subgoal_index=out.subgoal_index,
                               progress=out.progress, error_to_subgoal=_finite_or_none(out.error_to_subgoal),
-                              error_to_goal=self.error_to_goal, solve_ms=out.solve_ms, done=out.done)
+                              error_to_goal=self.error_to_goal, solve_ms=out.solve_ms, done=out.done, ticks=self.ticks)
         if out.done:
             self.finished = "done"
             report = f"run {self.run_id}: at g* (error {out.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"

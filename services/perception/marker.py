@@ -114,6 +114,18 @@ class ObjectLibrary:
         return sorted({o.marker.dictionary for o in self._by_id.values()})
 
 
+def with_run_object(lib: ObjectLibrary, scenario: Scenario) -> ObjectLibrary:
+    """`lib` with the run's own object added when its marker id is new (a scenario document started from
+    the dashboard), as a new library (the old one stays whole for whoever reads it); BadScenario when
+    one id would name two different objects."""
+    o = scenario.object
+    if o.marker is None or o.marker.id in lib:
+        return lib
+    out = ObjectLibrary(lib.get(i) for i in lib.ids())
+    out.add(LibraryObject(o.name or scenario.name, o.marker, o.local_vertices(), float(o.effective_height()), "run/state"))
+    return out
+
+
 @dataclass
 class MarkerPose:
     """One detected marker. corners: (4, 2) pixels (OpenCV order: the printed marker's top-left first,

@@ -43,7 +43,7 @@ from bagit.common.errors import BagItError
 from bagit.common.geometry import points_to_polyline_distance, transform_points
 from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState
 from bagit.common.scenario import Scenario
-from bagit.services.perception.marker import LibraryObject, ObjectLibrary, detect_object
+from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import back_project
 from bagit.services.perception.soi import SoiParams
 from bagit.services.perception.tracker import RimTracker
@@ -212,18 +212,14 @@ class PerceptionNode:
                 self.report(f"no object ({self.counters['object_failures']} so far): {self.last_object_error}")
 
     def _add_run_object(self, scen: Scenario) -> None:
-        """The run's own object joins the library when its marker id is new (a scenario document started from
-        the dashboard); one id for two different objects is reported and the library kept."""
-        o = scen.object
-        if self._library is None or o.marker is None or o.marker.id in self._library:
+        """The run's own object joins the library when its marker id is new; one id for two different
+        objects is reported and the library kept."""
+        if self._library is None:
             return
-        lib = ObjectLibrary(self._library.get(i) for i in self._library.ids())
         try:
-            lib.add(LibraryObject(o.name or scen.name, o.marker, o.local_vertices(), float(o.effective_height()), "run/state"))
+            self._library = with_run_object(self._library, scen)  # swapped whole: the marker thread never sees a half-built one
         except BagItError as e:
             self.report(f"the run's object is not added to the library: {e}")
-            return
-        self._library = lib  # swapped whole: the marker thread never sees a half-built library
 
     def _read(self) -> None:
         src = self._source

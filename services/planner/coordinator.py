@@ -32,12 +32,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from bagit.common.errors import BagItError, BadScenario
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import ControllerStatus, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES, SERVO_STAGES
 from bagit.common.params import MethodParams
+from bagit.common.results import RunResult, axis_error_cm, points_list
 from bagit.common.scenario import Scenario
-
-ACTIVE = ("perceiving", "goal", "planning", "pre-bagging", "bagging")
-FINAL = ("done", "failed", "aborted")
-CONTROLLERS = ("mpc", "ibvs", "ssvs")
 
 
 class CoordinatorConfig(BaseModel):
@@ -57,9 +55,9 @@ class CoordinatorConfig(BaseModel):
     )
     perception_service: str = "perception"
     perception_grace_s: float = Field(5.0, ge=0, le=120, description="perception may be gone this long before the run fails")
-    controllers: list[str] = Field(default_factory=lambda: list(CONTROLLERS))
-    default_controller: str = "mpc"
-    default_planner: str = "cbirrt"
+    controllers: list[str] = Field(default_factory=lambda: list(CONTROLLER_NAMES))
+    default_controller: str = DEFAULT_CONTROLLER
+    default_planner: str = DEFAULT_PLANNER
     object_source: Literal["marker", "scenario"] = Field(
         "marker", description="V and height from the object's marker (perception/object) when detected, else the scenario's; or always the scenario's")
     marker_wait_s: float = Field(3.0, ge=0.0, le=60.0, description="a g0 ready before any marker detection waits this long for one")
@@ -154,6 +152,8 @@ class _Run:
     detection: ObjectDetection | None = None  # the freshest usable marker detection of this run
     detection_note: str | None = None  # why the last detection of this run was not usable
     waiting_soi: SoiState | None = None  # g0 ready, waiting up to marker_wait_s for a detection
+    last_rim: np.ndarray | None = None  # (n_x, 3) the newest SOI of the run: the rig's own view of the end
+    goal: Goal | None = None  # the run's goal (V and the bottom frame the error is measured in)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -173,7 +173,7 @@ class Coordinator:
 
     @property
     def active(self) -> bool:
-        return self.state.stage in ACTIVE
+        return self.state.stage in ACTIVE_STAGES
 
     def _set(self, now: float, **fields: Any) -> None:
         r = self.run
@@ -195,21 +195,32 @@ class Coordinator:
         self.state = RunState(stamp=now, **base)
         self.changed = True
 
-    def _finish(self, now: float, stage: Literal["done", "failed", "aborted"], reason: str | None, result: dict[str, Any] | None = None) -> None:
+    def _finish(self, now: float, stage: Literal["done", "failed", "aborted"], reason: str | None) -> None:
         r = self.run
-        res = dict(result or {})
-        if r is not None:
-            res.setdefault("success", stage == "done")
-            res.setdefault("stage_reached", self.state.stage)
-            res.update(
-                scenario=r.scenario_name, controller=r.controller, planner=r.planner, seed=r.seed,
-                planning_time_s=round(r.planning_time_s, 4), path_nodes=r.path_nodes, wall_s=round(now - r.t_start, 3),
-            )
-            if reason:
-                res.setdefault("reason", reason)
-            for k, v in r.extra.get("object", {}).items():
-                res.setdefault(k, v)
+        res = self.result(now, stage, reason).model_dump(mode="json") if r is not None else {}
         self._set(now, stage=stage, reason=reason, result=res)
+
+    def result(self, now: float, stage: str, reason: str | None) -> RunResult:
+        """The run's result as the rig itself saw it (a host with a simulator adds the truth)."""
+        r = self.run
+        assert r is not None
+        st, goal = r.last_status, r.goal
+        V = np.asarray(goal.vertices, dtype=float) if goal is not None else None
+        perceived = None
+        if r.last_rim is not None and goal is not None:
+            perceived = round(axis_error_cm(r.last_rim, V, np.asarray(goal.frame, dtype=float)[:3, 2]), 4)
+        info = dict(r.extra.get("object", {}))
+        object_from, object_reason = info.pop("object_from", None), info.pop("object_reason", None)
+        return RunResult(
+            run_id=r.run_id, scenario=r.scenario_name, controller=r.controller, planner=r.planner, seed=r.seed,
+            overrides=dict(r.overrides), success=stage == "done", stage_reached=self.state.stage if stage != "done" else "done",
+            reason=reason, error_cm=perceived, perceived_error_cm=perceived,
+            error_to_goal_m=st.error_to_goal if st is not None else None,
+            duration_s=round(now - r.t_servo, 3) if r.t_servo is not None else None, wall_s=round(now - r.t_start, 3),
+            planning_time_s=round(r.planning_time_s, 4), path_nodes=r.path_nodes, ticks=st.ticks if st is not None else 0,
+            final_rim=points_list(r.last_rim), object_vertices=points_list(V), object_from=object_from,
+            object_reason=object_reason, marker=info or None,
+        )
 
     def tick_state(self, now: float) -> RunState:
         """The state to republish periodically, with elapsed time brought up to `now` while a run is active."""
@@ -247,11 +258,9 @@ class Coordinator:
             controller = req.controller or self.cfg.default_controller
             if controller not in self.cfg.controllers:
                 raise BadScenario(f"unknown controller {controller!r}; choose from {', '.join(self.cfg.controllers)}")
-            from bagit.services.planner.rrt import PLANNERS
-
             planner = req.planner or self.cfg.default_planner
-            if planner not in PLANNERS:
-                raise BadScenario(f"unknown planner {planner!r}; choose from {', '.join(sorted(PLANNERS))}")
+            if planner not in PLANNER_NAMES:
+                raise BadScenario(f"unknown planner {planner!r}; choose from {', '.join(PLANNER_NAMES)}")
             seed = int(req.seed or 0)
             if seed < 0:
                 raise BadScenario(f"seed must be >= 0, got {seed}")
@@ -304,7 +313,11 @@ class Coordinator:
         """In `perceiving`, a fresh SOI becomes g0: stage goal, and a plan job for the node (after
         waiting up to marker_wait_s for the object's marker, see the module doc)."""
         r = self.run
-        if r is None or self.state.stage != "perceiving":
+        if r is None or not self.active:
+            return []
+        if len(soi.rim) == r.scenario.bag.n_x:
+            r.last_rim = soi.rim
+        if self.state.stage != "perceiving":
             return []
         frame_t = soi.source_stamp or soi.stamp
         if frame_t < r.t_start + self.cfg.settle_s:
@@ -388,6 +401,7 @@ class Coordinator:
         if r is None or goal.run_id != r.run_id or self.state.stage != "goal":
             return []
         r.extra["goal_published"] = True
+        r.goal = goal
         self._set(now, stage="planning")
         return [Effect("publish_goal", message=goal)]
 
@@ -397,6 +411,8 @@ class Coordinator:
         if r is None or out.run_id != r.run_id or self.state.stage not in ("goal", "planning"):
             return []  # a run that was stopped meanwhile
         r.planning_time_s = out.time_s
+        if out.goal is not None:
+            r.goal = out.goal
         effects: list[Effect] = []
         if out.goal is not None and not r.extra.get("goal_published"):
             effects.append(Effect("publish_goal", message=out.goal))
@@ -413,7 +429,7 @@ class Coordinator:
     def on_status(self, st: ControllerStatus, now: float) -> None:
         """Follow the controller: its stage and progress; done ends the run."""
         r = self.run
-        if r is None or st.run_id != r.run_id or self.state.stage not in ("pre-bagging", "bagging"):
+        if r is None or st.run_id != r.run_id or self.state.stage not in SERVO_STAGES:
             return
         r.t_last_status = now
         r.last_status = st
@@ -421,15 +437,10 @@ class Coordinator:
             self._finish(now, "failed", f"controller: {st.reason or st.stage}")
             return
         if st.done:
-            result = {
-                "error_to_goal_m": st.error_to_goal,
-                "duration_s": round(now - (r.t_servo or now), 3),
-                "ticks": st.seq,
-            }
             self._set(now, progress=1.0)
-            self._finish(now, "done", None, result)
+            self._finish(now, "done", None)
             return
-        stage = st.stage if st.stage in ("pre-bagging", "bagging") else self.state.stage
+        stage = st.stage if st.stage in SERVO_STAGES else self.state.stage
         if stage != self.state.stage or abs(st.progress - self.state.progress) > 1e-9:
             self._set(now, stage=stage, progress=float(st.progress))
 
@@ -442,7 +453,7 @@ class Coordinator:
         if service == self.cfg.perception_service:
             r.perception_gone_at = None if alive else now
             return
-        if not alive and service in self.cfg.required_services and self.state.stage in ("pre-bagging", "bagging"):
+        if not alive and service in self.cfg.required_services and self.state.stage in SERVO_STAGES:
             self._finish(now, "failed", f"the {service} service is gone (liveliness lost during {self.state.stage})")
 
     def tick(self, now: float) -> list[Effect]:
@@ -458,7 +469,7 @@ class Coordinator:
             who = "" if self.cfg.perception_service in self.alive else f" (the {self.cfg.perception_service} service is not up)"
             self._finish(now, "failed", f"no fresh SOI from perception within {self.cfg.perceive_timeout_s:g} s{who}")
             return []
-        if stage in ("pre-bagging", "bagging"):
+        if stage in SERVO_STAGES:
             t_servo = r.t_servo or now
             missing = [s for s in self.cfg.required_services if s not in self.alive]
             if missing and now - t_servo > self.cfg.status_timeout_s:
