@@ -1,42 +1,85 @@
-"""`bagit run SCENARIO`: the whole bagging run, closed in simulation, in one process."""
+"""`bagit run SCENARIO`: one whole simulated bagging in one process, the deployed stack's own logic
+(coordinator, perception, controller, the arm driver's motion rules, two simulated CR5s) on the
+simulator's clock. See bagit.inprocess."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import logging
+import math
 import sys
 from typing import Any
 
+from bagit.common.names import ARMS_MODES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES
+
 NAME = "run"
-HELP = "run a whole simulated bagging: camera -> SOI -> goal -> plan -> MPC -> arms"
+HELP = "run a whole simulated bagging in one process: camera -> SOI -> goal -> plan -> MPC -> arm driver -> CR5s"
+
+
+def positive_seconds(text: str) -> float:
+    """An argparse type: a finite number of seconds > 0 (a clear error for -1, nan, inf)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
+    return v
+
+
+def non_negative_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
+
+
+def json_object(text: str) -> dict[str, Any]:
+    try:
+        v = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f"not JSON: {e}") from None
+    if not isinstance(v, dict):
+        raise argparse.ArgumentTypeError("must be a JSON object of method parameters")
+    return v
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario file, or the name of a bundled scenario")
-    p.add_argument("--controller", choices=["mpc", "ibvs", "ssvs"], default="mpc")
-    p.add_argument("--planner", choices=["cbirrt", "ffg-rrt", "ts-rrt"], default="cbirrt")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--time-limit", type=float, default=40.0, help="simulated seconds before the run fails")
-    p.add_argument("--wall-limit", type=float, default=900.0, help="wall-clock seconds before the run is stopped as too slow")
-    p.add_argument("--headless", action="store_true", help="no viewer (the only mode for now: runs are always headless)")
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, default=DEFAULT_CONTROLLER)
+    p.add_argument("--planner", choices=PLANNER_NAMES, default=DEFAULT_PLANNER)
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--arms", choices=ARMS_MODES, default="cr5",
+                   help="cr5: the two CR5s through the arm driver's rules (default); ideal: floating grippers (an ablation)")
+    p.add_argument("--params", type=json_object, default=None, help='method parameters over the scenario\'s, JSON, e.g. \'{"twist_weight": 0}\'')
+    p.add_argument("--fps", type=positive_seconds, default=None, help="camera frames per simulated second (default: the control rate)")
+    p.add_argument("--time-limit", type=positive_seconds, default=40.0, help="simulated seconds of servoing before the run fails")
+    p.add_argument("--wall-limit", type=positive_seconds, default=900.0, help="wall-clock seconds before the run is stopped as too slow")
+    p.add_argument("--headless", action="store_true", help="no viewer (the only mode: runs are always headless)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.common.scenario import Scenario
-    from bagit.pipeline import run_bagging
+    from bagit.inprocess import RunOptions, run_inprocess
     from bagit.scenarios import find_scenario
 
-    s = Scenario.from_file(find_scenario(args.scenario))
-    say = (lambda m: print(f"[run] {m}", file=sys.stderr, flush=True)) if args.json else (lambda m: print(f"[run] {m}", flush=True))
-    r = run_bagging(s, args.controller, args.planner, args.seed, args.time_limit, progress=say, wall_limit_s=args.wall_limit)
-    out = r.to_dict()
-    out["scenario"] = s.name
-    return out
+    path = find_scenario(args.scenario)
+    s = Scenario.from_file(path)
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
+    stream = sys.stderr if args.json else sys.stdout
+    say = lambda m: print(f"[run] {m}", file=stream, flush=True)  # noqa: E731
+    opts = RunOptions(scenario=s, name=path.stem, controller=args.controller, planner=args.planner, seed=args.seed, arms=args.arms,
+                      overrides=args.params or {}, time_limit_s=args.time_limit, wall_limit_s=args.wall_limit, fps=args.fps)
+    return run_inprocess(opts, progress=say).model_dump(mode="json")
 
 
 def human(r: dict[str, Any]) -> str:
-    verdict = "SUCCESS" if r["success"] else f"FAILED at {r['stage_reached']}: {r['reason']}"
-    return (
-        f"{r['scenario']} ({r['controller']}, {r['planner']}, seed {r['seed']}): {verdict}\n"
-        f"error {r['error_cm']:.2f} cm, {r['duration_s']:.1f} s simulated in {r['wall_s']:.1f} s, "
-        f"{r['ticks']} ticks, planning {r['planning_time_s']:.2f} s"
-    )
+    from bagit.common.results import RunResult
+
+    res = RunResult.model_validate(r)
+    ev = ", ".join(f"{k} {v}" for k, v in res.arm_events.items() if v)
+    return res.headline() + (f"\narm events: {ev}" if ev else "")

@@ -37,7 +37,7 @@ from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS, SafetyLimits
 from bagit.services.controller.controller import CONTROLLERS
-from bagit.services.controller.session import Outbox, ServoSession, arm_fault, gripper_poses
+from bagit.services.controller.session import ARM_MAX_AGE_S, SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, gripper_poses
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 
@@ -49,8 +49,8 @@ class ControllerServiceConfig(BaseModel):
 
     controller: str | None = Field(None, description="mpc | ibvs | ssvs; None: the run's choice (RunState.controller), else mpc")
     control_rate_hz: float | None = Field(None, gt=0.0, le=500.0, description="None: the run's params.control_rate_hz")
-    soi_max_age_s: float = Field(0.5, gt=0.0, le=10.0, description="a SOI older than this: hold")
-    arm_max_age_s: float = Field(0.3, gt=0.0, le=10.0, description="an arm state older than this: hold")
+    soi_max_age_s: float = Field(SOI_MAX_AGE_S, gt=0.0, le=10.0, description="a SOI older than this: hold")
+    arm_max_age_s: float = Field(ARM_MAX_AGE_S, gt=0.0, le=10.0, description="an arm state older than this: hold")
     params: dict[str, Any] = Field(default_factory=dict, description="method parameter overrides laid over the run's")
     driver_watchdog_s: float = Field(SafetyLimits().watchdog_s, gt=0.0, le=5.0,
                                      description="the arm driver's watchdog: a command's dt stays under it")

@@ -34,6 +34,8 @@ from bagit.services.controller.controller import Controller, make_controller
 # A command's dt (the time the driver spreads its increment over) stays this far under the arm
 # driver's watchdog (`SafetyLimits.watchdog_s`, 0.2 s), so a slow SOI gives slower motion, never a stop.
 WATCHDOG_MARGIN = 0.9
+SOI_MAX_AGE_S = 0.5  # a SOI older than this (by its camera stamp): hold
+ARM_MAX_AGE_S = 0.3  # an arm state older than this: hold
 
 
 def _finite_or_none(v: float | None) -> float | None:

@@ -17,7 +17,7 @@ import numpy as np
 from bagit.common.errors import BagItError
 from bagit.common.messages import RgbdFrame
 from bagit.services.perception.rgbd import Segmenter, red_rim_mask, rim_cloud, solid_rim_segmenter
-from bagit.services.perception.soi import SoiParams, extract_soi
+from bagit.services.perception.soi import DEFAULT_PARAMS, SoiParams, extract_soi
 
 MAX_JUMP_M = 0.05  # a warm SOI further than this from the last one: refit cold
 
@@ -36,7 +36,7 @@ class RimTracker:
                  params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M):
         self.n_x = int(n_x)
         self.segmenter = segmenter_for(kind, color)
-        self.params = params
+        self.params = params if params is not None else DEFAULT_PARAMS
         self.max_jump_m = float(max_jump_m)
         self.prev: np.ndarray | None = None  # (n_x, 3), the last SOI
         self.cold = 0  # cold fits so far

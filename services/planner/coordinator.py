@@ -127,9 +127,10 @@ def compute_plan(job: PlanJob, on_goal: Callable[[Goal], None] | None = None) ->
     return PlanOutcome(job.run_id, goal=goal_msg, path=res.to_message(job.run_id), time_s=res.time_s)
 
 
-def new_run_id(now: float) -> str:
-    """Sortable and unique: UTC time of the start plus 6 random hex digits."""
-    return time.strftime("%Y%m%d-%H%M%S", time.gmtime(now)) + "-" + uuid.uuid4().hex[:6]
+def new_run_id() -> str:
+    """Sortable and unique: the wall clock's UTC time of the start (whatever clock the coordinator runs
+    on: a simulator's starts at 0) plus 6 random hex digits."""
+    return time.strftime("%Y%m%d-%H%M%S", time.gmtime()) + "-" + uuid.uuid4().hex[:6]
 
 
 @dataclass
@@ -267,7 +268,7 @@ class Coordinator:
         except BagItError as e:
             return RunControlReply(accepted=False, reason=str(e).splitlines()[0])
         doc = scenario.model_dump(mode="json", exclude_none=True)
-        self.run = _Run(new_run_id(now), scenario, name, doc, controller, planner, seed, dict(req.params or {}), now)
+        self.run = _Run(new_run_id(), scenario, name, doc, controller, planner, seed, dict(req.params or {}), now)
         self._set(now, stage="perceiving", progress=0.0, reason=None, result=None)
         return RunControlReply(accepted=True, run_id=self.run.run_id)
 
@@ -297,6 +298,11 @@ class Coordinator:
         self.state = RunState(stage="idle", stamp=now)
         self.changed = True
         return RunControlReply(accepted=True, run_id=run_id)
+
+    def fail(self, reason: str, now: float) -> None:
+        """The host fails the running run (its simulator failed, it ran out of wall time)."""
+        if self.active:
+            self._finish(now, "failed", reason)
 
     def on_estop(self, engage: bool, source: str, reason: str | None, now: float) -> None:
         """An e-stop aborts the running run (the arm driver stops the arms) and latches until released."""

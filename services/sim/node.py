@@ -30,7 +30,7 @@ from bagit.common.dobot import describe_alarm
 from bagit.common.errors import BagItError
 from bagit.common.messages import RgbdFrame, RunState, SimTruth
 from bagit.common.scenario import Scenario
-from bagit.services.sim.rig_sim import SimRig
+from bagit.services.sim.rig_sim import SETTLE_S, SimRig
 
 SERVICE_NAME = "sim"
 
@@ -44,7 +44,7 @@ class SimNodeConfig(BaseModel):
     fps: float = Field(10.0, gt=0, le=120, description="camera frames per simulated second (0 < fps <= the camera's rate)")
     camera: bool = True
     chunk_s: float = Field(0.02, gt=0, le=0.2, description="simulated seconds stepped between checks")
-    settle_s: float = Field(1.0, ge=0, le=10, description="simulated seconds the bag hangs still after a reset, no frames")
+    settle_s: float = Field(SETTLE_S, ge=0, le=10, description="simulated seconds the bag hangs still after a reset, no frames")
     truth_hz: float = Field(2.0, gt=0, le=50)
     report_every_s: float = Field(5.0, gt=0, description="how often the real-time factor is printed (wall seconds)")
 

@@ -33,6 +33,8 @@ from bagit.services.sim.dobot_server import DobotControllerServer
 
 from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S  # noqa: E402  (pure Python, no MuJoCo)
 
+SETTLE_S = 1.0  # simulated seconds the bag hangs still after a (re)set before the camera's first frame
+
 
 class World(Protocol):
     """What SimRig needs of the physics world (SimWorld provides it)."""

@@ -1,0 +1,263 @@
+"""`bagit run`: the whole rig in one process, on the simulator's clock.
+
+The same pure parts `bagit up` runs as services, wired by direct calls instead of Zenoh keys:
+the simulator (`SimRig`: the world, the camera, the two CR5 controllers), perception
+(`RimTracker` for the SOI, `detect_object` for the object's marker), the coordinator (`Coordinator`:
+stages, limits, the run's result; `compute_plan`: goal and path), the controller (`ServoSession`)
+and the arm side (`Cr5Arms`: the arm driver's `ArmMotion` streaming to the CR5s; or `IdealArms`,
+the floating-gripper ablation). Nothing here decides anything a service decides.
+
+Time is the simulator's: every part is handed `now` = simulated seconds, the camera takes a frame
+every 1/fps, the arm side runs a servo period every `servo_period_s`, and the world steps in
+between, so a run is deterministic (same scenario and seed, the same ticks and error, bit for
+bit on one machine) and goes as fast as the CPU allows. Processing takes no simulated time: a
+command answers the frame it was computed from. Ground truth is read only to judge the run (and
+the lift margin, when the lift from g† starts); no part ever sees it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from bagit.common.errors import BagItError, SimulationFailed
+from bagit.common.geometry import enclosure
+from bagit.common.messages import Goal, ObjectDetection, Path, RunControl, SoiState
+from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, ArmsMode
+from bagit.common.params import MethodParams
+from bagit.common.results import RunResult, points_list, provenance
+from bagit.common.rig import RigConfig
+from bagit.common.scenario import Scenario
+from bagit.services.controller.session import SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, gripper_poses
+from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
+from bagit.services.perception.tracker import RimTracker
+from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, compute_plan
+from bagit.services.planner.goal import bottom_frame
+from bagit.services.sim.judge import truth_of
+from bagit.services.sim.rig_sim import SETTLE_S, SimRig
+from bagit.sim_arms import Cr5Arms, IdealArms
+
+log = logging.getLogger("bagit.run")
+
+WALL_LIMIT_S = 900.0  # a run taking longer than this in wall time is stopped (normal runs take 10-60 s)
+MARKER_RATE_HZ = 1.0  # perception's marker detection at most this often (its node's default)
+MARKER_SETTLE_S = 0.5  # ... and on the first frame this much after the start
+SERVICES = ("perception", "planner", "controller", "arm-driver")  # all in this process, so always alive
+
+
+@dataclass
+class RunOptions:
+    """One in-process run: what to bag, with what, and the limits."""
+
+    scenario: Scenario
+    name: str | None = None
+    controller: str = DEFAULT_CONTROLLER
+    planner: str = DEFAULT_PLANNER
+    seed: int = 0
+    arms: ArmsMode = "cr5"
+    overrides: dict[str, Any] = field(default_factory=dict)  # method parameters over the scenario's
+    time_limit_s: float = 40.0  # servoing longer than this (simulated) fails the run
+    wall_limit_s: float | None = WALL_LIMIT_S
+    fps: float | None = None  # camera frames per simulated second; None: the control rate
+    rig: RigConfig | None = None
+    object_source: str = "marker"  # the coordinator's: V from the object's marker when detected, else the scenario's
+
+
+@dataclass
+class _Trace:
+    """What the host saw go by, for the result and the benchmark."""
+
+    solve_ms: list[float] = field(default_factory=list)
+    lift_margin_cm: float | None = None
+    stages: list[str] = field(default_factory=list)
+
+
+def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: None) -> RunResult:
+    """One simulated run through the coordinator's stages; never raises for a failed run (the result says why)."""
+    if not (np.isfinite(opts.time_limit_s) and opts.time_limit_s > 0):
+        raise BagItError(f"the time limit must be a positive number of seconds, got {opts.time_limit_s}")
+    if opts.wall_limit_s is not None and not (np.isfinite(opts.wall_limit_s) and opts.wall_limit_s > 0):
+        raise BagItError(f"the wall-time limit must be a positive number of seconds, got {opts.wall_limit_s}")
+    t_wall = time.perf_counter()
+    sc = opts.scenario
+    params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **opts.overrides})
+    rate = params.control_rate_hz
+    fps = opts.fps or rate
+    if not 0 < fps <= 120:
+        raise BagItError(f"fps must be in (0, 120], got {fps}")
+    sim = SimRig(sc, opts.rig, opts.seed)
+    try:
+        return _Run(sim, opts, fps, t_wall, progress).run()
+    finally:
+        sim.close()
+
+
+class _Run:
+    """The loop of one in-process run (see the module docstring)."""
+
+    def __init__(self, sim: SimRig, opts: RunOptions, fps: float, t_wall: float, progress: Callable[[str], None]):
+        self.sim, self.opts, self.t_wall, self.say = sim, opts, t_wall, progress
+        self.frame_dt = 1.0 / fps
+        sc = opts.scenario
+        self.arms: Cr5Arms | IdealArms = Cr5Arms(sim) if opts.arms == "cr5" else IdealArms(sim)
+        self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.time)
+        self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, tuple(sc.bag.color))
+        library = ObjectLibrary.from_scenarios()
+        try:
+            library = with_run_object(library, sc)
+        except BagItError as e:
+            log.warning("the run's object is not added to the marker library: %s", e)
+        self.library = library if len(library) else None
+        self.soi: SoiState | None = None
+        self.goal: Goal | None = None
+        self.path: Path | None = None
+        self.session: ServoSession | None = None
+        self.seq = 0
+        self.frames = 0
+        self.marker_due = np.inf
+        self.trace = _Trace()
+
+    def _next_seq(self) -> int:
+        self.seq += 1
+        return self.seq
+
+    # -- the loop ----------------------------------------------------------------------------------
+
+    def run(self) -> RunResult:
+        sim, coord, opts = self.sim, self.coord, self.opts
+        sc = opts.scenario
+        now = sim.time
+        for service in SERVICES:
+            coord.on_liveliness(service, True, now)
+        req = RunControl(action="start", scenario=opts.name or sc.name, scenario_doc=sc.model_dump(mode="json", exclude_none=True),
+                         controller=opts.controller, planner=opts.planner, seed=opts.seed, params=dict(opts.overrides))
+        rep = coord.start(req, now)
+        if not rep.accepted:
+            return RunResult(scenario=opts.name or sc.name, controller=opts.controller, planner=opts.planner, seed=opts.seed,
+                             arms=opts.arms, overrides=dict(opts.overrides), reason=rep.reason, wall_s=time.perf_counter() - self.t_wall)
+        self.say(f"perceiving: the bag settles {SETTLE_S:g} s, then g0 from the camera")
+        self.marker_due = now + MARKER_SETTLE_S
+        try:
+            self.arms.step(SETTLE_S)  # the bag hangs still before the first frame, as `bagit sim` does after a reset
+            self.arms.start()
+        except SimulationFailed as e:
+            coord.fail(f"simulator: {e}", sim.time)
+        next_frame = next_servo = sim.time
+        period = self.arms.period
+        while coord.state.stage not in FINAL_STAGES:
+            now = sim.time
+            if period is not None and now >= next_servo - 1e-9:
+                self.arms.servo(now)
+                next_servo += period
+            if now >= next_frame - 1e-9:
+                self._frame(now)
+                next_frame += self.frame_dt
+            self._apply(coord.tick(now), now)
+            if coord.state.stage in FINAL_STAGES:
+                break
+            wall = time.perf_counter() - self.t_wall
+            if opts.wall_limit_s is not None and wall > opts.wall_limit_s:
+                coord.fail(f"simulator: too slow, {wall:.0f} s of wall time for {now - SETTLE_S:.1f} s simulated "
+                           f"(limit {opts.wall_limit_s:.0f} s; the contact solver crawls?)", now)
+                break
+            due = min(next_frame, next_servo) if period is not None else next_frame
+            try:
+                self.arms.step(max(due - now, 1e-9))
+            except SimulationFailed as e:
+                coord.fail(f"simulator: {e}", sim.time)
+        return self._result()
+
+    def _frame(self, now: float) -> None:
+        """A camera frame: perception (the SOI, the object's marker), then a control tick."""
+        frame = self.sim.render_rgbd(self.frames)
+        self.frames += 1
+        effects: list[Effect] = []
+        if self.library is not None and now >= self.marker_due - 1e-9 and self.coord.state.stage in ("perceiving", "goal"):
+            self.marker_due = now + 1.0 / MARKER_RATE_HZ
+            try:
+                det = detect_object(frame, self.library, self.coord.state.run_id)
+            except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection, as in the node
+                det = ObjectDetection(seq=frame.seq, source_stamp=now, run_id=self.coord.state.run_id, ok=False, error=f"{type(e).__name__}: {e}")
+            effects += self.coord.on_object(det, now)
+        left = self.arms.states()["left"].tool_pose[:3]
+        try:
+            rim, cloud = self.tracker.update(frame, hint=np.asarray(left, dtype=float))
+            self.soi = SoiState(seq=frame.seq, stamp=now, source_stamp=now, rim=rim, n_points=len(cloud))
+            effects += self.coord.on_soi(self.soi, now)
+        except BagItError as e:
+            log.debug("frame %d: no SOI: %s", frame.seq, e)  # the controller holds once the last SOI is stale
+        self._apply(effects, now)
+        self._control(now)
+
+    def _apply(self, effects: list[Effect], now: float) -> None:
+        """Carry out the coordinator's effects: plan (at once: planning takes no simulated time), publish."""
+        for e in effects:
+            if e.kind == "plan" and e.job is not None:
+                self.say(f"goal and plan: {e.job.planner} from g0")
+                out = compute_plan(e.job, on_goal=lambda g: self._apply(self.coord.on_goal(g, now), now))
+                self._apply(self.coord.on_plan(out, now), now)
+                if out.path is not None:
+                    self.say(f"pre-bagging: {len(out.path.nodes)} nodes, g† at {out.path.dagger_index} (planned in {out.time_s:.2f} s)")
+            elif e.kind == "publish_goal" and isinstance(e.message, Goal):
+                self.goal = e.message
+            elif e.kind == "publish_path" and isinstance(e.message, Path):
+                self.path = e.message
+
+    def _control(self, now: float) -> None:
+        """One control tick on the newest SOI, as the controller node makes it."""
+        st = self.coord.state
+        if st.stage not in ("pre-bagging", "bagging") or self.path is None or self.path.run_id != st.run_id:
+            return
+        if self.session is None:
+            self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq)
+            self._send(out, now)
+        states = self.arms.states()
+        grippers, problem = gripper_poses(states)
+        fault = arm_fault(states) if problem is None else None
+        age = None if self.soi is None else now - self.soi.source_stamp
+        self._send(self.session.tick(self.soi, age, SOI_MAX_AGE_S, grippers, problem, fault, self.path, self.goal, now), now)
+
+    def _send(self, out: Outbox, now: float) -> None:
+        if out.command is not None:
+            self.arms.submit(out.command, now)
+        if out.report:
+            log.info("%s", out.report)
+        st = out.status
+        if st is None:
+            return
+        if st.solve_ms > 0:
+            self.trace.solve_ms.append(st.solve_ms)
+        if st.stage == "bagging" and st.mode == "servo" and self.trace.lift_margin_cm is None:
+            self.trace.lift_margin_cm = self._lift_margin()  # judged on the truth, like the end; never fed back
+        before = self.coord.state.stage
+        self.coord.on_status(st, now)
+        if self.coord.state.stage != before and self.coord.state.stage in ("pre-bagging", "bagging"):
+            self.say(f"{self.coord.state.stage}: subgoal {st.subgoal_index}")
+
+    def _lift_margin(self) -> float:
+        """The true rim's smallest margin round the true V (cm) as the lift from g† begins."""
+        V = self.opts.scenario.object.bottom_vertices()
+        return round(float(enclosure(self.sim.world.true_rim(), V, bottom_frame(V))[0].min()) * 100, 4)
+
+    # -- the result --------------------------------------------------------------------------------
+
+    def _result(self) -> RunResult:
+        sc, opts = self.opts.scenario, self.opts
+        res = RunResult.model_validate(self.coord.state.result)
+        gt = self.sim.ground_truth()
+        V = sc.object.bottom_vertices()
+        truth = truth_of(gt.rim, gt.passed_through, gt.max_penetration_m, sc, bottom_frame(V)[:3, 2], self.trace.lift_margin_cm)
+        success = res.success and truth.success
+        reason = res.reason if not res.success else truth.reason
+        solve = np.asarray(self.trace.solve_ms, dtype=float)
+        params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **opts.overrides})
+        return res.model_copy(update=dict(
+            arms=opts.arms, success=success, reason=reason, error_cm=truth.error_cm, truth=truth,
+            final_rim=points_list(self.sim.world.true_rim(sc.bag.n_x)), wall_s=round(time.perf_counter() - self.t_wall, 3),
+            solve_ms_median=float(np.median(solve)) if solve.size else None, arm_events=self.arms.events(),
+            lift_margin_cm=self.trace.lift_margin_cm, provenance=provenance(params.model_dump(mode="json")),
+        ))

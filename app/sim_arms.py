@@ -1,0 +1,172 @@
+"""The arm side of `bagit run`: what moves the bag's mounts in the in-process rig.
+
+`Cr5Arms` is the arm driver's motion rules (`ArmMotion`: envelope, lead limit, 12-axis Ruckig,
+watchdog, joint-speed-aware reach, the safety gate) streaming ServoP, every servo period, to the
+two simulated CR5 controllers of the `SimRig`, called in process instead of over TCP; their
+feedback records become the `ArmState`s the controller reads, with the driver's fault laid over
+them as the `bagit arm-driver` node does. A controller alarm, a refused ServoP or a step that
+cannot be held latches a fault: the arms brake and later commands are refused, as on the rig.
+
+`IdealArms` is the ablation: floating grippers that take each increment at once (no arm, no
+driver), what the benchmark measured before the CR5s were in every run.
+
+Both count what happened on the arm side (`events()`, the result's `arm_events`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+
+import numpy as np
+
+from bagit.common import cr5
+from bagit.common.dobot import describe_alarm
+from bagit.common.messages import ArmState, Command
+from bagit.common.results import ARM_EVENT_KINDS
+from bagit.common.rig import ARMS
+from bagit.common.so3 import matrix_to_rpy
+from bagit.services.arm_driver.config import DriverConfig
+from bagit.services.arm_driver.frames import controller_fault, feedback_state
+from bagit.services.arm_driver.motion import ArmMotion
+from bagit.services.controller.increment import apply_increment
+from bagit.services.sim.rig_sim import SimRig
+
+log = logging.getLogger("bagit.run.arms")
+
+
+class Cr5Arms:
+    """Two simulated CR5s behind the arm driver's motion rules (see the module docstring)."""
+
+    name = "cr5"
+
+    def __init__(self, sim: SimRig, cfg: DriverConfig | None = None):
+        self.sim = sim
+        self.cfg = cfg or DriverConfig()
+        self.motion = ArmMotion(sim.rig, self.cfg, on_event=self._on_event)
+        self.period = self.motion.period
+        self.servo_t = self.period * self.cfg.servo_t_factor
+        self.fault: str | None = None
+        self.log: list[tuple[str, str]] = []  # (kind, detail) of each event, for the run's trace
+
+    def _on_event(self, kind: str, detail: str) -> None:
+        self.log.append((kind, detail))
+        if kind != "hold":
+            log.debug("%s: %s", kind, detail)
+
+    def step(self, dt: float) -> None:
+        """Advance the world and both controllers `dt` simulated seconds."""
+        self.sim.step(dt)
+
+    def start(self) -> None:
+        """Bring both arms up as the driver does (ClearError, EnableRobot with the payload, SpeedFactor)
+        and rest the motion where they are."""
+        for a in ARMS:
+            robot, conf = self.sim.arms[a], self.sim.rig.arms[a]
+            robot.clear_error()
+            robot.enable(conf.payload_kg, 1000.0 * np.asarray(conf.mount_offset, dtype=float))
+            robot.set_speed_factor(conf.speed_factor)
+        found = self.motion.restart(self._records())
+        if found is None or found:
+            self._set_fault("the arms start outside the safety envelope: " + "; ".join(map(str, found or [])))
+
+    def _records(self) -> dict[str, np.ndarray]:
+        return {a: self.sim.arms[a].fill_feedback() for a in ARMS}
+
+    def _set_fault(self, why: str) -> None:
+        if self.fault is None:
+            alarms = [f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in self.sim.arms[a].alarms) for a in ARMS if self.sim.arms[a].alarms]
+            self.fault = why + (f" [alarms: {'; '.join(alarms)}]" if alarms else "")
+            self.motion.counters["faults"] += 1
+            self._on_event("fault", self.fault)
+        self.motion.pipe.stop()
+
+    def submit(self, cmd: Command, now: float) -> None:
+        """The controller's command, as the driver takes it: hold brakes to rest; an increment starts a
+        stream from where the controllers command the arms if none runs; refused while faulted."""
+        if self.fault is not None:
+            self.motion.counters["rejected"] += 1
+            return
+        if cmd.mode == "hold":
+            self.motion.hold(cmd.reason or "controller asked to hold", now)
+            return
+        if not self.motion.moving:
+            found = self.motion.restart(self._records())
+            if found is None or found:
+                self._set_fault("cannot restart the stream: " + ("non-finite feedback" if found is None else "; ".join(map(str, found))))
+                return
+            self.motion.counters["reseeds"] += 1
+        self.motion.submit(np.asarray(cmd.u, dtype=float), float(cmd.dt), now)
+
+    def servo(self, now: float) -> None:
+        """One servo period: the controllers' alarms, the watchdog, then ServoP to both arms."""
+        for a, rec in self._records().items():
+            why = controller_fault(rec)
+            if why is not None:
+                self.motion.counters["alarms"] += 0 if self.fault is not None else 1
+                self._set_fault(f"{a}: {why}")
+        self.motion.watchdog(now)
+        out = self.motion.cycle(now, ARMS, check_reach=self.cfg.servo_command == "servoj" or self.cfg.check_reach)
+        if out.fault is not None:
+            self._set_fault(out.fault)
+        if out.poses is None or self.fault is not None:
+            return
+        for a in ARMS:
+            robot = self.sim.arms[a]
+            if self.cfg.servo_command == "servoj" and out.joints is not None:
+                code = robot.servo_j(np.round(np.degrees(out.joints[a]), 6), self.servo_t, self.cfg.aheadtime, self.cfg.gain)
+            else:
+                pose6 = np.round(cr5.matrix_to_pose6(self.motion.frames[a].flange_in_base(out.poses[a])), 6)  # as the wire carries it
+                code = robot.servo_p(pose6, self.servo_t, self.cfg.aheadtime, self.cfg.gain)
+            if code != 0:
+                self._set_fault(f"{a}: {self.cfg.servo_command} refused ({code})")
+                return
+
+    def states(self) -> dict[str, ArmState]:
+        """Each arm as its controller reports it, the driver's fault laid over (as the arm-driver node does)."""
+        out = {}
+        for a, rec in self._records().items():
+            st = feedback_state(a, rec, self.motion.frames[a])
+            if self.fault is not None and not st.error_reason:
+                st = st.model_copy(update={"error": True, "error_reason": f"driver fault: {self.fault}"})
+            out[a] = st
+        return out
+
+    def events(self) -> dict[str, int]:
+        c = self.motion.counters
+        return {k: int(c.get(k, 0)) for k in ARM_EVENT_KINDS}
+
+
+class IdealArms:
+    """Floating grippers: each increment moves the mounts' targets at once (the ablation)."""
+
+    name = "ideal"
+    period = None  # no servo cycle
+
+    def __init__(self, sim: SimRig):
+        self.sim = sim
+        self.poses = {a: np.array(T, dtype=float) for a, T in sim.world.mount_home_poses().items()}
+        self.counters: Counter[str] = Counter()
+        self.fault: str | None = None
+
+    def step(self, dt: float) -> None:
+        self.sim.world.step(dt)
+
+    def start(self) -> None:
+        self.sim.world.set_mount_targets(self.poses)
+
+    def submit(self, cmd: Command, now: float) -> None:
+        if cmd.mode == "hold":
+            return
+        self.poses = apply_increment(self.poses, np.asarray(cmd.u, dtype=float))
+        self.sim.world.set_mount_targets(self.poses)
+
+    def servo(self, now: float) -> None:
+        return None
+
+    def states(self) -> dict[str, ArmState]:
+        return {a: ArmState(arm=a, q=np.zeros(6), qd=np.zeros(6), enabled=True, robot_mode=5,
+                            tool_pose=np.concatenate([T[:3, 3], matrix_to_rpy(T[:3, :3])])) for a, T in self.poses.items()}
+
+    def events(self) -> dict[str, int]:
+        return {k: int(self.counters.get(k, 0)) for k in ARM_EVENT_KINDS}
