@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from typing import Callable
 
 import numpy as np
 
@@ -24,12 +25,13 @@ from bagit.common import cr5
 from bagit.common.dobot import describe_alarm
 from bagit.common.messages import ArmState, Command
 from bagit.common.results import ARM_EVENT_KINDS
-from bagit.common.rig import ARMS
+from bagit.common.rig import ARMS, RigConfig
 from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import controller_fault, feedback_state
 from bagit.services.arm_driver.motion import ArmMotion
 from bagit.services.controller.increment import apply_increment
+from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.rig_sim import SimRig
 
 log = logging.getLogger("bagit.run.arms")
@@ -40,10 +42,11 @@ class Cr5Arms:
 
     name = "cr5"
 
-    def __init__(self, sim: SimRig, cfg: DriverConfig | None = None):
-        self.sim = sim
+    def __init__(self, rig: RigConfig, robots: dict[str, SimulatedCR5], step: Callable[[float], None], cfg: DriverConfig | None = None):
+        """`robots`: the simulated controllers by arm; `step(dt)`: advances them (and the world they move)."""
+        self.rig, self.robots, self._step = rig, robots, step
         self.cfg = cfg or DriverConfig()
-        self.motion = ArmMotion(sim.rig, self.cfg, on_event=self._on_event)
+        self.motion = ArmMotion(rig, self.cfg, on_event=self._on_event)
         self.period = self.motion.period
         self.servo_t = self.period * self.cfg.servo_t_factor
         self.fault: str | None = None
@@ -54,15 +57,20 @@ class Cr5Arms:
         if kind != "hold":
             log.debug("%s: %s", kind, detail)
 
+    @classmethod
+    def of(cls, sim: SimRig, cfg: DriverConfig | None = None) -> "Cr5Arms":
+        """The simulated rig's two CR5s, stepped with its world."""
+        return cls(sim.rig, sim.arms, sim.step, cfg)
+
     def step(self, dt: float) -> None:
-        """Advance the world and both controllers `dt` simulated seconds."""
-        self.sim.step(dt)
+        """Advance both controllers (and the world) `dt` simulated seconds."""
+        self._step(dt)
 
     def start(self) -> None:
         """Bring both arms up as the driver does (ClearError, EnableRobot with the payload, SpeedFactor)
         and rest the motion where they are."""
         for a in ARMS:
-            robot, conf = self.sim.arms[a], self.sim.rig.arms[a]
+            robot, conf = self.robots[a], self.rig.arms[a]
             robot.clear_error()
             robot.enable(conf.payload_kg, 1000.0 * np.asarray(conf.mount_offset, dtype=float))
             robot.set_speed_factor(conf.speed_factor)
@@ -71,11 +79,11 @@ class Cr5Arms:
             self._set_fault("the arms start outside the safety envelope: " + "; ".join(map(str, found or [])))
 
     def _records(self) -> dict[str, np.ndarray]:
-        return {a: self.sim.arms[a].fill_feedback() for a in ARMS}
+        return {a: self.robots[a].fill_feedback() for a in ARMS}
 
     def _set_fault(self, why: str) -> None:
         if self.fault is None:
-            alarms = [f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in self.sim.arms[a].alarms) for a in ARMS if self.sim.arms[a].alarms]
+            alarms = [f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in self.robots[a].alarms) for a in ARMS if self.robots[a].alarms]
             self.fault = why + (f" [alarms: {'; '.join(alarms)}]" if alarms else "")
             self.motion.counters["faults"] += 1
             self._on_event("fault", self.fault)
@@ -112,7 +120,7 @@ class Cr5Arms:
         if out.poses is None or self.fault is not None:
             return
         for a in ARMS:
-            robot = self.sim.arms[a]
+            robot = self.robots[a]
             if self.cfg.servo_command == "servoj" and out.joints is not None:
                 code = robot.servo_j(np.round(np.degrees(out.joints[a]), 6), self.servo_t, self.cfg.aheadtime, self.cfg.gain)
             else:
