@@ -26,7 +26,7 @@ import numpy as np
 
 from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
-from bagit.common.messages import Goal, ObjectDetection, Path, RunControl, SoiState
+from bagit.common.messages import Goal, ObjectDetection, Path, RunControl, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, ArmsMode
 from bagit.common.params import MethodParams
 from bagit.common.results import RunResult, points_list, provenance
@@ -65,6 +65,7 @@ class RunOptions:
     fps: float | None = None  # camera frames per simulated second; None: the control rate
     rig: RigConfig | None = None
     object_source: str = "marker"  # the coordinator's: V from the object's marker when detected, else the scenario's
+    on_state: Callable[[RunState], None] | None = None  # each new stage of the coordinator's run/state, as published
 
 
 @dataclass
@@ -136,6 +137,7 @@ class _Run:
         req = RunControl(action="start", scenario=opts.name or sc.name, scenario_doc=sc.model_dump(mode="json", exclude_none=True),
                          controller=opts.controller, planner=opts.planner, seed=opts.seed, params=dict(opts.overrides))
         rep = coord.start(req, now)
+        self._emit()
         if not rep.accepted:
             return RunResult(scenario=opts.name or sc.name, controller=opts.controller, planner=opts.planner, seed=opts.seed,
                              arms=opts.arms, overrides=dict(opts.overrides), reason=rep.reason, wall_s=time.perf_counter() - self.t_wall)
@@ -193,8 +195,17 @@ class _Run:
         self._apply(effects, now)
         self._control(now)
 
+    def _emit(self) -> None:
+        """Tell `on_state` of a new stage (what the planner node would publish on run/state)."""
+        st = self.coord.state
+        if st.stage != (self.trace.stages[-1] if self.trace.stages else None):
+            self.trace.stages.append(st.stage)
+            if self.opts.on_state is not None:
+                self.opts.on_state(st)
+
     def _apply(self, effects: list[Effect], now: float) -> None:
         """Carry out the coordinator's effects: plan (at once: planning takes no simulated time), publish."""
+        self._emit()
         for e in effects:
             if e.kind == "plan" and e.job is not None:
                 self.say(f"goal and plan: {e.job.planner} from g0")
@@ -235,6 +246,7 @@ class _Run:
             self.trace.lift_margin_cm = self._lift_margin()  # judged on the truth, like the end; never fed back
         before = self.coord.state.stage
         self.coord.on_status(st, now)
+        self._emit()
         if self.coord.state.stage != before and self.coord.state.stage in ("pre-bagging", "bagging"):
             self.say(f"{self.coord.state.stage}: subgoal {st.subgoal_index}")
 
@@ -246,6 +258,7 @@ class _Run:
     # -- the result --------------------------------------------------------------------------------
 
     def _result(self) -> RunResult:
+        self._emit()
         sc, opts = self.opts.scenario, self.opts
         res = RunResult.model_validate(self.coord.state.result)
         gt = self.sim.ground_truth()

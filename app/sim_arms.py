@@ -83,7 +83,7 @@ class Cr5Arms:
 
     def _set_fault(self, why: str) -> None:
         if self.fault is None:
-            alarms = [f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in self.robots[a].alarms) for a in ARMS if self.robots[a].alarms]
+            alarms = [f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in self.robots[a].alarms()) for a in ARMS if self.robots[a].alarms()]
             self.fault = why + (f" [alarms: {'; '.join(alarms)}]" if alarms else "")
             self.motion.counters["faults"] += 1
             self._on_event("fault", self.fault)

@@ -1,8 +1,8 @@
-"""The whole run in one process, on the simulator: camera -> SOI -> goal -> plan -> servo.
+"""`bagit run`: the deployed stack's logic in one process, on the simulator's clock.
 
-A short headless run: every stage is exercised through its real path, perception sees only
-rendered frames, and every command stays inside C7. (Success of whole runs is measured by the
-benchmark, not asserted here.)
+Short headless runs: every stage goes through the coordinator, perception sees only rendered
+frames, the arms are the two simulated CR5s behind the arm driver's rules, and a run is
+deterministic. (Success of whole runs is measured by the benchmark, not asserted here, but one.)
 """
 
 import json
@@ -11,25 +11,40 @@ import numpy as np
 import pytest
 
 from bagit.cli import main
-from bagit.common.params import MethodParams
+from bagit.common.results import RunResult
 from bagit.common.scenario import Scenario
-from bagit.pipeline import judge, run_bagging
+from bagit.inprocess import RunOptions, run_inprocess
 from bagit.scenarios import find_scenario
+from bagit.services.sim.judge import judge
 
 
 @pytest.mark.slow
-def test_short_run_goes_through_every_stage_within_limits():
+def test_a_short_run_goes_through_the_coordinators_stages_with_the_cr5s():
     s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
-    r = run_bagging(s, "mpc", "cbirrt", seed=0, time_limit_s=3.0)
-    assert r.planning_time_s > 0 and r.path_nodes >= 2  # perceived g0, made a goal, planned
-    assert r.ticks >= 80  # servoed (exploration first) for the whole 3 s at 30 Hz
-    assert r.final_rim.shape[1] == 3 and np.all(np.isfinite(r.final_rim))
-    assert not r.passed_through
-    assert r.reason  # 3 s is too short to bag: the result says why it did not succeed
-    u = np.asarray(r.history["u_norm"])
-    p = MethodParams()
-    lim = np.linalg.norm([p.max_linear_speed_mps / p.control_rate_hz] * 6 + [p.max_angular_speed_rps / p.control_rate_hz] * 6)
-    assert u.max() <= lim + 1e-12
+    stages = []
+    r = run_inprocess(RunOptions(scenario=s, seed=0, time_limit_s=3.0, on_state=lambda st: stages.append(st.stage)))
+    assert stages == ["perceiving", "goal", "planning", "pre-bagging", "failed"], stages  # the run/state a dashboard would see
+    assert r.arms == "cr5" and r.stage_reached == "pre-bagging" and "time limit" in r.reason
+    assert r.planning_time_s > 0 and r.path_nodes >= 2 and r.ticks >= 80  # perceived g0, planned, servoed 3 s at 30 Hz
+    assert r.object_from == "marker" and r.marker["marker_id"] == 2  # V from the object's marker, as deployed
+    assert np.asarray(r.final_rim).shape == (s.bag.n_x, 3) and r.truth is not None and not r.truth.passed_through
+    assert r.arm_events["faults"] == 0 and r.arm_events["alarms"] == 0 and r.arm_events["watchdog_stops"] == 0
+    assert r.provenance.commit and r.provenance.params["control_rate_hz"] == s.params.control_rate_hz
+
+
+@pytest.mark.slow
+def test_two_runs_with_one_seed_are_the_same_bit_for_bit():
+    s = Scenario.from_file(find_scenario("exp10-printed-cuboid"))
+    a, b = (run_inprocess(RunOptions(scenario=s, seed=3, time_limit_s=2.0)) for _ in range(2))
+    assert a.ticks == b.ticks and a.final_rim == b.final_rim and a.truth.error_cm == b.truth.error_cm
+    assert a.perceived_error_cm == b.perceived_error_cm and a.arm_events == b.arm_events
+
+
+@pytest.mark.slow
+def test_the_ideal_arms_ablation_moves_floating_grippers():
+    s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
+    r = run_inprocess(RunOptions(scenario=s, seed=0, time_limit_s=1.5, arms="ideal"))
+    assert r.arms == "ideal" and r.ticks >= 40 and r.arm_events == dict.fromkeys(r.arm_events, 0)
 
 
 def test_judge_on_constructed_rims():
@@ -68,21 +83,31 @@ def test_judge_takes_the_section_the_rim_lies_against():
     assert not ok and "round" in why
 
 
-def test_run_cli_json_fields(capsys):
+def test_run_cli_json_is_the_run_result(capsys):
     code = main(["run", "exp08-plastic-packing", "--time-limit", "1", "--json"])
     out = json.loads(capsys.readouterr().out)
-    for key in ("success", "error_cm", "duration_s", "planning_time_s", "ticks", "stage_reached", "final_rim", "object_vertices"):
-        assert key in out
+    assert set(out) == set(RunResult.model_fields)  # the same top-level keys as `bagit up --json`
+    assert RunResult.model_validate(out).arms == "cr5"
     assert code == (0 if out["success"] else 1)
+
+
+@pytest.mark.parametrize("bad", [["--time-limit", "-1"], ["--time-limit", "nan"], ["--wall-limit", "inf"], ["--seed", "-1"],
+                                 ["--params", "[1]"], ["--arms", "floating"]])
+def test_run_cli_refuses_bad_numbers_with_one_line(bad, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["run", "exp08-plastic-packing", *bad])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "error:" in err
 
 
 @pytest.mark.slow
 def test_a_whole_simulated_bagging_run_succeeds():
     """The canned pineapple, end to end from camera frames: judged on the simulator's ground truth."""
     s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
-    r = run_bagging(s, "mpc", "cbirrt", seed=0, time_limit_s=40.0)
+    r = run_inprocess(RunOptions(scenario=s, seed=0, time_limit_s=40.0))
     assert r.success, (r.stage_reached, r.reason)
-    assert r.stage_reached == "done" and not r.passed_through
+    assert r.stage_reached == "done" and not r.truth.passed_through
     assert r.error_cm < 2.0 and r.duration_s < 40.0
     # the true rim went round V with room to spare when the lift from g† began (cm)
     assert r.lift_margin_cm is not None and r.lift_margin_cm > 1.0, r.lift_margin_cm

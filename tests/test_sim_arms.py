@@ -1,0 +1,83 @@
+"""`bagit run`'s arm side: the arm driver's motion rules streaming to two simulated CR5s in process.
+
+Near the wrist singularity a small tilt of the mount asks J4 and J6 for large turns. Sent as is, the
+controller alarms on its joint speed and the run stops; the arm side must instead slow the motion to
+what the joints can follow, count it, and get there.
+"""
+
+import numpy as np
+
+from bagit.common import cr5
+from bagit.common.messages import Command
+from bagit.common.rig import ARMS, RigConfig
+from bagit.common.so3 import rotvec_between
+from bagit.services.sim.cr5_sim import SimulatedCR5
+from bagit.sim_arms import Cr5Arms
+
+Q_NEAR_SINGULAR = np.radians([10.0, -20.0, 100.0, -80.0, 1.5, 30.0])  # J5 near 0: J4 and J6 nearly parallel
+Q_EASY = np.radians([-10.0, -20.0, 100.0, -80.0, 60.0, 30.0])
+CONTROL_DT = 1 / 30
+
+
+def _arms(q_left: np.ndarray, q_right: np.ndarray) -> tuple[Cr5Arms, dict[str, SimulatedCR5]]:
+    """Two CR5s where the test puts them; the workspace and separation limits opened (not what is tested here)."""
+    rig = RigConfig()
+    rig = rig.model_copy(update={
+        "arms": {a: rig.arms[a].model_copy(update={"workspace_min": (-2.0, -2.0, -2.0), "workspace_max": (2.0, 2.0, 2.0)}) for a in ARMS},
+        "safety": rig.safety.model_copy(update={"min_flange_distance_m": 0.0, "max_flange_distance_m": 5.0}),
+    })
+    robots = {"left": SimulatedCR5(rig.arms["left"], q0=q_left, name="left"), "right": SimulatedCR5(rig.arms["right"], q0=q_right, name="right")}
+
+    def step(dt: float) -> None:
+        for r in robots.values():
+            r.step(dt)
+
+    arms = Cr5Arms(rig, robots, step)
+    arms.start()
+    return arms, robots
+
+
+def _drive(arms: Cr5Arms, u_per_tick: np.ndarray, ticks: int, settle_ticks: int) -> None:
+    """`ticks` control ticks of `u_per_tick`, then zero increments (the stream kept alive) while the arms catch up;
+    servo periods and control ticks interleaved on one simulated clock, as `bagit run` does."""
+    t, next_servo, next_tick, k = 0.0, 0.0, 0.0, 0
+    while k < ticks + settle_ticks:
+        if t >= next_servo - 1e-9:
+            arms.servo(t)
+            next_servo += arms.period
+        if t >= next_tick - 1e-9:
+            arms.submit(Command(u=u_per_tick if k < ticks else np.zeros(12), dt=CONTROL_DT), t)
+            next_tick += CONTROL_DT
+            k += 1
+        dt = min(next_servo, next_tick) - t
+        arms.step(dt)
+        t += dt
+
+
+def test_a_tilt_through_a_wrist_singularity_slows_down_and_completes_without_an_alarm():
+    arms, robots = _arms(Q_NEAR_SINGULAR, Q_EASY)
+    start = robots["left"].mount_pose_world()
+    # tilt the left mount 3 deg about its flange's y axis (the turn the near-singular wrist cannot make directly)
+    axis = robots["left"].flange_pose_world()[:3, 1]
+    u = np.zeros(12)
+    u[3:6] = np.radians(0.3) * axis
+    _drive(arms, u, ticks=10, settle_ticks=150)
+    ev = arms.events()
+    assert ev["slowed"] > 0, ev  # the joints set the pace ...
+    assert ev["faults"] == 0 and ev["alarms"] == 0 and ev["rejected"] == 0, (ev, arms.fault)  # ... and nothing stopped
+    assert not robots["left"].alarms() and not robots["right"].alarms()
+    end = robots["left"].mount_pose_world()
+    turned = np.degrees(np.linalg.norm(rotvec_between(start[:3, :3], end[:3, :3])))
+    assert abs(turned - 3.0) < 0.05, turned  # it got there
+    assert np.max(np.abs(robots["left"].qd)) < cr5.JOINT_SPEED_LIMIT
+
+
+def test_a_fault_stops_streaming_refuses_commands_and_shows_in_the_arm_states():
+    arms, robots = _arms(Q_EASY, Q_EASY)
+    robots["right"].raise_alarm(18)  # a controller in error (a joint limit)
+    _drive(arms, np.r_[0.001, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0], ticks=5, settle_ticks=0)
+    ev = arms.events()
+    assert arms.fault is not None and "right" in arms.fault and "18" in arms.fault
+    assert ev["faults"] == 1 and ev["alarms"] == 1 and ev["rejected"] >= 4
+    states = arms.states()
+    assert states["left"].error and states["left"].error_reason.startswith("driver fault")
