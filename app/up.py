@@ -34,7 +34,8 @@ from typing import Any, Callable, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, open_session, request_run_control
 from bagit.common.errors import BusError
-from bagit.common.messages import RunControl, RunControlReply, RunState, SimTruth
+from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
+from bagit.common.names import FINAL_STAGES
 from bagit.common.rig import RigConfig
 
 SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboard")
@@ -48,7 +49,6 @@ AFTER = {"arm-driver": "sim"}
 # (seen on 2 cores), and the driver would then restart the stream or fault a run over a scheduler
 # pause. The watchdog on the controller's commands and every motion limit stay as they are.
 SIM_DRIVER_TIMEOUTS = {"feedback_timeout_s": 1.0, "reply_timeout_s": 2.0}
-FINAL = ("done", "failed", "aborted")
 
 
 def free_port() -> int:
@@ -143,6 +143,7 @@ class Up:
         self.watcher: LivelinessWatcher | None = None
         self.run_state: LatestCache | None = None
         self.truth: LatestCache | None = None  # the simulator's ground truth, to judge a run (never given to a service)
+        self.arm_states: LatestCache | None = None  # the arm side's event counts, for the run's result
         self.hub = ""
         self.dashboard_url: str | None = None
         self._supervisor: threading.Thread | None = None
@@ -205,6 +206,7 @@ class Up:
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub]))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
+        self.arm_states = LatestCache(self.session, self.keys.arm_state_any, ArmState)
         if "sim" in names:
             self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth)
         for n in names:
@@ -313,7 +315,7 @@ class Up:
             if s.stage != last_stage:
                 last_stage = s.stage
                 self.say(f"run {run_id}: {s.stage}" + (f" ({s.reason})" if s.reason else ""))
-            if s.stage in FINAL:
+            if s.stage in FINAL_STAGES:
                 return s
             stop.wait(0.1)
         return None
@@ -338,7 +340,7 @@ class Up:
                 _signal_group(p, signal.SIGKILL)
                 codes[n] = p.wait(timeout=5)
             _signal_group(p, signal.SIGKILL)  # anything the service started and left behind
-        for x in (self.run_state, self.truth, self.watcher):
+        for x in (self.run_state, self.truth, self.arm_states, self.watcher):
             if x is not None:
                 x.close()
         if self.session is not None:

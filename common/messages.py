@@ -209,6 +209,7 @@ class ArmState(Message):
     error_reason: str | None = None
     command_id: int = 0
     estopped: bool = False
+    events: dict[str, int] = Field(default_factory=dict, description="the arm side's counts this run (RunResult.arm_events)")
 
 
 class ControllerStatus(Message):

@@ -12,10 +12,13 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
+from pydantic import ValidationError
+
 from bagit.common.messages import RunState
+from bagit.common.names import FINAL_STAGES
+from bagit.common.results import RunResult
 
 MAX_RUNS = 200
-FINAL_STAGES = ("done", "failed", "aborted")
 
 
 @dataclass
@@ -28,7 +31,7 @@ class RunRecord:
     progress: float = 0.0
     elapsed_s: float = 0.0
     reason: str | None = None
-    result: dict[str, Any] | None = None
+    result: RunResult | None = None  # the coordinator's, once the run ended
     by_dashboard: bool = False
 
     @property
@@ -70,8 +73,11 @@ class RunHistory:
             rec.scenario = state.scenario or rec.scenario
             if state.reason:
                 rec.reason = state.reason
-            if state.result is not None:
-                rec.result = dict(state.result)
+            if state.result:
+                try:
+                    rec.result = RunResult.model_validate(state.result)
+                except ValidationError:
+                    rec.result = None  # a coordinator of another version: the stage and reason still show
             return rec
 
     def _add(self, rec: RunRecord) -> RunRecord:
@@ -101,6 +107,8 @@ def history_markdown(history: RunHistory, limit: int = 20) -> str:
     lines = ["| run | scenario | result | time | params | reason |", "|---|---|---|---|---|---|"]
     for r in recs:
         stage = {"done": "**done**", "failed": "**failed**", "aborted": "**aborted**"}.get(r.stage, f"{r.stage}…")
+        if r.result is not None and r.result.perceived_error_cm is not None:
+            stage += f", {r.result.perceived_error_cm:.2f} cm"
         clock = time.strftime("%H:%M:%S", time.localtime(r.started_wall))
         reason = (r.reason or "").replace("|", "/")
         lines.append(

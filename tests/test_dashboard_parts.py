@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from bagit.common import cr5
 from bagit.common.errors import BadScenario, BadVertices, SafetyViolation
+from bagit.common.results import RunResult
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import RunState
 from bagit.common.params import MethodParams
@@ -251,10 +252,13 @@ def test_history_records_params_and_final_results():
     h = RunHistory(max_runs=3)
     h.started("r1", "exp01-coffee-box", {"horizon": 12})
     h.update(RunState(run_id="r1", scenario="exp01-coffee-box", stage="bagging", progress=0.5, elapsed_s=4.0))
-    h.update(RunState(run_id="r1", stage="done", progress=1.0, elapsed_s=9.0, result={"success": True}))
+    result = RunResult(run_id="r1", success=True, stage_reached="done", perceived_error_cm=0.42).model_dump(mode="json")
+    h.update(RunState(run_id="r1", stage="done", progress=1.0, elapsed_s=9.0, result=result))
     h.update(RunState(run_id="r1", stage="idle"))  # a late republish does not reopen it
     r = h.get("r1")
-    assert (r.stage, r.elapsed_s, r.params, r.result, r.by_dashboard) == ("done", 9.0, {"horizon": 12}, {"success": True}, True)
+    assert (r.stage, r.elapsed_s, r.params, r.by_dashboard) == ("done", 9.0, {"horizon": 12}, True)
+    assert r.result == RunResult.model_validate(result)  # the one result model, as the coordinator made it
+    assert "**done**, 0.42 cm" in history_markdown(h)
     h.update(RunState(run_id="r2", scenario="x", stage="failed", reason="planner gave up"))
     assert h.get("r2").reason == "planner gave up" and not h.get("r2").by_dashboard
     assert h.update(RunState(stage="idle")) is None

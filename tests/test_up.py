@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from bus_support import wait_until
+from bagit.common.results import RunResult
 from up_support import ENV, alive as _alive, rig_up, start_up as _up, up_log as _log, wait_status as _status
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # whole runs: the simulator slows down under load
@@ -99,13 +100,15 @@ def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
         if r.returncode == 0 or attempt == 2:
             break
         print(f"bagit up run failed on attempt 1 ({out.get('reason')}; {_why(r.stderr)}); retrying", file=sys.stderr)
-    assert r.returncode == 0 and out["success"] and out["stage"] == "done", (out.get("reason"), _why(r.stderr), out, r.stderr[-3000:])
-    res = out["result"]
-    assert res["path_nodes"] > 2 and res["ticks"] > 0 and res["error_to_goal_m"] is not None
+    assert r.returncode == 0 and out["success"] and out["stage_reached"] == "done", (out.get("reason"), _why(r.stderr), out, r.stderr[-3000:])
+    assert set(out) == set(RunResult.model_fields)  # the same top-level keys as `bagit run --json`
+    res = RunResult.model_validate(out)
+    assert res.arms == "cr5" and res.path_nodes > 2 and res.ticks > 0 and res.error_to_goal_m is not None
+    assert res.arm_events["faults"] == 0 and np.asarray(res.final_rim).shape == (32, 3)
     # the object named by its ArUco marker (or, if perception had not yet seen it, the scenario's, said so)
-    assert res["object_from"] == "scenario" and res["object_reason"] or res["object_from"] == "marker" and res["marker_v_error_m"] < 0.005, res
-    truth = out["truth"]  # judged on the simulator's true rim, which no service saw
-    assert truth["success"] and not truth["passed_through"] and truth["error_cm"] < 2.0, truth
+    assert res.object_from == "scenario" and res.object_reason or res.object_from == "marker" and res.marker["marker_v_error_m"] < 0.005, out
+    truth = res.truth  # judged on the simulator's true rim, which no service saw
+    assert truth.success and not truth.passed_through and truth.error_cm < 2.0 and res.error_cm == truth.error_cm, truth
 
 
 def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_restart_runs_again(tmp_path):

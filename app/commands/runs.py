@@ -34,10 +34,24 @@ def human(r: dict[str, Any]) -> str:
         if x["reason"]:
             outcome += f" ({x['reason']})"
         if isinstance(res, dict) and res:
-            outcome += " " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in list(res.items())[:5])
+            outcome += " " + _result_text(res)
         tail = "" if x["complete"] else "  [truncated: recovered up to its last complete chunk]"
         lines.append(f"  {x['run_id']:<20} {when}  {x['duration_s']:7.1f} s  {x['scenario'] or '-':<14} {outcome}"
                      f"  {x['messages']} msgs, {x['bytes'] / 1e6:.1f} MB, {len(x['files'])} file(s){tail}")
     for u in r["unreadable"]:
         lines.append(f"  unreadable: {u['file']}: {u['reason']}")
     return "\n".join(lines)
+
+
+def _result_text(res: dict[str, Any]) -> str:
+    """A recorded run's result in a few words: the RunResult's error and ticks (older recordings: their first fields)."""
+    from pydantic import ValidationError
+
+    from bagit.common.results import RunResult
+
+    try:
+        r = RunResult.model_validate(res)
+    except ValidationError:
+        return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in list(res.items())[:5])
+    err = f"error {r.error_cm:.2f} cm, " if r.error_cm is not None else ""
+    return f"{err}{r.ticks} ticks, planning {r.planning_time_s:.2f} s"

@@ -63,7 +63,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
     t0 = time.monotonic()
-    result: dict[str, Any] = {"success": False, "reason": "interrupted"}
     up = Up(opts)
     try:
         up.start()
@@ -71,7 +70,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up.say(f"dashboard: {up.dashboard_url}")
         missing = up.wait_ready(stop=stop)
         if stop.is_set():
-            return result | {"wall_s": time.monotonic() - t0}
+            return {"success": False, "reason": "interrupted", "wall_s": time.monotonic() - t0}
         if missing:
             raise BadScenario(f"services not up after {opts.ready_timeout_s:g} s: {', '.join(missing)}")
         up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
@@ -84,17 +83,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up.say(f"run {run_id} started: {args.scenario}")
         if args.exit_when_done:
             state = up.wait_run(run_id, stop, timeout=args.timeout)
-            if state is None:
-                reason = "interrupted" if stop.is_set() else f"no end of run {run_id} within {args.timeout:g} s"
-                return {"success": False, "reason": reason, "run_id": run_id, "wall_s": time.monotonic() - t0}
-            truth = _judge_on_truth(up, state, stop)
-            ok = state.stage == "done" and (truth is None or truth["success"])
-            reason = state.reason if state.stage != "done" else (None if ok else truth["reason"])
-            return {
-                "success": ok, "run_id": run_id, "scenario": state.scenario, "stage": state.stage,
-                "reason": reason, "result": state.result, "truth": truth, "elapsed_s": state.elapsed_s,
-                "wall_s": time.monotonic() - t0, "restarts": {n: c.restarts for n, c in up.children.items()},
-            }
+            up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
+            return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
         up.say("up; Ctrl-C to stop everything")
         stop.wait()
         return {"success": True, "wall_s": time.monotonic() - t0, "run_id": run_id, "restarts": {n: c.restarts for n, c in up.children.items()}}
@@ -105,34 +95,62 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             signal.signal(s, h)
 
 
-def _judge_on_truth(up: Any, state: Any, stop: Any) -> dict[str, Any] | None:
-    """The run judged on the simulator's ground truth, as `bagit run` judges it: the true rim encloses
-    the object's outline at least lambda_d/2 above its bottom, the bag never passed through it.
-    None without a simulator (a real rig has no ground truth)."""
+def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argparse.Namespace, wall_s: float) -> Any:
+    """The run's RunResult, as `bagit run --json` gives it: the coordinator's result, with the simulator's
+    ground truth (the true rim judged as `bagit run` judges it) and the arm side's event counts."""
+    from bagit.common.results import ARM_EVENT_KINDS, RunResult, points_list, provenance
+
+    if state is None:
+        reason = "interrupted" if stop.is_set() else f"no end of run {run_id} within {args.timeout:g} s"
+        return RunResult(run_id=run_id, scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed,
+                         arms="cr5", reason=reason, wall_s=round(wall_s, 3), provenance=provenance())
+    res = RunResult.model_validate(state.result) if state.result else RunResult(
+        run_id=run_id, scenario=state.scenario, seed=args.seed, stage_reached=state.stage, reason=state.reason)
+    truth, final_rim = _truth(up, state, stop)
+    arm = up.arm_states.get(up.keys.arm_state("left")) if up.arm_states is not None else None
+    events = {k: int((arm.events if arm is not None else {}).get(k, 0)) for k in ARM_EVENT_KINDS}
+    ok = res.success and (truth is None or truth.success)
+    reason = res.reason if not res.success else (None if truth is None else truth.reason)
+    params = {}
+    if state.scenario_doc is not None:
+        from bagit.common.params import MethodParams
+        from bagit.common.scenario import Scenario
+
+        sc = Scenario.model_validate(state.scenario_doc)
+        params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **(state.params or {})}).model_dump(mode="json")
+    return res.model_copy(update=dict(
+        arms="cr5", success=ok, reason=reason, truth=truth, error_cm=truth.error_cm if truth is not None else res.error_cm,
+        final_rim=points_list(final_rim) if final_rim is not None else res.final_rim, wall_s=round(wall_s, 3), arm_events=events,
+        provenance=provenance(params)))
+
+
+def _truth(up: Any, state: Any, stop: Any) -> tuple[Any, np.ndarray | None]:
+    """The run judged on the simulator's ground truth (`services.sim.judge`), and the true rim at `n_x`
+    points; (None, None) without a simulator (a real rig has no ground truth)."""
     import time
 
+    from bagit.common.geometry import resample_closed
+    from bagit.common.results import RunTruth
     from bagit.common.scenario import Scenario
-    from bagit.pipeline import judge
     from bagit.services.planner.goal import bottom_frame
+    from bagit.services.sim.judge import truth_of
 
     if up.truth is None or state.scenario_doc is None:
-        return None
+        return None, None
     deadline = time.monotonic() + 3.0
     while (t := up.truth.get()) is None or t.run_id != state.run_id:
         if time.monotonic() > deadline or stop.wait(0.05):
-            return {"success": False, "reason": "no ground truth from the simulator for this run"}
+            return RunTruth(success=False, reason="no ground truth from the simulator for this run"), None
     scenario = Scenario.model_validate(state.scenario_doc)
     V = scenario.object.bottom_vertices()
-    ok, err_cm, reason = judge(np.asarray(t.rim), scenario, scenario.lambda_d(), bottom_frame(V)[:3, 2])
-    if t.passed_through:
-        ok, reason = False, "the bag passed through the object"
-    return {"success": ok, "reason": reason, "error_cm": err_cm, "passed_through": t.passed_through,
-            "max_penetration_mm": t.max_penetration_m * 1e3, "sim_time_s": t.sim_time, "realtime_factor": t.realtime_factor}
+    truth = truth_of(np.asarray(t.rim), t.passed_through, t.max_penetration_m, scenario, bottom_frame(V)[:3, 2],
+                     realtime_factor=t.realtime_factor)
+    return truth, resample_closed(np.asarray(t.rim), scenario.bag.n_x)
 
 
 def human(r: dict[str, Any]) -> str:
-    if "stage" in r:
-        res = r.get("result") or {}
-        extra = f", error {res['error_to_goal_m'] * 100:.1f} cm" if res.get("error_to_goal_m") is not None else ""
-        return f"run {r['run_id']} ({r.get('scenario')}): {r['stage']}{extra} in {r['elapsed_s']:.1f} s" + (f" ({r['reason']})" if r.get("reason") else "")
+    if "stage_reached" in r:
+        from bagit.common.results import RunResult
+
+        return RunResult.model_validate(r).headline()
     return f"rig stopped after {r['wall_s']:.1f} s"

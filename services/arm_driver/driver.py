@@ -612,6 +612,8 @@ class ArmDriver:
                 continue
             why = controller_fault(rec)
             if why is not None:
+                if self._fault is None:
+                    self.counters["alarms"] += 1
                 self._set_fault(f"{a}: {why}")
             elif not int(rec["EnableStatus"]):
                 self._set_fault(f"{a}: disabled (robot mode {int(rec['RobotMode'])})")

@@ -30,6 +30,8 @@ import zenoh  # noqa: F401 - the node is where the service meets the bus
 from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.errors import BagItError
 from bagit.common.messages import ArmState, Command, EStop, RunState
+from bagit.common.names import FINAL_STAGES
+from bagit.common.results import ARM_EVENT_KINDS
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.driver import ArmDriver
 
@@ -62,6 +64,7 @@ class ArmDriverNode:
         self._notice: tuple[float, str] | None = None
         self._printed: dict[str, tuple[float, str]] = {}
         self._clipped_seen = 0
+        self._events_base: dict[str, int] = {}
         self.published = {a: 0 for a in ARMS}
         self.commands = 0
         self.refused = 0
@@ -102,9 +105,10 @@ class ArmDriverNode:
             self._on_event("estop", f"reset failed, the e-stop stays latched: {type(e).__name__}: {e}")
 
     def _on_run_state(self, msg: RunState) -> None:
-        if msg.run_id is None or msg.run_id == self._run_id or msg.stage in ("idle", "done", "failed", "aborted"):
+        if msg.run_id is None or msg.run_id == self._run_id or msg.stage in FINAL_STAGES + ("idle",):
             return
         self._run_id = msg.run_id
+        self._events_base = self._event_counts(base={})  # the arm states count this run's events from here
         if self.driver.mode != "fault":  # an e-stop latch reads 'estopped' and stays
             return
         # ClearError and EnableRobot wait for the controllers' replies: not on the bus's thread
@@ -138,6 +142,7 @@ class ArmDriverNode:
             return
         self._last_pub[state.arm] = now
         overlay = self._overlay(now)
+        overlay["events"] = self._event_counts()
         if overlay:
             if state.error_reason:
                 overlay.pop("error_reason", None)  # the controller's own error comes first
@@ -147,6 +152,11 @@ class ArmDriverNode:
             self.published[state.arm] += 1
         except Exception as e:  # noqa: BLE001 - the feedback thread must survive a closed session
             self._on_event("publish", f"arm/{state.arm}/state: {type(e).__name__}: {e}")
+
+    def _event_counts(self, base: dict[str, int] | None = None) -> dict[str, int]:
+        """The driver's clips, slow-downs, watchdog stops, refusals, alarms and faults since this run began."""
+        c, base = self.driver.counters, self._events_base if base is None else base
+        return {k: int(c.get(k, 0)) - base.get(k, 0) for k in ARM_EVENT_KINDS}
 
     def _overlay(self, now: float) -> dict[str, Any]:
         """What the driver adds to the controller's report: fault, lost link, recent event."""

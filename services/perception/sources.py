@@ -379,7 +379,7 @@ class RealSenseSource:
             other = "color" if kind == "depth" else "depth"
             self._pending[kind] = (t_ms, data)
             if other in self._pending and abs(self._pending[other][0] - t_ms) <= self._pair_tol_ms:
-                (td, depth), (tc, color) = self._pending.pop("depth"), self._pending.pop("color")
+                (_, depth), (_, color) = self._pending.pop("depth"), self._pending.pop("color")
                 if self._align_args is not None:
                     depth = align_depth_to_color(depth, *self._align_args)
                 return self._message(depth, color, time.time())
