@@ -155,15 +155,17 @@ def placement_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
 # ---------------------------------------------------------------- manipulation (closed-loop files)
 
 
-def _run_key(r: dict[str, Any]) -> tuple[str, str, str, int]:
-    return (str(r["scenario"]), str(r.get("controller", "mpc")), str(r.get("planner", "cbirrt")), int(r.get("seed", 0)))
+def _run_key(r: dict[str, Any]) -> tuple[str, str, str, int, str]:
+    """scenario, controller, planner, seed, arms (a record of before the arms were in every run: ideal)."""
+    return (str(r["scenario"]), str(r.get("controller", "mpc")), str(r.get("planner", "cbirrt")), int(r.get("seed", 0)),
+            str(r.get("arms") or "ideal"))
 
 
 def load_closed_loop(files: list[Path]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """(per-run records, already aggregated rows) from JSONL (one run per line) or JSON files
     (`{"runs": [...]}` or `bench.closed_loop`'s `{"rows": [...]}`). A later run of the same
     scenario/controller/planner/seed replaces an earlier one."""
-    runs: dict[tuple[str, str, str, int], dict[str, Any]] = {}
+    runs: dict[tuple[str, str, str, int, str], dict[str, Any]] = {}
     rows: list[dict[str, Any]] = []
     for f in files:
         try:
@@ -186,22 +188,31 @@ def load_closed_loop(files: list[Path]) -> tuple[list[dict[str, Any]], list[dict
     return list(runs.values()), rows
 
 
-def method_of(controller: str, planner: str) -> str:
-    """The Table II row a run belongs to: the controller's name, or mpc+<planner> for the planner baselines."""
-    return controller if planner == "cbirrt" else f"{controller}+{planner}"
+IDEAL = "/ideal"  # the method's label suffix for runs with floating grippers (the ablation)
+
+
+def method_of(controller: str, planner: str, arms: str = "cr5") -> str:
+    """The Table II row a run belongs to: the controller's name, or mpc+<planner> for the planner baselines;
+    with `/ideal` for runs without the arms."""
+    return (controller if planner == "cbirrt" else f"{controller}+{planner}") + ("" if arms == "cr5" else IDEAL)
 
 
 def manipulation_summary(runs: list[dict[str, Any]], rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, Any]]]:
     """scenario -> method -> success / of / error and time (mean, std over successful runs)."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for r in runs:
-        sc, ctrl, planner, _ = _run_key(r)
-        groups.setdefault((sc, method_of(ctrl, planner)), []).append(r)
+        sc, ctrl, planner, _, arms = _run_key(r)
+        groups.setdefault((sc, method_of(ctrl, planner, arms)), []).append(r)
     out: dict[str, dict[str, dict[str, Any]]] = {}
     for (sc, method), rs in sorted(groups.items()):
         ok = [r for r in rs if r["success"]]
         err = [r["error_cm"] for r in ok if r.get("error_cm") is not None]
         dur = [r["duration_s"] for r in ok if r.get("duration_s") is not None]
+        wall = [r["wall_s"] for r in rs if r.get("wall_s")]
+        events: dict[str, int] = {}
+        for r in rs:
+            for k, v in (r.get("arm_events") or {}).items():
+                events[k] = events.get(k, 0) + int(v)
         out.setdefault(sc, {})[method] = {
             "success": len(ok),
             "of": len(rs),
@@ -210,6 +221,9 @@ def manipulation_summary(runs: list[dict[str, Any]], rows: list[dict[str, Any]])
             "error_cm_std": float(np.std(err)) if err else None,
             "time_s_mean": float(np.mean(dur)) if dur else None,
             "time_s_std": float(np.std(dur)) if dur else None,
+            "wall_s_mean": float(np.mean(wall)) if wall else None,
+            "arm_events": events,
+            "commits": sorted({(r.get("provenance") or {}).get("commit") or "?" for r in rs}),
             "failures": sorted({(f"{r['stage_reached']}: " if r.get("stage_reached") else "") + str(r.get("reason")) for r in rs if not r["success"]}),
             "sources": sorted({r["source"] for r in rs}),
         }
@@ -225,7 +239,7 @@ def manipulation_summary(runs: list[dict[str, Any]], rows: list[dict[str, Any]])
         out.setdefault(row["scenario"], {})[method] = {
             "success": int(row["success"]), "of": int(row["of"]), "seeds": None,
             "error_cm_mean": num("error_cm_mean"), "error_cm_std": num("error_cm_std"),
-            "time_s_mean": num("time_s_mean"), "time_s_std": None,
+            "time_s_mean": num("time_s_mean"), "time_s_std": None, "wall_s_mean": None, "arm_events": {}, "commits": ["?"],
             "failures": row.get("failures", []), "sources": [Path(row["source"]).name],
         }
     return out
@@ -237,11 +251,11 @@ def same_runs_as_mpc(runs: list[dict[str, Any]]) -> dict[str, list[int]]:
     Why: where every planner's trimmed, smoothed path is the same (no obstacle between g0 and g†),
     MPC along it is the same run, so those rows add no evidence about the planners; the report says so."""
     keyed = [(_run_key(r), r) for r in runs]
-    mpc = {(sc, seed): r for (sc, ctrl, planner, seed), r in keyed if method_of(ctrl, planner) == "mpc"}
+    mpc = {(sc, seed, arms): r for (sc, ctrl, planner, seed, arms), r in keyed if method_of(ctrl, planner) == "mpc"}
     out: dict[str, list[int]] = {}
-    for (sc, ctrl, planner, seed), r in keyed:
-        method = method_of(ctrl, planner)
-        ref = mpc.get((sc, seed))
+    for (sc, ctrl, planner, seed, arms), r in keyed:
+        method = method_of(ctrl, planner, arms)
+        ref = mpc.get((sc, seed, arms))
         if not method.startswith("mpc+") or ref is None:
             continue
         same = r.get("ticks") == ref.get("ticks") and r.get("error_cm") == ref.get("error_cm") and r["success"] == ref["success"]

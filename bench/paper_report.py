@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from bagit.bench import paper_data as P
-from bagit.bench.paper import SCALE_RANGE
+from bagit.bench.paper import IDEAL, SCALE_RANGE
 
 NOT_RUN = "not run"
 
@@ -64,28 +64,55 @@ def planning_failures(r: dict[str, Any]) -> list[str]:
 MANIP_METHODS = ["mpc", "ibvs", "ssvs", "mpc+ffg-rrt", "mpc+ts-rrt"]
 
 
+def _cells(c: dict[str, Any] | None) -> str:
+    """success | error | time of one arms mode (or 'not run')."""
+    if c is None:
+        return f"{NOT_RUN} | — | —"
+    return (f"{c['success']}/{c['of']} | {_pm(c['error_cm_mean'], c['error_cm_std'], '{:.2f}')} | "
+            f"{_pm(c['time_s_mean'], c['time_s_std'], '{:.1f}')}")
+
+
+def _events(c: dict[str, Any] | None) -> str:
+    ev = (c or {}).get("arm_events") or {}
+    return ", ".join(f"{k} {v}" for k, v in ev.items() if v) or ("none" if c else "—")
+
+
+def _wall_ratio(cr5: dict[str, Any] | None, ideal: dict[str, Any] | None) -> str:
+    if not cr5 or not ideal or not cr5.get("wall_s_mean") or not ideal.get("wall_s_mean"):
+        return "—"
+    return f"{cr5['wall_s_mean'] / ideal['wall_s_mean']:.2f}"
+
+
 def manipulation_table(r: dict[str, Any]) -> list[str]:
+    """Per experiment and method: the paper's success, then ours with the two CR5s (`cr5`, as the rig runs)
+    and with floating grippers (`ideal`, the ablation) side by side."""
     lines = [
-        "| scenario | method | success (ours) | success (paper) | error cm (ours) | time s, simulated (ours) | runs from |",
-        "|---|---|---|---|---|---|---|",
+        "| scenario | method | success (paper) | cr5: success | cr5: error cm | cr5: time s | ideal: success | ideal: error cm | "
+        "ideal: time s | wall cr5/ideal | cr5 arm events |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     stems = list(r["planning"]) or sorted(r["manipulation"])
     for stem in dict.fromkeys(stems + sorted(r["manipulation"])):
+        row = r["manipulation"].get(stem, {})
         for method in MANIP_METHODS:
             paper = P.MANIPULATION.get(_exp(stem), {}).get(method)
-            ours = r["manipulation"].get(stem, {}).get(method)
-            if ours is None and paper is None and method != "mpc":
+            cr5, ideal = row.get(method), row.get(method + IDEAL)
+            if cr5 is None and ideal is None and paper is None and method != "mpc":
                 continue
             ptxt = f"{paper[0]}/{paper[1]}" if paper else "—"
-            if ours is None:
-                lines.append(f"| {stem} | {method} | {NOT_RUN} | {ptxt} | — | — | — |")
-            else:
-                lines.append(
-                    f"| {stem} | {method} | {ours['success']}/{ours['of']} | {ptxt} | "
-                    f"{_pm(ours['error_cm_mean'], ours['error_cm_std'], '{:.2f}')} | {_pm(ours['time_s_mean'], ours['time_s_std'], '{:.1f}')} | "
-                    f"{', '.join(ours['sources'])} |"
-                )
+            lines.append(f"| {stem} | {method} | {ptxt} | {_cells(cr5)} | {_cells(ideal)} | {_wall_ratio(cr5, ideal)} | {_events(cr5)} |")
     return lines
+
+
+def provenance_lines(r: dict[str, Any]) -> list[str]:
+    """Which code and machine the closed-loop records come from (as the records name them)."""
+    seen: dict[tuple[str, str], int] = {}
+    for row in r["manipulation"].values():
+        for c in row.values():
+            for commit in c.get("commits", ["?"]):
+                key = (commit, ", ".join(c["sources"]))
+                seen[key] = seen.get(key, 0) + c["of"]
+    return [f"- `{src}`: commit {commit[:10]}" for (commit, src), _ in sorted(seen.items())] or ["- none"]
 
 
 def _same_as_mpc(r: dict[str, Any]) -> list[str]:
@@ -176,13 +203,21 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         "## Table II: manipulation",
         "",
-        "Closed-loop runs in the simulator (`bagit run`: rendered camera → perception → planner → controller), "
-        "judged on the simulator's ground truth; `mpc+ffg-rrt` is MPC along FFG-RRT's path, as in the paper's "
-        f"planner rows. Read from: {', '.join(f'`{Path(c).name}`' for c in cl) if cl else 'no closed-loop results'}. "
+        "Closed-loop runs in the simulator, each `bagit run`'s own (rendered camera → perception → coordinator → "
+        "controller → the arm driver's rules → two simulated CR5s, on the simulator's clock), judged on the simulator's "
+        "ground truth. `cr5` is the rig as deployed; `ideal` the ablation with floating grippers that take each increment "
+        "at once (what this benchmark measured before the arms were in every run). Error is the distance of the rim's "
+        "centre from the object's axis (cm); time is simulated servoing time to the goal; both over the successful runs. "
+        "`mpc+ffg-rrt` is MPC along FFG-RRT's path, as in the paper's planner rows. Read from: "
+        f"{', '.join(f'`{Path(c).name}`' for c in cl) if cl else 'no closed-loop results'}. "
         f"Experiments or methods without runs say *{NOT_RUN}*; k/n counts the n runs present (the paper ran 8 per cell).",
         *_same_as_mpc(r),
         "",
         *manipulation_table(r),
+        "",
+        "Records (each names its commit, host and effective parameters):",
+        "",
+        *provenance_lines(r),
         "",
         "Closed-loop failures:",
         "",

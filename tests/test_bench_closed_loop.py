@@ -5,15 +5,17 @@ from __future__ import annotations
 import json
 
 from bagit.bench import closed_loop
+from bagit.common.results import RunResult
 from bagit.bench.paper import load_closed_loop, manipulation_summary, same_runs_as_mpc
 
 
 def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):
     out = tmp_path / "closed-loop.jsonl"
-    key = ("no-such-scenario", "mpc", "cbirrt", 0)
+    key = ("no-such-scenario", "mpc", "cbirrt", 0, "cr5")
     recs = closed_loop.sweep([key], out, timeout_s=300)
     assert len(recs) == 1 and recs[0]["success"] is False
-    assert recs[0]["stage_reached"] == "error" and "no-such-scenario" in recs[0]["reason"]
+    assert recs[0]["reason"].startswith("error: ") and "no-such-scenario" in recs[0]["reason"]
+    assert recs[0]["provenance"]["host"] and recs[0]["arms"] == "cr5"  # a failed run's record names its machine too
     lines = out.read_text().splitlines()
     assert len(lines) == 1 and json.loads(lines[0])["scenario"] == "no-such-scenario"
     again = closed_loop.sweep([key], out)  # already there: not run again
@@ -24,9 +26,22 @@ def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):
     assert (cell["success"], cell["of"]) == (0, 1) and "error: " in cell["failures"][0]
 
 
+def test_a_sweep_runs_bagit_runs_own_path_and_records_its_result(tmp_path):
+    """One short run per arms mode through the sweep's worker: the records are RunResults with provenance."""
+    out = tmp_path / "closed-loop.jsonl"
+    keys = [("exp02-canned-pineapple", "mpc", "cbirrt", 0, "cr5"), ("exp02-canned-pineapple", "mpc", "cbirrt", 0, "ideal")]
+    recs = closed_loop.sweep(keys, out, workers=2, time_limit_s=1.0)
+    assert [r["arms"] for r in recs] == ["cr5", "ideal"]
+    for r in recs:
+        res = RunResult.model_validate(r)
+        assert res.stage_reached == "pre-bagging" and "time limit" in res.reason and res.ticks > 20
+        assert res.provenance.commit and res.provenance.params["horizon"] == 10
+
+
 def test_planner_rows_that_repeat_mpcs_runs_are_counted():
     def run(planner, seed, ticks, err, ok=True, controller="mpc"):
-        return {"scenario": "exp01", "controller": controller, "planner": planner, "seed": seed, "ticks": ticks, "error_cm": err, "success": ok}
+        return {"scenario": "exp01", "controller": controller, "planner": planner, "seed": seed, "arms": "cr5", "ticks": ticks, "error_cm": err,
+                "success": ok}
 
     runs = [
         run("cbirrt", 0, 300, 0.4), run("cbirrt", 1, 310, 0.5),

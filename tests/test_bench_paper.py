@@ -19,13 +19,19 @@ def _cells(md: str, first: str) -> list[list[str]]:
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper")
-    # one real closed-loop record file: a run that succeeded and one that failed, for exp01 / mpc
+    # one closed-loop record file: with the CR5s a run that succeeded and one that failed, for exp01 / mpc;
+    # with floating grippers (the ablation) one that succeeded
     runs = out / "closed-loop-test.jsonl"
+    prov = {"commit": "abc1234def", "host": "test", "params": {}}
     runs.write_text(
-        json.dumps({"scenario": "exp01-coffee-box", "controller": "mpc", "planner": "cbirrt", "seed": 0, "success": True,
-                    "error_cm": 0.8, "duration_s": 16.0, "stage_reached": "done", "reason": None}) + "\n"
-        + json.dumps({"scenario": "exp01-coffee-box", "controller": "mpc", "planner": "cbirrt", "seed": 1, "success": False,
-                      "error_cm": 4.0, "duration_s": 40.0, "stage_reached": "bagging", "reason": "time limit"}) + "\n"
+        json.dumps({"scenario": "exp01-coffee-box", "controller": "mpc", "planner": "cbirrt", "seed": 0, "arms": "cr5", "success": True,
+                    "error_cm": 0.8, "duration_s": 16.0, "stage_reached": "done", "reason": None, "wall_s": 30.0,
+                    "arm_events": {"slowed": 3}, "provenance": prov}) + "\n"
+        + json.dumps({"scenario": "exp01-coffee-box", "controller": "mpc", "planner": "cbirrt", "seed": 1, "arms": "cr5", "success": False,
+                      "error_cm": 4.0, "duration_s": 40.0, "stage_reached": "bagging", "reason": "time limit", "wall_s": 30.0,
+                      "provenance": prov}) + "\n"
+        + json.dumps({"scenario": "exp01-coffee-box", "controller": "mpc", "planner": "cbirrt", "seed": 0, "arms": "ideal", "success": True,
+                      "error_cm": 0.5, "duration_s": 12.0, "stage_reached": "done", "reason": None, "wall_s": 20.0, "provenance": prov}) + "\n"
     )
     rc = main(["bench", "paper", "--quick", "--out", str(out)])
     assert rc == 0
@@ -61,8 +67,12 @@ def test_quick_placements_and_closed_loop(quick):
     # closed loop: the file's two runs are 1/2 for exp01 mpc; everything else is "not run"
     m = r["manipulation"]["exp01-coffee-box"]["mpc"]
     assert (m["success"], m["of"], m["error_cm_mean"]) == (1, 2, 0.8)
-    assert [c[2] for c in _cells(md, "exp01-coffee-box") if c[1] == "mpc" and len(c) == 7] == ["1/2"]
-    assert [c[2] for c in _cells(md, "exp06-work-bin-tilted") if c[1] == "mpc" and len(c) == 7] == ["not run"]
+    assert r["manipulation"]["exp01-coffee-box"]["mpc/ideal"]["success"] == 1
+    # cr5 and ideal side by side, the wall-time ratio between them and the arm side's events
+    row = [c for c in _cells(md, "exp01-coffee-box") if c[1] == "mpc" and len(c) == 11]
+    assert [(c[3], c[4], c[6], c[7], c[9], c[10]) for c in row] == [("1/2", "0.80 ± 0.00", "1/1", "0.50 ± 0.00", "1.50", "slowed 3")]
+    assert [c[3] for c in _cells(md, "exp06-work-bin-tilted") if c[1] == "mpc" and len(c) == 11] == ["not run"]
+    assert "commit abc1234def" in md
     assert "| ours: ibvs | not run |" in md
 
 
@@ -84,7 +94,7 @@ def test_reuse_keeps_runs_and_rejects_other_files(quick, tmp_path):
     again = paper.run(quick=True, reuse=out / "paper.json", closed_loop=[], out_dir=tmp_path, figures=False)
     assert again["planning_runs"] == r["planning_runs"] and again["manipulation"] == {}
     assert again["placements"]["all"]["c1_mean"] == pytest.approx(r["placements"]["all"]["c1_mean"])  # seeded
-    assert "| exp01-coffee-box | mpc | not run |" in (tmp_path / "paper.md").read_text()
+    assert "| exp01-coffee-box | mpc | 8/8 | not run |" in (tmp_path / "paper.md").read_text()
     bad = tmp_path / "other.json"
     bad.write_text('{"stages": {}}')
     with pytest.raises(ValueError, match="not a `bagit bench paper` result"):
