@@ -27,7 +27,7 @@ import numpy as np
 from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
 from bagit.common.messages import Goal, ObjectDetection, Path, RunControl, RunState, SoiState
-from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, ArmsMode
+from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, SERVO_STAGES, ArmsMode
 from bagit.common.params import MethodParams
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import RigConfig
@@ -221,7 +221,7 @@ class _Run:
     def _control(self, now: float) -> None:
         """One control tick on the newest SOI, as the controller node makes it."""
         st = self.coord.state
-        if st.stage not in ("pre-bagging", "bagging") or self.path is None or self.path.run_id != st.run_id:
+        if st.stage not in SERVO_STAGES or self.path is None or self.path.run_id != st.run_id:
             return
         if self.session is None:
             self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq)
@@ -247,7 +247,7 @@ class _Run:
         before = self.coord.state.stage
         self.coord.on_status(st, now)
         self._emit()
-        if self.coord.state.stage != before and self.coord.state.stage in ("pre-bagging", "bagging"):
+        if self.coord.state.stage != before and self.coord.state.stage in SERVO_STAGES:
             self.say(f"{self.coord.state.stage}: subgoal {st.subgoal_index}")
 
     def _lift_margin(self) -> float:

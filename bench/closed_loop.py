@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from bagit.common.names import ArmsMode
+from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER, ArmsMode
 from bagit.common.results import RunResult, provenance
 from bagit.scenarios import list_scenarios
 
@@ -184,7 +184,7 @@ def run(
     arms: list[str] | None = None,
 ) -> dict:
     n = seeds or (1 if quick else 8)
-    ctrls = controllers or (["mpc"] if quick else ["mpc", "ibvs", "ssvs"])
+    ctrls = controllers or ([DEFAULT_CONTROLLER] if quick else list(CONTROLLER_NAMES))
     scen = [p.stem for p in list_scenarios() if not only or any(p.stem.startswith(o) for o in only)]
     if quick and not only:
         scen = scen[:2]

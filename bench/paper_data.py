@@ -7,6 +7,8 @@ whole system with that planner's path; IBVS and SSVS have no planning columns.
 
 from __future__ import annotations
 
+from bagit.common.names import CONTROLLER_NAMES, PLANNER_NAMES
+
 # scenario stem prefix -> the paper's name for the experiment
 EXPERIMENTS: dict[str, str] = {
     "exp01": "Coffee box (Exp 1)",
@@ -24,8 +26,8 @@ EXPERIMENTS: dict[str, str] = {
 }
 TABLE2_EXPERIMENTS = [f"exp{i:02d}" for i in range(1, 11)]  # the ten with numbers in Table II
 
-PLANNERS = ["cbirrt", "ffg-rrt", "ts-rrt"]  # cbirrt is the paper's "Ours"
-CONTROLLERS = ["mpc", "ibvs", "ssvs"]  # mpc is the paper's "Ours"
+PLANNERS = list(PLANNER_NAMES)  # cbirrt is the paper's "Ours"
+CONTROLLERS = list(CONTROLLER_NAMES)  # mpc is the paper's "Ours"
 
 # Table II, planning: experiment -> planner -> (successes, of, mean s, std s)
 PLANNING: dict[str, dict[str, tuple[int, int, float, float]]] = {

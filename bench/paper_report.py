@@ -61,7 +61,7 @@ def planning_failures(r: dict[str, Any]) -> list[str]:
     return lines or ["- none"]
 
 
-MANIP_METHODS = ["mpc", "ibvs", "ssvs", "mpc+ffg-rrt", "mpc+ts-rrt"]
+MANIP_METHODS = [*P.CONTROLLERS, *(f"mpc+{p}" for p in P.PLANNERS[1:])]
 
 
 def _cells(c: dict[str, Any] | None) -> str:
@@ -137,7 +137,7 @@ def table1(r: dict[str, Any]) -> list[str]:
     for name, (k, n, tm, ts, em, es) in P.TABLE1.items():
         lines.append(f"| {name} | {k}/{n} | {tm:.2f} ± {ts:.2f} | {em:.2f} ± {es:.2f} | paper (real rig) |")
     exp01 = next((v for s, v in r["manipulation"].items() if s.startswith("exp01")), {})
-    for method in ("mpc", "ibvs", "ssvs"):
+    for method in P.CONTROLLERS:
         c = exp01.get(method)
         label = f"ours: {method}" + (" (the paper's Ours)" if method == "mpc" else "")
         if c is None:

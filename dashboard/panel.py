@@ -22,6 +22,7 @@ import viser.uplot
 
 from bagit.common.errors import BadScenario, BagItError
 from bagit.common.messages import ArmState, ControllerStatus, EStop, RunControlReply, RunState
+from bagit.common.names import SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.scenario import Scenario
 from bagit.dashboard.health import HealthBoard, health_markdown
@@ -446,7 +447,7 @@ class Panel:
                 elapsed += self._clock() - received
             lines.append(f"**Run** `{msg.run_id or '-'}` · {msg.scenario or '-'}")
             sub = ""
-            if status is not None and (status.run_id in (None, msg.run_id)) and msg.stage in ("pre-bagging", "bagging"):
+            if status is not None and (status.run_id in (None, msg.run_id)) and msg.stage in SERVO_STAGES:
                 sub = f" · subgoal {status.subgoal_index}"
             lines.append(f"**Stage:** {msg.stage} · {100 * msg.progress:.0f} % · {elapsed:.1f} s{sub}")
             if msg.stage in ("failed", "aborted") or msg.reason:

@@ -216,3 +216,14 @@ def test_object_detection_failure_round_trips_and_incomplete_success_is_refused(
         ObjectDetection(marker_id=1, vertices=np.full((4, 3), np.nan), T_world_object=np.eye(4), height=0.1)
     with pytest.raises(ValueError):
         ObjectDetection(marker_id=1, vertices=np.zeros((4, 3)), T_world_object=np.eye(3), height=0.1)
+
+
+def test_every_name_is_defined_once_and_the_registries_follow_it():
+    """The controllers and planners the code can run are exactly the names the CLI, the coordinator and the benchmark offer."""
+    from bagit.common.names import CONTROLLER_NAMES, PLANNER_NAMES, STAGES
+    from bagit.common.messages import RunState
+    from bagit.services.controller.controller import CONTROLLERS
+    from bagit.services.planner.rrt import PLANNERS
+
+    assert tuple(CONTROLLERS) == CONTROLLER_NAMES and tuple(PLANNERS) == PLANNER_NAMES
+    assert set(STAGES) == set(RunState.model_fields["stage"].annotation.__args__)

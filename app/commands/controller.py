@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from bagit.common.names import CONTROLLER_NAMES
+
 NAME = "controller"
 HELP = "servo the current run: SOI and arm states in, arm increments out (mpc, ibvs, ssvs)"
 
@@ -19,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.common.bus import add_bus_arguments
 
     p.add_argument("--config", metavar="YAML", help="service config (controller, control_rate_hz, soi_max_age_s, arm_max_age_s, params, bus)")
-    p.add_argument("--controller", choices=["mpc", "ibvs", "ssvs"], help="force this controller (default: the run's, else mpc)")
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, help="force this controller (default: the run's, else mpc)")
     p.add_argument("--rate", type=float, metavar="HZ", help="control rate (default: the run's params.control_rate_hz)")
     p.add_argument("--soi-max-age", type=float, metavar="S", help="hold on a SOI older than this (default 0.5 s)")
     p.add_argument("--arm-max-age", type=float, metavar="S", help="hold on arm states older than this (default 0.3 s)")

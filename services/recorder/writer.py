@@ -33,9 +33,10 @@ from mcap.writer import CompressionType, Writer
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.messages import SCHEMA_VERSION, Message, RunState
+from bagit.common.names import FINAL_STAGES
 from bagit.services.recorder.schema import MESSAGE_ENCODING, SCHEMA_ENCODING, json_schema_bytes, schema_name, to_json
 
-TERMINAL_STAGES = ("done", "failed", "aborted")
+TERMINAL_STAGES = FINAL_STAGES
 RUN_METADATA = "bagit.run"
 RECORDING_METADATA = "bagit.recording"
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
