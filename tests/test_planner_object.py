@@ -39,9 +39,9 @@ def test_a_detection_of_the_runs_object_gives_v_and_height_and_the_result_says_m
     assert np.allclose(c.run.scenario.object.bottom_vertices(), V_sc)  # the run's scenario (and run/state's doc) unchanged
     c.stop(T0 + 2.0)
     res = c.state.result
-    assert res["object_from"] == "marker" and res["object_reason"] is None and res["marker_id"] == c.run.scenario.object.marker.id
-    assert res["marker_v_error_m"] == pytest.approx(np.linalg.norm(SHIFT), abs=1e-5)
-    assert res["marker_height_m"] == 0.2
+    assert res["object_from"] == "marker" and res["object_reason"] is None and res["marker"]["marker_id"] == c.run.scenario.object.marker.id
+    assert res["marker"]["marker_v_error_m"] == pytest.approx(np.linalg.norm(SHIFT), abs=1e-5)
+    assert res["marker"]["marker_height_m"] == 0.2
 
 
 def test_the_plan_uses_the_marker_v():

@@ -30,7 +30,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from bagit.common.errors import BagItError, BadScenario
-from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import ControllerStatus, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES, SERVO_STAGES
 from bagit.common.params import MethodParams
@@ -102,24 +101,22 @@ def compute_plan(job: PlanJob, on_goal: Callable[[Goal], None] | None = None) ->
     `on_goal(goal)` is called as soon as the goal is known, before the (longer) path search.
     Never raises for bad input: an infeasible goal or a failed search comes back with the reason.
     """
-    from bagit.services.planner import bagging_soi, collision_model, plan_path
+    from bagit.services.planner.plan import bagging_goal, path_to_goal
 
     t0 = time.perf_counter()
-    sc, p = job.scenario, job.scenario.params
+    sc = job.scenario
     g0 = np.asarray(job.g0, dtype=float)
     try:
         if g0.ndim != 2 or g0.shape[1] != 3 or len(g0) < 4 or not np.all(np.isfinite(g0)):
             raise BadScenario(f"g0 must be (n >= 4, 3) and finite, got shape {g0.shape}")
-        R = sc.bag.rim_perimeter or closed_polyline_length(g0)
-        goal = bagging_soi(sc.object.bottom_vertices(), R, len(g0), p, lambda_d=sc.lambda_d(), g0=g0)
+        goal, R = bagging_goal(sc, g0)
     except BagItError as e:
         return PlanOutcome(job.run_id, failed_stage="goal", reason=f"goal: {e}", time_s=time.perf_counter() - t0)
     goal_msg = goal.to_message(job.run_id, object_height=float(sc.object.effective_height()))
     if on_goal is not None:
         on_goal(goal_msg)
     try:
-        coll = collision_model(sc, goal.up, p.planner_clearance_m, goal.g_dagger)
-        res = plan_path(g0, goal, coll, R, p, job.planner, job.seed, job.time_budget_s)
+        res = path_to_goal(sc, g0, goal, R, job.planner, job.seed, job.time_budget_s)
     except BagItError as e:
         return PlanOutcome(job.run_id, goal=goal_msg, failed_stage="planning", reason=f"planning: {e}", time_s=time.perf_counter() - t0)
     if not res.success:

@@ -157,10 +157,21 @@ def plan_scenario(
         raise BadCloud(f"g0 needs at least 4 rim points, got {len(g0)}")
     if not np.all(np.isfinite(g0)):
         raise BadCloud("g0 contains NaN or infinite coordinates")
+    goal, perimeter = bagging_goal(scenario, g0)
+    return path_to_goal(scenario, g0, goal, perimeter, planner, seed, time_budget_s)
+
+
+def bagging_goal(scenario: Scenario, g0: np.ndarray) -> tuple[BaggingGoal, float]:
+    """The bagging ellipse, g† and g* for the scenario's object from g0 `(n_x, 3)`, and the rim perimeter R
+    they were made for (the bag's, else g0's length). The one goal rule: the coordinator and `bagit plan` use it."""
     perimeter = scenario.bag.rim_perimeter or closed_polyline_length(g0)
-    goal = bagging_soi(
-        scenario.object.bottom_vertices(), perimeter, len(g0), scenario.params, lambda_d=scenario.lambda_d(), g0=g0
-    )
+    goal = bagging_soi(scenario.object.bottom_vertices(), perimeter, len(g0), scenario.params, lambda_d=scenario.lambda_d(), g0=g0)
+    return goal, perimeter
+
+
+def path_to_goal(scenario: Scenario, g0: np.ndarray, goal: BaggingGoal, perimeter: float, planner: str, seed: int,
+                 time_budget_s: float) -> PlanResult:
+    """The SOI path g0 -> g† -> g* round the scenario's object and obstacles (see `plan_path`)."""
     coll = collision_model(scenario, goal.up, scenario.params.planner_clearance_m, goal.g_dagger)
     return plan_path(g0, goal, coll, perimeter, scenario.params, planner, seed, time_budget_s)
 
