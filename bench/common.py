@@ -42,18 +42,14 @@ def stats_ms(samples_ms: np.ndarray | list[float]) -> dict[str, float]:
 
 def machine() -> dict[str, Any]:
     """What the numbers were measured on."""
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     import numpy
 
+    from bagit.common.results import cpu_model, provenance
+
     return {
-        "cpu": cpu,
+        "cpu": cpu_model(),
+        "commit": provenance().commit,
+        "host": provenance().host,
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "numpy": numpy.__version__,

@@ -118,6 +118,17 @@ def points_list(a: np.ndarray | None, decimals: int = 5) -> list[list[float]] | 
 _PROVENANCE_CACHE: dict[str, Any] = {}
 
 
+def cpu_model() -> str:
+    """The CPU's model name (Linux's /proc/cpuinfo; else what the platform says)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or ""
+
+
 def provenance(params: dict[str, Any] | None = None) -> Provenance:
     """This code's commit (and whether the tree had changes), the host and its CPU, and `params`."""
     if not _PROVENANCE_CACHE:
@@ -130,14 +141,6 @@ def provenance(params: dict[str, Any] | None = None) -> Provenance:
                 dirty = bool(st.stdout.strip())
         except (OSError, subprocess.SubprocessError):
             pass
-        cpu = platform.processor()
-        try:
-            for line in Path("/proc/cpuinfo").read_text().splitlines():
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-        except OSError:
-            pass
-        _PROVENANCE_CACHE.update(commit=commit, dirty=dirty, host=socket.gethostname(), cpu=cpu,
+        _PROVENANCE_CACHE.update(commit=commit, dirty=dirty, host=socket.gethostname(), cpu=cpu_model(),
                                  cores=os.cpu_count() or 0, python=platform.python_version())
     return Provenance(**_PROVENANCE_CACHE, params=dict(params or {}))
