@@ -104,6 +104,34 @@ def manipulation_table(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def arms_summary(r: dict[str, Any]) -> list[str]:
+    """Each method over every experiment with the CR5s and with floating grippers, and where they differ."""
+    lines = ["| method | arms | success | error cm | time s | wall s per run | arm events |", "|---|---|---|---|---|---|---|"]
+    differ = []
+    for method in MANIP_METHODS:
+        for label, key in (("cr5", method), ("ideal", method + IDEAL)):
+            cells = [row[key] for row in r["manipulation"].values() if key in row]
+            if not cells:
+                continue
+            k, n = sum(c["success"] for c in cells), sum(c["of"] for c in cells)
+            w = [c["error_cm_mean"] * c["success"] for c in cells if c["error_cm_mean"] is not None]
+            t = [c["time_s_mean"] * c["success"] for c in cells if c["time_s_mean"] is not None]
+            wall = [c["wall_s_mean"] * c["of"] for c in cells if c.get("wall_s_mean")]
+            events: dict[str, int] = {}
+            for c in cells:
+                for e, v in (c.get("arm_events") or {}).items():
+                    events[e] = events.get(e, 0) + v
+            lines.append(f"| {method} | {label} | {k}/{n} | {sum(w) / k if k else float('nan'):.2f} | {sum(t) / k if k else float('nan'):.1f} | "
+                         f"{sum(wall) / n if wall else float('nan'):.1f} | {', '.join(f'{e} {v}' for e, v in events.items() if v) or 'none'} |")
+        for stem, row in sorted(r["manipulation"].items()):
+            a, b = row.get(method), row.get(method + IDEAL)
+            if a and b and a["success"] * b["of"] != b["success"] * a["of"]:
+                differ.append(f"- {stem} / {method}: cr5 {a['success']}/{a['of']}, ideal {b['success']}/{b['of']}"
+                              + (f"; cr5 failures: {'; '.join(a['failures'])}" if a["failures"] else "")
+                              + (f"; ideal failures: {'; '.join(b['failures'])}" if b["failures"] else ""))
+    return lines + ["", "Where the two differ in success:", "", *(differ or ["- nowhere"])]
+
+
 def provenance_lines(r: dict[str, Any]) -> list[str]:
     """Which code and machine the closed-loop records come from (as the records name them)."""
     seen: dict[tuple[str, str], int] = {}
@@ -214,6 +242,14 @@ def markdown(r: dict[str, Any]) -> str:
         *_same_as_mpc(r),
         "",
         *manipulation_table(r),
+        "",
+        "### With the CR5s against floating grippers",
+        "",
+        "Error and time are means over the successful runs; wall time per run is the sweep's (two runs sharing the "
+        "machine's cores); arm events are summed over the runs (`slowed`: servo periods shortened to the joints' speed "
+        "near a wrist singularity; `clipped`: increments pulled back by the envelope or the lead limit).",
+        "",
+        *arms_summary(r),
         "",
         "Records (each names its commit, host and effective parameters):",
         "",

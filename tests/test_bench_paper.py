@@ -73,6 +73,9 @@ def test_quick_placements_and_closed_loop(quick):
     assert [(c[3], c[4], c[6], c[7], c[9], c[10]) for c in row] == [("1/2", "0.80 ± 0.00", "1/1", "0.50 ± 0.00", "1.50", "slowed 3")]
     assert [c[3] for c in _cells(md, "exp06-work-bin-tilted") if c[1] == "mpc" and len(c) == 11] == ["not run"]
     assert "commit abc1234def" in md
+    # each method over every experiment, cr5 against ideal, and where they differ
+    assert "| mpc | cr5 | 1/2 | 0.80 | 16.0 | 30.0 | slowed 3 |" in md and "| mpc | ideal | 1/1 | 0.50 | 12.0 | 20.0 | none |" in md
+    assert "- exp01-coffee-box / mpc: cr5 1/2, ideal 1/1; cr5 failures: bagging: time limit" in md
     assert "| ours: ibvs | not run |" in md
 
 
