@@ -3,6 +3,7 @@ unknown to the controller) stands in for the bag, the camera and the arms, publi
 ArmState; the node servos it to the goal along the path, holds with a reason within a tick of the
 SOI going stale, stops on the run's end, and survives an exception in the control law."""
 
+import sys
 import threading
 import time
 
@@ -15,6 +16,7 @@ from bagit.common.geometry import matrix_to_rpy
 from bagit.common.messages import ArmState, Command, ControllerStatus, EllipseParams, Goal, Path, RunState, SoiState
 from bagit.common.rig import SafetyLimits
 from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
+from bagit.services.controller.session import KEEPALIVE
 from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.synthetic import SyntheticRim
 
@@ -152,7 +154,7 @@ def test_the_controller_service_servos_a_synthetic_rim_to_the_goal_over_zenoh(lo
     assert "explore" in modes and "servo" in modes
     done = next(s for s in statuses if s.done)
     assert done.progress == 1.0 and done.stage == "bagging" and done.error_to_goal <= 0.008
-    servo = [c for _, c in plant.cmds if c.mode == "servo"]
+    servo = [c for _, c in plant.cmds if c.mode == "servo" and c.reason != KEEPALIVE]
     assert len(servo) > 50 and all(c.run_id == "r1" and 1 / 60 - 1e-9 <= c.dt < SafetyLimits().watchdog_s for c in servo)
     # each command names the camera stamp of the SOI it was computed from, each SOI at most once
     assert all(c.source_stamp in plant.soi_stamps for c in servo)
@@ -225,3 +227,41 @@ def test_an_arm_fault_fails_the_run_and_stops_servoing(loop):
     n = len(plant.cmds)
     time.sleep(0.4)
     assert not [c for _, c in plant.cmds[n:] if c.mode == "servo"]
+
+
+class SlowCamera(Plant):
+    """The same plant with a camera slower than the driver's watchdog: an SOI every `period_s` whatever
+    the commands, arm states every 50 ms."""
+
+    period_s = 0.3
+
+    def _on_cmd(self, cmd: Command) -> None:
+        with self._lock:
+            self.cmds.append((time.monotonic(), cmd))
+            if cmd.mode == "servo":
+                self.g = apply_increment(self.g, cmd.u)
+
+    def _heartbeat(self) -> None:
+        last = 0.0
+        while not self._stop.wait(0.05):
+            with self._lock:
+                self.soi_on = time.monotonic() - last >= self.period_s  # _publish sends an SOI only then
+                if self.soi_on:
+                    last = time.monotonic()
+                self._publish()
+
+
+def test_a_camera_slower_than_the_watchdog_gives_slower_motion_not_gaps_in_the_commands(loop, monkeypatch):
+    """Between two SOIs 0.3 s apart the controller sends a zero increment every tick (a keep-alive, no
+    learning, no status), so the driver's 0.2 s watchdog never brakes the arms between them."""
+    monkeypatch.setattr(sys.modules[__name__], "Plant", SlowCamera)
+    node, plant, run, statuses, nodes = loop()
+    assert wait_until(lambda: sum(c.reason != KEEPALIVE for _, c in plant.cmds if c.mode == "servo") >= 8, 30.0), node.status()
+    cmds = [(t, c) for t, c in plant.cmds]
+    servoing = [t for t, c in cmds if c.mode == "servo"]
+    assert servoing and max(np.diff(servoing)) < SafetyLimits().watchdog_s / 2, np.diff(servoing).max()  # never a gap near the watchdog
+    real = [c for _, c in cmds if c.mode == "servo" and c.reason != KEEPALIVE]
+    keep = [c for _, c in cmds if c.reason == KEEPALIVE]
+    assert len(keep) > 3 * len(real) and all(not np.any(c.u) and c.mode == "servo" for c in keep)  # ... moving nothing
+    assert len({c.source_stamp for c in real}) == len(real)  # one real tick per SOI: Broyden learns from each once
+    assert node.status()["counters"]["keepalive"] == len(keep)

@@ -9,8 +9,9 @@ params = the scenario's `params:` overlaid with `RunState.params`) and servos on
 the control rate. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
 (`arm/<side>/state` tool_pose: world [x y z roll pitch yaw], the driver's convention), calls the
 pure controller, and publishes a `Command` on `controller/cmd` and a `ControllerStatus` on
-`controller/status`. A tick without a new SOI (but a fresh one) sends nothing: the driver keeps
-streaming the last targets, and the Broyden estimate never learns from a repeated SOI.
+`controller/status`. A tick without a new SOI (but a fresh one) learns nothing and sends a zero
+increment while servoing, a keep-alive: the driver keeps streaming the last targets instead of
+its watchdog braking the arms between two slow SOIs (see `session.py`).
 
 It never extrapolates: no SOI, a stale one (older than `soi_max_age_s`, by its camera stamp when
 that is on this machine's clock, else by arrival), an implausible one (the guard), or missing or
@@ -85,7 +86,7 @@ class ControllerNode:
         self._estop = False
         self._run: ServoSession | None = None
         self._seq = 0
-        self.counters: dict[str, int] = {"ticks": 0, "servo": 0, "hold": 0, "skipped": 0, "errors": 0, "runs": 0}
+        self.counters: dict[str, int] = {"ticks": 0, "servo": 0, "hold": 0, "keepalive": 0, "errors": 0, "runs": 0}
         self.last_reason: str | None = None
         self.runs_done: list[dict[str, Any]] = []
         self._cmd = Publisher(session, keys.controller_cmd, Command)
@@ -214,8 +215,10 @@ class ControllerNode:
         soi, age = (None, None) if item is None else (item[0], self.soi_age(*item))
         fault = arm_fault(states) if soi is not None and arm_problem is None else None
         out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, time.time())
-        if out.command is None and soi is not None and age is not None and age <= self.cfg.soi_max_age_s and arm_problem is None and fault is None:
-            self.counters["skipped"] += 1
+        if out.keepalive:
+            self.counters["keepalive"] += 1
+            self._cmd.put(out.command)  # not a control tick: no status, no count as servo
+            return
         self._send(out)
         if run.finished == "done" and out.status is not None and out.status.done:
             self.runs_done.append({"run_id": run.run_id, "error_to_goal": run.error_to_goal, "ticks": run.ticks})

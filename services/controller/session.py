@@ -10,9 +10,11 @@ publishes what it returns: the command for the arm driver and the status for the
 
 It never extrapolates: a stale SOI (`soi_max_age_s`), missing or stale arm states -> a hold
 command (u = 0) with the reason. A latched arm fault ends the run (it will not clear by itself).
-Each new SOI is one control tick; the same SOI twice sends nothing (the driver keeps streaming the
-last targets, and Broyden never learns from a repeated SOI). Any exception in the controller ->
-hold with the reason.
+Each new SOI is one control tick. A tick on the same SOI again (a host that ticks faster than the
+camera) learns nothing and moves nothing: while servoing it sends a zero increment, a keep-alive,
+so the driver goes on streaming the last targets instead of its watchdog braking the arms between
+two slow SOIs (stop-and-go); a controller that dies still stops them. Any exception in the
+controller -> hold with the reason.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from bagit.services.controller.controller import Controller, make_controller
 # A command's dt (the time the driver spreads its increment over) stays this far under the arm
 # driver's watchdog (`SafetyLimits.watchdog_s`, 0.2 s), so a slow SOI gives slower motion, never a stop.
 WATCHDOG_MARGIN = 0.9
+KEEPALIVE = "keep-alive: no new SOI yet"  # the reason a zero servo increment carries
 SOI_MAX_AGE_S = 0.5  # a SOI older than this (by its camera stamp): hold
 ARM_MAX_AGE_S = 0.3  # an arm state older than this: hold
 
@@ -49,6 +52,7 @@ class Outbox:
     command: Command | None = None
     status: ControllerStatus | None = None
     report: str | None = None
+    keepalive: bool = False  # the command is a zero increment on an SOI already acted on
 
 
 def gripper_poses(states: dict[str, ArmState]) -> tuple[dict[str, np.ndarray] | None, str | None]:
@@ -91,7 +95,8 @@ class ServoSession:
         self.next_seq = next_seq
         self.seq = 0  # the last command's
         self.last_soi: tuple[int, float] | None = None  # (seq, source stamp) of the last SOI acted on
-        self.last_cmd_t: float | None = None
+        self.last_cmd_t: float | None = None  # when the last command on a new SOI went out
+        self.servoing = False  # the last command on a new SOI moved the arms (a keep-alive may follow it)
         self.reset_done = False
         self.finished: str | None = None  # why servoing ended (done, the run's stage, e-stop)
         self.last_reason: str | None = None
@@ -157,8 +162,12 @@ class ServoSession:
             out.status = self._status(mode="hold", stage="failed", reason=arm_fault)
             return out
         key = (soi.seq, soi.source_stamp)
-        if key == self.last_soi:
-            return Outbox()  # fresh but not new: nothing to learn from, nothing to send
+        if key == self.last_soi:  # fresh but not new: nothing to learn from; keep the stream alive
+            if not self.servoing:
+                return Outbox()
+            self.seq = self.next_seq()
+            cmd = Command(u=np.zeros(12), dt=self.dt, seq=self.seq, run_id=self.run_id, reason=KEEPALIVE, source_stamp=soi.source_stamp)
+            return Outbox(cmd, keepalive=True)
         self.last_soi = key
         c = self.controller
         report = None
@@ -182,6 +191,7 @@ class ServoSession:
         self.error_to_goal = _finite_or_none(out.error_to_goal)
         self.seq = self.next_seq()
         cmd = out.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp)
+        self.servoing = cmd.mode == "servo" and not out.done
         self.last_reason = out.reason
         status = self._status(mode=out.mode, stage=out.stage, reason=out.reason, subgoal_index=out.subgoal_index,
                               progress=out.progress, error_to_subgoal=_finite_or_none(out.error_to_subgoal),
@@ -211,6 +221,7 @@ class ServoSession:
                 self.controller.step(None, now, {})
             except Exception:  # noqa: BLE001
                 pass
+        self.servoing = False
         self.seq = self.next_seq()
         cmd = Command(u=np.zeros(12), dt=self.dt, seq=self.seq, run_id=self.run_id, mode="hold", reason=reason)
         report = f"hold: {reason}" if reason != self.last_reason else None
