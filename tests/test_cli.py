@@ -140,3 +140,14 @@ def test_up_gives_the_arm_driver_link_timeouts_for_simulated_controllers(tmp_pat
     assert cfg.driver.feedback_timeout_s == SIM_DRIVER_TIMEOUTS["feedback_timeout_s"] > default.feedback_timeout_s
     assert cfg.driver.reply_timeout_s == SIM_DRIVER_TIMEOUTS["reply_timeout_s"] > default.reply_timeout_s
     assert cfg.driver.model_copy(update={k: getattr(default, k) for k in SIM_DRIVER_TIMEOUTS}) == default  # nothing else
+
+
+@pytest.mark.slow
+def test_demo_runs_a_whole_bagging_through_bagit_run(capsys):
+    """`bagit demo` is `bagit run exp02` with its defaults: the CR5s, mpc, cbirrt, seed 0."""
+    from bagit.common.results import RunResult
+
+    code = main(["demo", "--json"])
+    r = RunResult.model_validate(json.loads(capsys.readouterr().out))
+    assert (r.scenario, r.controller, r.planner, r.seed, r.arms) == ("exp02-canned-pineapple", "mpc", "cbirrt", 0, "cr5")
+    assert code == 0 and r.success, r.reason

@@ -31,8 +31,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         return result
     from bagit.commands import run as run_cmd
 
-    args.controller, args.planner, args.seed, args.time_limit = "mpc", "cbirrt", 0, 40.0
-    return run_cmd.run(argparse.Namespace(**{**vars(args), "scenario": args.scenario}))
+    parser = argparse.ArgumentParser()
+    run_cmd.add_arguments(parser)
+    run_args = parser.parse_args([args.scenario])  # `bagit run SCENARIO` with its defaults (mpc, cbirrt, seed 0, the CR5s)
+    run_args.json = args.json
+    return run_cmd.run(run_args)
 
 
 def human(result: dict[str, Any]) -> str:
