@@ -23,8 +23,9 @@ Error ids (V4 manual, chapter 5): 0 ok; -1 not executed; -2 refused, robot in er
 -3 refused, emergency stop pressed; -4 refused, powered off; -10000 no such command; -20000 wrong
 number of parameters; -3000k type/format of required parameter k wrong; -4000k range of required
 parameter k wrong; -5000k type/name of optional parameter k wrong; -6000k range of optional
-parameter k wrong (k counts from 1 within its group; a named optional is counted in the order
-given). `ErrorId` holds the fixed ones, `param_error(...)` builds the others.
+parameter k wrong. k counts positional parameters from 1 within their group; an error in a named
+(`key=value`) parameter is k = 1 whatever its position (MovJ(joint={..},a=50,v=500) is -60001).
+`ErrorId` holds the fixed ones, `param_error(...)` builds the others.
 While in error only ClearError, GetErrorID, EmergencyStop and RobotMode run; with the emergency
 stop pressed, the same (EmergencyStop(0) releases it). A motion command to a disabled arm gets -1.
 A target the arm cannot take (no inverse solution, beyond a joint limit, the flange against the

@@ -115,19 +115,19 @@ def test_parameter_errors(client):
     assert client.ask("SpeedFactor(50.5)").error_id == -30001
     assert client.ask("SpeedFactor(60)").ok
     assert client.ask("GetPose(user=1)").error_id == -20000
-    assert client.ask("GetPose(user=1,tool=99)").error_id == -60002
+    assert client.ask("GetPose(user=1,tool=99)").error_id == -60001  # named: -60001 wherever it stands
     assert client.ask("GetPose(usr=1,tool=0)").error_id == -50001
     assert client.ask("EmergencyStop(2)").error_id == -40001
     assert client.ask("EmergencyStop()").error_id == -20000
     assert client.ask("MovJ(0,0,-90,0,90,0)").error_id == -30001  # V4 wants joint={..} or pose={..}
     assert client.ask("MovJ(joint={0,0,-90,0,90})").error_id == -30001
     assert client.ask("MovJ(joint={0,0,-90,0,90,0},v=0)").error_id == -60001
-    assert client.ask("MovJ(joint={0,0,-90,0,90,0},a=20,vel=5)").error_id == -50002
+    assert client.ask("MovJ(joint={0,0,-90,0,90,0},a=20,vel=5)").error_id == -50001
     assert client.ask("ServoP(473,-141,469,-180,0)").error_id == -20000
     assert client.ask("ServoP(473,-141,x,-180,0,-90)").error_id == -30003
     assert client.ask("ServoP(473,-141,469,-180,0,-90,t=0.001)").error_id == -60001
-    assert client.ask("ServoP(473,-141,469,-180,0,-90,t=0.1,aheadtime=10)").error_id == -60002
-    assert client.ask("ServoP(473,-141,469,-180,0,-90,t=0.1,aheadtime=50,gain=5000)").error_id == -60003
+    assert client.ask("ServoP(473,-141,469,-180,0,-90,t=0.1,aheadtime=10)").error_id == -60001
+    assert client.ask("ServoP(473,-141,469,-180,0,-90,t=0.1,aheadtime=50,gain=5000)").error_id == -60001
     assert client.ask("ServoJ(0,0,-90,0,90,0,t=0.1,aheadtime=50,gain=500)").ok
 
 
@@ -326,3 +326,20 @@ def test_two_controllers_on_distinct_ports():
     finally:
         a.stop()
         b.stop()
+
+
+# -- the V4 manual's rules that a vendor client exercised (README, "Dobot V4 conformance") --------
+
+
+def test_named_optional_parameter_errors_are_numbered_1_whatever_their_position(client):
+    """Manual, chapter 5: an error in a named (`key=value`) optional parameter is -50001 (type) or
+    -60001 (range) wherever it stands; -5000k / -6000k count positional optional parameters."""
+    assert client.ask("MovJ(joint={0,0,-90,0,90,0},a=50,v=500)").error_id == -60001
+    assert client.ask("MovL(pose={473,-141,469,-180,0,-90},user=0,tool=0,a=20,v=50,cp=101)").error_id == -60001
+    assert client.ask("GetPose(user=0,tool=51)").error_id == -60001
+    assert client.ask('MovJ(pose={473,-141,469,-180,0,-90},user=0,tool="ss",a=20)').error_id == -50001
+    assert client.ask("ServoJ(0,0,-90,0,90,0,t=0.1,aheadtime=50,gain=5000)").error_id == -60001
+    # positional optional parameters keep their position
+    assert client.ask("EnableRobot(0.3,0,0,2000)").error_id == -60004
+    assert client.ask("ServoJ(0,0,-90,0,90,0,0.1,50,5000)").error_id == -60003
+    assert client.ask("ServoJ(0,0,-90,0,90,0,0.1,x)").error_id == -50002

@@ -100,15 +100,29 @@ _OPTIONS = {
 }  # fmt: skip
 
 
-def _options(named: dict[str, object], spec: dict[str, tuple[float, float, bool]], first: int = 1) -> dict[str, float]:
-    """Named optional parameters checked against `spec`: -5000k for an unknown name or bad type, -6000k out of range."""
-    out = {}
-    for k, (name, v) in enumerate(named.items(), start=first):
+def _named_options(named: dict[str, object], spec: dict[str, tuple[float, float, bool]], out: dict[str, float] | None = None) -> dict[str, float]:
+    """Named optional parameters (`key=value`) checked against `spec`, added to `out`.
+
+    The manual numbers a named parameter's errors -50001 (unknown name, given twice, wrong type) and
+    -60001 (out of range) whatever its position; -5000k/-6000k by position are for positional ones.
+    """
+    out = {} if out is None else out
+    type_err, range_err = param_error(ErrorId.OPTIONAL_TYPE, 1), param_error(ErrorId.OPTIONAL_RANGE, 1)
+    for name, v in named.items():
         key = name.lower()
-        if key not in spec:
-            raise _ParamError(param_error(ErrorId.OPTIONAL_TYPE, k))
+        if key not in spec or key in out:
+            raise _ParamError(type_err)
         lo, hi, integer = spec[key]
-        out[key] = _in(_num(v, param_error(ErrorId.OPTIONAL_TYPE, k), integer), lo, hi, param_error(ErrorId.OPTIONAL_RANGE, k))
+        out[key] = _in(_num(v, type_err, integer), lo, hi, range_err)
+    return out
+
+
+def _positional_options(args: list, names: list[str], spec: dict[str, tuple[float, float, bool]]) -> dict[str, float]:
+    """Optional parameters given by position (`names` in order): the k-th one's errors are -5000k / -6000k."""
+    out = {}
+    for k, (name, v) in enumerate(zip(names, args), start=1):
+        lo, hi, integer = spec[name]
+        out[name] = _in(_num(v, param_error(ErrorId.OPTIONAL_TYPE, k), integer), lo, hi, param_error(ErrorId.OPTIONAL_RANGE, k))
     return out
 
 
@@ -370,14 +384,14 @@ class DobotControllerServer:
     def _get_pose(self, cmd: Command) -> tuple[int, Values]:
         if cmd.args or len(cmd.named) not in (0, 2):
             raise _ParamError(int(ErrorId.PARAM_COUNT))
-        _options(cmd.named, _OPTIONS["frames"])
+        _named_options(cmd.named, _OPTIONS["frames"])
         return 0, self.robot.get_pose6().tolist()
 
     def _positive_kin(self, cmd: Command) -> tuple[int, Values]:
         if len(cmd.args) != 6:
             raise _ParamError(int(ErrorId.PARAM_COUNT))
         q = _positional6(cmd)
-        _options(cmd.named, _OPTIONS["frames"])
+        _named_options(cmd.named, _OPTIONS["frames"])
         return 0, cr5.matrix_to_pose6(cr5.fk(np.radians(q))).tolist()
 
     def _inverse_kin(self, cmd: Command) -> tuple[int, Values]:
@@ -387,7 +401,7 @@ class DobotControllerServer:
         named = dict(cmd.named)
         near = named.pop("jointNear", None)
         use = named.pop("useJointNear", 0)
-        _options(named, _OPTIONS["frames"])
+        _named_options(named, _OPTIONS["frames"])
         seed = np.radians(self.robot.get_angle_deg())
         if near is not None and use == 1:
             seed = np.radians(_vec6(near, param_error(ErrorId.OPTIONAL_TYPE, 2)))
@@ -403,7 +417,7 @@ class DobotControllerServer:
         if not named or named[0][0].lower() not in ("joint", "pose"):
             raise _ParamError(param_error(ErrorId.REQUIRED_TYPE, 1))
         kind, target = named[0][0].lower(), _vec6(named[0][1], param_error(ErrorId.REQUIRED_TYPE, 1))
-        opts = _options(dict(named[1:]), _OPTIONS[cmd.key])
+        opts = _named_options(dict(named[1:]), _OPTIONS[cmd.key])
         v, a = opts.get("v", 100.0), opts.get("a", 100.0)
         move = self.robot.mov_j if cmd.key == "movj" else self.robot.mov_l
         code, cmd_id = move(joint_deg=target, v=v, a=a) if kind == "joint" else move(pose6=target, v=v, a=a)
@@ -413,13 +427,8 @@ class DobotControllerServer:
         if not 6 <= len(cmd.args) <= 9:
             raise _ParamError(int(ErrorId.PARAM_COUNT))
         target = _positional6(cmd)
-        names = ["t", "aheadtime", "gain"]
-        named: dict[str, object] = dict(zip(names, cmd.args[6:]))
-        for k, v in cmd.named.items():
-            if k.lower() in named:
-                raise _ParamError(param_error(ErrorId.OPTIONAL_TYPE, len(named) + 1))
-            named[k] = v
-        opts = _options(named, _OPTIONS["servo"])
+        spec = _OPTIONS["servo"]
+        opts = _named_options(cmd.named, spec, _positional_options(cmd.args[6:], ["t", "aheadtime", "gain"], spec))
         t, ahead, gain = opts.get("t", 0.1), opts.get("aheadtime", 50.0), opts.get("gain", 500.0)
         if cmd.key == "servoj":
             return self.robot.servo_j(target, t, ahead, gain), None
