@@ -308,7 +308,7 @@ class FeedbackAssembler:
 
 # -- commands ------------------------------------------------------------------------------------
 
-Value = Union[int, float, str, tuple[float, ...]]
+Value = Union[int, float, str, tuple[Union[float, str], ...]]
 
 
 @dataclass
@@ -382,6 +382,8 @@ def _parse_scalar(tok: str) -> Value:
 
 
 def _parse_value(tok: str) -> Value:
+    """A scalar or a `{...}` vector. A vector item that is a word (`nan`, `a`) stays text: it is a
+    well-formed command with a parameter of the wrong type, which the controller numbers -3000k/-5000k."""
     tok = tok.strip()
     if tok.startswith("{"):
         if not tok.endswith("}") or "{" in tok[1:-1] or "}" in tok[1:-1]:
@@ -389,10 +391,8 @@ def _parse_value(tok: str) -> Value:
         inner = tok[1:-1].strip()
         if not inner:
             return ()
-        items = [s.strip() for s in inner.split(",")]
-        if not all(_NUMBER_RE.fullmatch(s) for s in items):
-            raise ProtocolError(f"vector {tok!r} holds a non-number")
-        return tuple(float(s) for s in items)
+        items = [_parse_scalar(s) for s in inner.split(",")]
+        return tuple(float(x) if isinstance(x, int) else x for x in items)
     if not tok:
         raise ProtocolError("empty parameter")
     return _parse_scalar(tok)

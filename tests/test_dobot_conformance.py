@@ -343,3 +343,14 @@ def test_named_optional_parameter_errors_are_numbered_1_whatever_their_position(
     assert client.ask("EnableRobot(0.3,0,0,2000)").error_id == -60004
     assert client.ask("ServoJ(0,0,-90,0,90,0,0.1,50,5000)").error_id == -60003
     assert client.ask("ServoJ(0,0,-90,0,90,0,0.1,x)").error_id == -50002
+
+
+def test_type_error_in_a_named_required_parameter_is_30001(client):
+    """Manual, chapter 5: a wrong type in a named required parameter (MovJ/MovL's joint= or pose=) is
+    -30001, as a well-formed command (not -10000); positional required parameters count by position."""
+    assert client.ask("MovJ(pose={nan,-141,469,-180,0,-90})").error_id == -30001
+    assert client.ask("MovL(joint={0,0,-90,inf,90,0},v=50)").error_id == -30001
+    assert client.ask("MovJ(pose={473,-141,1e999,-180,0,-90})").error_id == -30001
+    assert client.ask('MovJ(joint="a",user=1,tool=0,a=20,v=50,cp=100)').error_id == -30001  # the manual's example 1
+    assert client.ask("ServoP(473,-141,nan,-180,0,-90)").error_id == -30003
+    assert client.ask("MovJ(pose={1,,2})").error_id == -10000  # an empty item cannot be parsed at all

@@ -84,6 +84,8 @@ def test_format_and_parse_commands():
     assert dobot.format_command("MovJ", joint=np.radians([0, 90, 0, 0, 0, 0]) * 0 + [1, 2, 3, 4, 5, 6]) == "MovJ(joint={1,2,3,4,5,6})"
     assert dobot.parse_command("RunScript(demo_1)").args == ["demo_1"]
     assert dobot.parse_command("SpeedFactor(1e2)").args == [100.0]
+    # a word inside a vector is a parameter of the wrong type for the controller to number, not malformed text
+    assert dobot.parse_command("MovJ(pose={nan,1,2,3,4,5})").named["pose"] == ("nan", 1.0, 2.0, 3.0, 4.0, 5.0)
 
 
 @pytest.mark.parametrize(

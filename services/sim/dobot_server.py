@@ -75,9 +75,10 @@ def _in(x: float, lo: float, hi: float, code: int) -> float:
 
 
 def _vec6(v: object, code: int) -> np.ndarray:
-    if not isinstance(v, tuple) or len(v) != 6 or not all(math.isfinite(x) for x in v):
+    """Six finite numbers in braces, or _ParamError(code) (a word such as `nan` inside is a type error)."""
+    if not isinstance(v, tuple) or len(v) != 6:
         raise _ParamError(code)
-    return np.array(v, dtype=float)
+    return np.array([_num(x, code) for x in v])
 
 
 def _positional6(cmd: Command) -> np.ndarray:
