@@ -33,7 +33,8 @@ arm's body, a servo step faster than a joint can go) is answered -1 and latches 
 RobotMode becomes 9 and the feedback's ErrorStatus 1 until ClearError(). Malformed text is answered
 -10000 like an unknown command. MovJ/MovL reply `{command id}` and run in order; the feedback's
 CurrentCommandId is the one running (or last run), RobotMode 7 while anything moves, 5 when idle.
-ServoJ/ServoP reply `{}`; the target is reached `t` seconds later plus the servo loop's lag.
+ServoJ/ServoP reply `{command id}` too (the same sequence; the accepted target becomes the current
+command); the target is reached `t` seconds later plus the servo loop's lag.
 
 Alarms (the controller's alarm ids, as GetErrorID lists them; alarmController.json): 17 inverse
 kinematics has no solution, 18 solution outside the joint limits, 48+j joint j overspeed,

@@ -354,3 +354,20 @@ def test_type_error_in_a_named_required_parameter_is_30001(client):
     assert client.ask('MovJ(joint="a",user=1,tool=0,a=20,v=50,cp=100)').error_id == -30001  # the manual's example 1
     assert client.ask("ServoP(473,-141,nan,-180,0,-90)").error_id == -30003
     assert client.ask("MovJ(pose={1,,2})").error_id == -10000  # an empty item cannot be parsed at all
+
+
+def test_servo_commands_reply_their_command_id(client):
+    """Manual: ServoJ/ServoP answer `ErrorID,{ResultID},ServoP(..)`, ResultID the algorithm queue id
+    that MovJ/MovL also take, and the accepted target is the current command."""
+    client.ask("EnableRobot()")
+    m = client.ask("MovJ(joint={0,0,-90,0,90,0})")
+    wait_mode(client, 5)
+    n = int(m.values[0])
+    assert client.raw("ServoP(473,-141,470,-180,0,-90,t=0.1)") == f"0,{{{n + 1}}},ServoP(473,-141,470,-180,0,-90,t=0.1);"
+    assert client.ask("ServoJ(0,0,-90,0,90,1,t=0.1)").values == [n + 2]
+    assert client.ask("GetCurrentCommandID()").values == [n + 2]
+    wait_mode(client, 5)
+    assert client.ask("MovJ(joint={30,0,-90,0,90,0})").values == [n + 3]  # ~0.7 s
+    assert client.ask("ServoJ(30,0,-90,0,90,0)").error_id == -1  # refused while MovJ runs: no id taken
+    wait_mode(client, 5)
+    assert client.ask("ServoJ(30,0,-90,0,90,2)").values == [n + 4]

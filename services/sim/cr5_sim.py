@@ -310,26 +310,36 @@ class SimulatedCR5:
             return self._enqueue(kind, q, v, a, T1=T1 if kind == "linear" else None)
 
     def servo_j(self, joint_deg: np.ndarray, t: float = 0.1, aheadtime: float = 50, gain: float = 500) -> int:
-        with self._lock:
-            if (code := self._motion_gate()) != 0:
-                return code
-            q = np.radians(np.asarray(joint_deg, dtype=float))
-            alarm = self._check_joint_target(q)
-            if alarm is not None:
-                self._raise(alarm)
-                return int(ErrorId.FAILED)
-            return self._servo_to(q, t, aheadtime, gain)
+        """ServoJ to joint angles (deg): the error id (`servo` also gives the command id)."""
+        return self.servo("joint", joint_deg, t, aheadtime, gain)[0]
 
     def servo_p(self, pose6: np.ndarray, t: float = 0.1, aheadtime: float = 50, gain: float = 500) -> int:
+        """ServoP to a flange pose6 (mm, deg): the error id (`servo` also gives the command id)."""
+        return self.servo("pose", pose6, t, aheadtime, gain)[0]
+
+    def servo(self, kind: str, target: np.ndarray, t: float = 0.1, aheadtime: float = 50, gain: float = 500) -> tuple[int, int]:
+        """ServoJ (`kind` "joint", degrees) or ServoP ("pose", pose6): (error id, command id).
+
+        An accepted target takes the next id of the motion commands' sequence and is the current
+        command from then on, as a controller answers `0,{ResultID},ServoP(..)` like MovJ.
+        """
         with self._lock:
             if (code := self._motion_gate()) != 0:
-                return code
-            seed = self._servo.goal if self._servo is not None else self._q_ref
-            q, alarm = self._solve_pose(cr5.pose6_to_matrix(pose6), seed)
+                return code, 0
+            if kind == "joint":
+                q = np.radians(np.asarray(target, dtype=float))
+                alarm = self._check_joint_target(q)
+            else:
+                seed = self._servo.goal if self._servo is not None else self._q_ref
+                q, alarm = self._solve_pose(cr5.pose6_to_matrix(target), seed)
             if alarm is not None:
                 self._raise(alarm)
-                return int(ErrorId.FAILED)
-            return self._servo_to(q, t, aheadtime, gain)
+                return int(ErrorId.FAILED), 0
+            if (code := self._servo_to(q, t, aheadtime, gain)) != 0:
+                return code, 0
+            self._current_id = self._next_id
+            self._next_id += 1
+            return 0, self._current_id
 
     def _servo_to(self, q_goal: np.ndarray, t: float, aheadtime: float, gain: float) -> int:
         if self._active is not None or self._queue:

@@ -431,6 +431,5 @@ class DobotControllerServer:
         spec = _OPTIONS["servo"]
         opts = _named_options(cmd.named, spec, _positional_options(cmd.args[6:], ["t", "aheadtime", "gain"], spec))
         t, ahead, gain = opts.get("t", 0.1), opts.get("aheadtime", 50.0), opts.get("gain", 500.0)
-        if cmd.key == "servoj":
-            return self.robot.servo_j(target, t, ahead, gain), None
-        return self.robot.servo_p(target, t, ahead, gain), None
+        code, cmd_id = self.robot.servo("joint" if cmd.key == "servoj" else "pose", target, t, ahead, gain)
+        return code, [cmd_id]
