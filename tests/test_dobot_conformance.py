@@ -371,3 +371,14 @@ def test_servo_commands_reply_their_command_id(client):
     assert client.ask("ServoJ(30,0,-90,0,90,0)").error_id == -1  # refused while MovJ runs: no id taken
     wait_mode(client, 5)
     assert client.ask("ServoJ(30,0,-90,0,90,2)").values == [n + 4]
+
+
+def test_servo_t_ranges_from_4_ms_to_an_hour(client):
+    """Firmware V4.6: ServoJ/ServoP's t ranges over [0.004, 3600] s (V4.5 manual: [0.02, 3600])."""
+    client.ask("EnableRobot()")
+    assert client.ask("ServoP(473.000000,-141.000000,469.000000,-180.000000,0.000000,-90.000000,t=0.010000)").ok
+    assert client.ask("ServoJ(0,0,-90,0,90,0,t=0.004)").ok
+    assert client.ask("ServoJ(0,0,-90,0,90,0,t=3600)").ok
+    for t in ["0.0039", "3600.5", "0", "-0.01"]:
+        assert client.ask(f"ServoJ(0,0,-90,0,90,0,t={t})").error_id == -60001, t
+        assert client.ask(f"ServoP(473,-141,469,-180,0,-90,t={t})").error_id == -60001, t

@@ -88,7 +88,8 @@ def _positional6(cmd: Command) -> np.ndarray:
     return np.array([_num(a, param_error(ErrorId.REQUIRED_TYPE, i + 1)) for i, a in enumerate(cmd.args[:6])])
 
 
-# (lo, hi, integer) for the named options the commands take
+# (lo, hi, integer) for the options the commands take: firmware V4.6's ranges (ServoJ/ServoP's t is
+# [0.004, 3600] s since V4.6, [0.02, 3600] before)
 _FRAME = (0, 50, True)
 _OPTIONS = {
     "movj": {"user": _FRAME, "tool": _FRAME, "a": (1, 100, True), "v": (1, 100, True), "cp": (0, 100, True)},
@@ -96,7 +97,7 @@ _OPTIONS = {
         "user": _FRAME, "tool": _FRAME, "a": (1, 100, True), "v": (1, 100, True), "speed": (1, 1e6, True),
         "cp": (0, 100, True), "r": (1, 1e6, True),
     },
-    "servo": {"t": (0.02, 3600.0, False), "aheadtime": (20.0, 100.0, False), "gain": (200.0, 1000.0, False)},
+    "servo": {"t": (0.004, 3600.0, False), "aheadtime": (20.0, 100.0, False), "gain": (200.0, 1000.0, False)},
     "frames": {"user": _FRAME, "tool": _FRAME},
 }  # fmt: skip
 
