@@ -382,3 +382,14 @@ def test_servo_t_ranges_from_4_ms_to_an_hour(client):
     for t in ["0.0039", "3600.5", "0", "-0.01"]:
         assert client.ask(f"ServoJ(0,0,-90,0,90,0,t={t})").error_id == -60001, t
         assert client.ask(f"ServoP(473,-141,469,-180,0,-90,t={t})").error_id == -60001, t
+
+
+def test_movl_blend_radius_ranges_over_0_to_100_mm(client):
+    """Manual: MovL's r (the blend radius, mm; accepted and ignored here) ranges over [0, 100]."""
+    client.ask("EnableRobot()")
+    for r in (0, 100):
+        assert client.ask(f"MovL(pose={{473,-141,469,-180,0,-90}},a=50,r={r})").ok, r
+    for r in (-1, 101, 500):
+        assert client.ask(f"MovL(pose={{473,-141,469,-180,0,-90}},a=50,r={r})").error_id == -60001, r
+    assert client.ask("MovL(pose={473,-141,469,-180,0,-90},r=2.5)").error_id == -50001  # an int
+    wait_mode(client, 5)

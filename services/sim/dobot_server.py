@@ -95,7 +95,7 @@ _OPTIONS = {
     "movj": {"user": _FRAME, "tool": _FRAME, "a": (1, 100, True), "v": (1, 100, True), "cp": (0, 100, True)},
     "movl": {
         "user": _FRAME, "tool": _FRAME, "a": (1, 100, True), "v": (1, 100, True), "speed": (1, 1e6, True),
-        "cp": (0, 100, True), "r": (1, 1e6, True),
+        "cp": (0, 100, True), "r": (0, 100, True),
     },
     "servo": {"t": (0.004, 3600.0, False), "aheadtime": (20.0, 100.0, False), "gain": (200.0, 1000.0, False)},
     "frames": {"user": _FRAME, "tool": _FRAME},
