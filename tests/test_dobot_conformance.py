@@ -393,3 +393,22 @@ def test_movl_blend_radius_ranges_over_0_to_100_mm(client):
         assert client.ask(f"MovL(pose={{473,-141,469,-180,0,-90}},a=50,r={r})").error_id == -60001, r
     assert client.ask("MovL(pose={473,-141,469,-180,0,-90},r=2.5)").error_id == -50001  # an int
     wait_mode(client, 5)
+
+
+def test_inverse_kin_takes_joint_near_as_dobots_client_spells_it(client):
+    """Manual: InverseKin(X..Rz,User,Tool,useJointNear,JointNear); with useJointNear=1 the solution
+    nearest JointNear. Dobot's Python client sends `useJointNear=1,JointNear={..}`; the manual's table
+    writes jointNear: both are taken (names are case-insensitive)."""
+    pose = [473.0, -141.0, 469.0, -180.0, 0.0, -90.0]
+    near = "{0.000000,0.000000,-90.000000,180.000000,-90.000000,180.000000}"  # the wrist flipped over
+    vendor = "InverseKin({:f},{:f},{:f},{:f},{:f},{:f}".format(*pose)
+    for text in [f"{vendor},useJointNear=1,JointNear={near})", f"{vendor},user=0,tool=0,useJointNear=1,jointNear={near})"]:
+        q = client.ask(text)
+        assert q.ok, text
+        assert abs(q.values[3] - 168.1) < 1.0 and abs(q.values[4] + 90.0) < 1.0  # the solution near JointNear
+        assert same_pose(client.ask(dobot.format_command("PositiveKin", *q.values)).values, pose, atol=1e-3)
+    # without useJointNear=1 JointNear is ignored: the solution nearest the current angles
+    assert np.allclose(client.ask(f"{vendor},JointNear={near})").values, READY, atol=1e-3)
+    assert np.allclose(client.ask(f"{vendor},useJointNear=0,JointNear={near})").values, READY, atol=1e-3)
+    assert client.ask(f"{vendor},useJointNear=2,JointNear={near})").error_id == -60001
+    assert client.ask(f"{vendor},useJointNear=1,JointNear={{1,2,3}})").error_id == -50001

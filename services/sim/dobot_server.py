@@ -14,7 +14,7 @@ Commands (names case-insensitive, formats of the V4 manual; error ids in bagit.c
   EnableRobot([load[,cx,cy,cz[,isCheck]]])  DisableRobot()  ClearError()  EmergencyStop(1|0)
   PowerOn()  Stop()  SpeedFactor(1..100)  RobotMode()  GetAngle()  GetPose([user=i,tool=i])
   GetErrorID()  GetCurrentCommandID()  PositiveKin(j1..j6[,user=,tool=])
-  InverseKin(x..rz[,user=,tool=,useJointNear=0|1,jointNear={j1..j6}])
+  InverseKin(x..rz[,user=,tool=,useJointNear=0|1,jointNear={j1..j6}]) (JointNear too)
   MovJ(joint={..}|pose={..}[,user=,tool=,a=,v=,cp=])  MovL(joint={..}|pose={..}[,user=,tool=,a=,v=,speed=,cp=,r=])
   ServoJ(j1..j6[,t=,aheadtime=,gain=])  ServoP(x..rz[,t=,aheadtime=,gain=])
 The simulated arm has one user frame and one tool frame: indices 0..50 are accepted and all mean
@@ -88,10 +88,13 @@ def _positional6(cmd: Command) -> np.ndarray:
     return np.array([_num(a, param_error(ErrorId.REQUIRED_TYPE, i + 1)) for i, a in enumerate(cmd.args[:6])])
 
 
-# (lo, hi, integer) for the options the commands take: firmware V4.6's ranges (ServoJ/ServoP's t is
-# [0.004, 3600] s since V4.6, [0.02, 3600] before)
+VEC6 = None  # an option whose value is six numbers in braces (InverseKin's jointNear)
+Spec = dict[str, tuple[float, float, bool] | None]  # option name (lower case) -> (lo, hi, integer) or VEC6
+
+# the options the commands take, with firmware V4.6's ranges (ServoJ/ServoP's t is [0.004, 3600] s
+# since V4.6, [0.02, 3600] before)
 _FRAME = (0, 50, True)
-_OPTIONS = {
+_OPTIONS: dict[str, Spec] = {
     "movj": {"user": _FRAME, "tool": _FRAME, "a": (1, 100, True), "v": (1, 100, True), "cp": (0, 100, True)},
     "movl": {
         "user": _FRAME, "tool": _FRAME, "a": (1, 100, True), "v": (1, 100, True), "speed": (1, 1e6, True),
@@ -99,10 +102,11 @@ _OPTIONS = {
     },
     "servo": {"t": (0.004, 3600.0, False), "aheadtime": (20.0, 100.0, False), "gain": (200.0, 1000.0, False)},
     "frames": {"user": _FRAME, "tool": _FRAME},
+    "inversekin": {"user": _FRAME, "tool": _FRAME, "usejointnear": (0, 1, True), "jointnear": VEC6},
 }  # fmt: skip
 
 
-def _named_options(named: dict[str, object], spec: dict[str, tuple[float, float, bool]], out: dict[str, float] | None = None) -> dict[str, float]:
+def _named_options(named: dict[str, object], spec: Spec, out: dict | None = None) -> dict[str, float | np.ndarray]:
     """Named optional parameters (`key=value`) checked against `spec`, added to `out`.
 
     The manual numbers a named parameter's errors -50001 (unknown name, given twice, wrong type) and
@@ -114,12 +118,14 @@ def _named_options(named: dict[str, object], spec: dict[str, tuple[float, float,
         key = name.lower()
         if key not in spec or key in out:
             raise _ParamError(type_err)
-        lo, hi, integer = spec[key]
-        out[key] = _in(_num(v, type_err, integer), lo, hi, range_err)
+        if (rng := spec[key]) is VEC6:
+            out[key] = _vec6(v, type_err)
+        else:
+            out[key] = _in(_num(v, type_err, rng[2]), rng[0], rng[1], range_err)
     return out
 
 
-def _positional_options(args: list, names: list[str], spec: dict[str, tuple[float, float, bool]]) -> dict[str, float]:
+def _positional_options(args: list, names: list[str], spec: Spec) -> dict[str, float]:
     """Optional parameters given by position (`names` in order): the k-th one's errors are -5000k / -6000k."""
     out = {}
     for k, (name, v) in enumerate(zip(names, args), start=1):
@@ -397,16 +403,15 @@ class DobotControllerServer:
         return 0, cr5.matrix_to_pose6(cr5.fk(np.radians(q))).tolist()
 
     def _inverse_kin(self, cmd: Command) -> tuple[int, Values]:
+        """The solution nearest the current angles, or nearest jointNear when useJointNear=1 (names
+        case-insensitive: the manual writes jointNear and JointNear, Dobot's Python client sends JointNear)."""
         if len(cmd.args) != 6:
             raise _ParamError(int(ErrorId.PARAM_COUNT))
         pose = _positional6(cmd)
-        named = dict(cmd.named)
-        near = named.pop("jointNear", None)
-        use = named.pop("useJointNear", 0)
-        _named_options(named, _OPTIONS["frames"])
+        opts = _named_options(cmd.named, _OPTIONS["inversekin"])
         seed = np.radians(self.robot.get_angle_deg())
-        if near is not None and use == 1:
-            seed = np.radians(_vec6(near, param_error(ErrorId.OPTIONAL_TYPE, 2)))
+        if opts.get("usejointnear") == 1 and "jointnear" in opts:
+            seed = np.radians(opts["jointnear"])
         q = cr5.ik(cr5.pose6_to_matrix(pose), seed)
         if q is None:
             return int(ErrorId.FAILED), None
