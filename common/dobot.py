@@ -26,8 +26,8 @@ parameter k wrong; -5000k type/name of optional parameter k wrong; -6000k range 
 parameter k wrong. k counts positional parameters from 1 within their group; an error in a named
 (`key=value`) parameter is k = 1 whatever its position (MovJ(joint={..},a=50,v=500) is -60001).
 `ErrorId` holds the fixed ones, `param_error(...)` builds the others.
-While in error only ClearError, GetErrorID, EmergencyStop and RobotMode run; with the emergency
-stop pressed, the same (EmergencyStop(0) releases it). A motion command to a disabled arm gets -1.
+While in error only ClearError, GetErrorID, EmergencyStop, RobotMode and Stop (always allowed) run;
+with the emergency stop pressed, the same (EmergencyStop(0) releases it). A motion command to a disabled arm gets -1.
 A target the arm cannot take (no inverse solution, beyond a joint limit, the flange against the
 arm's body, a servo step faster than a joint can go) is answered -1 and latches the matching alarm:
 RobotMode becomes 9 and the feedback's ErrorStatus 1 until ClearError(). Malformed text is answered

@@ -412,3 +412,23 @@ def test_inverse_kin_takes_joint_near_as_dobots_client_spells_it(client):
     assert np.allclose(client.ask(f"{vendor},useJointNear=0,JointNear={near})").values, READY, atol=1e-3)
     assert client.ask(f"{vendor},useJointNear=2,JointNear={near})").error_id == -60001
     assert client.ask(f"{vendor},useJointNear=1,JointNear={{1,2,3}})").error_id == -50001
+
+
+def test_stop_is_allowed_in_error_and_with_the_emergency_stop_pressed(client):
+    """Manual: Stop() is always allowed; other commands stay refused (-2 in error, -3 in e-stop)."""
+    client.ask("EnableRobot()")
+    assert client.ask("MovJ(joint={0,0,170,0,90,0})").error_id == -1  # beyond J3's limit: alarm
+    assert client.ask("RobotMode()").values == [9]
+    assert client.ask("Stop()").ok
+    assert client.ask("GetAngle()").error_id == -2
+    assert client.ask("ClearError()").ok
+    assert client.ask("EmergencyStop(1)").ok
+    assert client.raw("Stop()") == "0,{},Stop();"
+    assert client.ask("SpeedFactor(50)").error_id == -3
+    assert client.ask("EmergencyStop(0)").ok and client.ask("ClearError()").ok
+    client.ask("EnableRobot()")
+    assert client.ask("MovJ(joint={60,0,-90,0,90,0})").ok
+    time.sleep(0.1)
+    assert client.ask("Stop()").ok  # and it still stops a motion under way
+    wait_mode(client, 5)
+    assert client.ask("GetAngle()").values[0] < 30.0

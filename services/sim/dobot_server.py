@@ -137,8 +137,9 @@ def _positional_options(args: list, names: list[str], spec: Spec) -> dict[str, f
 class DobotControllerServer:
     """Serves one simulated CR5 over Dobot's TCP/IP protocol V4 (see the module docstring)."""
 
-    # commands that still run while the arm is in error / with the e-stop pressed (V4 manual 4.0.5)
-    _IN_ERROR = {"clearerror", "geterrorid", "emergencystop", "robotmode"}
+    # commands that still run while the arm is in error / with the e-stop pressed (V4 manual 4.0.5);
+    # Stop is always allowed
+    _IN_ERROR = {"clearerror", "geterrorid", "emergencystop", "robotmode", "stop"}
 
     def __init__(
         self,
