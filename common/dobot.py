@@ -13,7 +13,8 @@ vector travels as `{a,b,c,d,e,f}`, e.g. `MovL(pose={-500,100,200,150,0,90},v=50)
 millimetres, a Cartesian pose is [x, y, z, rx, ry, rz] (see bagit.common.cr5 for the Euler
 convention). `format_command` writes one; `parse_command` reads one with a small hand-written
 grammar (no eval); `CommandSplitter` cuts a byte stream into commands (a command ends at its
-closing parenthesis; blank space, newlines and `;` between commands are ignored).
+closing parenthesis, whatever TCP segments it came in; blank space, newlines and `;` between
+commands are ignored; malformed text comes out as one `Frame` per send).
 
 Replies. `ErrorID,{value,...},Command(...);` with the command echoed as sent: `0,{},EnableRobot();`,
 `0,{1},MovL(pose={...});` (queued motions return their command id), `-10000,{},Mov(...);`.
@@ -56,8 +57,10 @@ frame indices and `UserValue`/`ToolValue` (the manual's "User[6]"/"Tool[6]") the
 
 from __future__ import annotations
 
+import codecs
 import math
 import re
+import time
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Iterable, Sequence, Union
@@ -73,6 +76,7 @@ FEEDBACK_SIZE = 1440
 TEST_VALUE = 0x0123456789ABCDEF
 ROBOT_TYPE_CR5 = 5
 MAX_COMMAND_CHARS = 4096
+COMMAND_TIMEOUT_S = 1.0  # an unfinished command this long after the client's last byte is answered -10000
 
 
 class RobotMode(IntEnum):
@@ -449,63 +453,146 @@ def parse_command(text: str) -> Command:
     return cmd
 
 
-class CommandSplitter:
-    """Cuts the dashboard port's byte stream into command strings.
+class Frame(str):
+    """One piece of the dashboard stream: a command's text, or, when `malformed`, text that cannot be
+    one (answered -10000 as a whole). A str, so code that only wants the text can ignore the flag."""
 
-    A command ends at the ')' that closes its '(' (braces inside are skipped); whitespace, newlines
-    and ';' between commands are dropped. Text that cannot start a command, or a command longer than
-    MAX_COMMAND_CHARS, comes out as it is so the server can answer it with an error rather than wait;
-    `flush()` hands over an unfinished command after the client has gone quiet.
+    malformed: bool = False
+
+    @classmethod
+    def bad(cls, text: str) -> "Frame":
+        f = cls(text)
+        f.malformed = True
+        return f
+
+
+_SEPARATORS = " \t\r\n;"
+_NAME_START_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*[ \t]*")
+_COMPLETE, _PARTIAL, _BAD = "complete", "partial", "bad"
+
+
+def _scan(s: str, limit: int) -> tuple[str, int]:
+    """Where the command at the start of `s` stands: (_COMPLETE, index after its ')'), (_PARTIAL, 0)
+    while more text may complete it (or its first `limit` characters do not), or (_BAD, 0) once it
+    cannot be a command (junk before the '(', a newline before the closing ')', junk right after it)."""
+    m = _NAME_START_RE.match(s, 0, limit)
+    if m is None:
+        return _BAD, 0
+    j = m.end()
+    if j == min(len(s), limit):
+        return _PARTIAL, 0
+    if s[j] != "(":
+        return _BAD, 0
+    depth = 0
+    for i in range(j, min(len(s), limit)):
+        ch = s[i]
+        if ch == "(":
+            depth += 1
+        elif ch == "\n":
+            return _BAD, 0
+        elif ch == ")":
+            depth -= 1
+            if depth == 0:
+                rest = s[i + 1 :].lstrip(" \t")
+                if not rest or rest[0] in _SEPARATORS or rest[0].isalpha() or rest[0] == "_":
+                    return _COMPLETE, i + 1
+                return _BAD, 0
+    return _PARTIAL, 0
+
+
+class CommandSplitter:
+    """Cuts the dashboard port's byte stream into commands, one `Frame` per command or malformed send.
+
+    A command may arrive in several TCP segments: it ends at the ')' that closes its '(';
+    whitespace, newlines and ';' between commands are dropped. Text that cannot be a command, a
+    command longer than `max_chars`, or one the client left unfinished for `timeout_s`, becomes ONE
+    malformed frame (as the manual answers each send once, never once per stray character or per
+    segment): a malformed piece runs to the end of its line, to the ')' closing an over-long command,
+    or to the client's next pause of `timeout_s`. The server calls `expire()` while the client is quiet.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, max_chars: int = MAX_COMMAND_CHARS, timeout_s: float = COMMAND_TIMEOUT_S) -> None:
+        self.max_chars = max_chars
+        self.timeout_s = timeout_s
+        self._decoder = codecs.getincrementaldecoder("utf-8")(errors="replace")
         self._buf = ""
+        self._bad: str | None = None  # the malformed piece's text so far (its first max_chars + 1)
+        self._depth: int | None = None  # an over-long command's parenthesis depth: its ')' ends it
+        self._last = 0.0
 
-    def feed(self, chunk: bytes | str) -> list[str]:
-        self._buf += chunk.decode("utf-8", errors="replace") if isinstance(chunk, (bytes, bytearray)) else chunk
-        out = []
+    def feed(self, chunk: bytes | str, now: float | None = None) -> list[Frame]:
+        """The frames that `chunk` completes, oldest first."""
+        self._buf += self._decoder.decode(chunk) if isinstance(chunk, (bytes, bytearray)) else chunk
+        self._last = time.monotonic() if now is None else now
+        out: list[Frame] = []
         while True:
-            self._buf = self._buf.lstrip(" \t\r\n;")
+            if self._bad is not None:
+                if not self._skip_bad(out):
+                    break
+                continue
+            self._buf = self._buf.lstrip(_SEPARATORS)
             if not self._buf:
                 break
-            end = self._command_end(self._buf)
-            if end is None:
-                if len(self._buf) > MAX_COMMAND_CHARS:
-                    out.append(self._buf[: MAX_COMMAND_CHARS + 1])
-                    self._buf = ""
+            kind, end = _scan(self._buf, self.max_chars)
+            if kind == _COMPLETE:
+                out.append(Frame(self._buf[:end]))
+                self._buf = self._buf[end:]
+            elif kind == _BAD:
+                self._bad, self._depth = "", None
+            elif len(self._buf) > self.max_chars:  # too long: malformed up to its closing ')'
+                self._bad, self._depth = "", 0
+            else:
                 break
-            if end < 0:  # a line ended before any '(': hand it over as malformed
-                out.append(self._buf[: -end].rstrip())
-                self._buf = self._buf[-end + 1 :]
-                continue
-            out.append(self._buf[:end])
-            self._buf = self._buf[end:]
         return out
 
-    def flush(self) -> str | None:
-        """Whatever incomplete text is buffered, as one (malformed) command; None if nothing is.
+    def _skip_bad(self, out: list[Frame]) -> bool:
+        """Take the malformed piece's text from the buffer; True (and its frame in `out`) once it ended."""
+        end = self._bad_end(self._buf)
+        piece = self._buf if end is None else self._buf[:end]
+        self._bad = ((self._bad or "") + piece)[: self.max_chars + 1]
+        if end is None:
+            self._buf = ""
+            return False
+        self._buf = self._buf[end:]
+        out.append(Frame.bad(self._bad.rstrip()))
+        self._bad = self._depth = None
+        return True
 
-        A server calls this when a client has sent nothing more for a while, so that text without a
-        closing parenthesis or newline still gets its error reply instead of waiting forever.
-        """
-        rest = self._buf.strip(" \t\r\n;")
-        self._buf = ""
-        return rest or None
-
-    @staticmethod
-    def _command_end(s: str) -> int | None:
-        """Index after the command's closing ')', -(index of a newline) met before any '(', or None."""
-        paren = 0
+    def _bad_end(self, s: str) -> int | None:
+        """Index where the malformed piece ends in `s` (after the closing ')' of an over-long command,
+        or at a newline), or None if it goes on."""
+        if self._depth is None:
+            i = s.find("\n")
+            return None if i < 0 else i
         for i, ch in enumerate(s):
+            if ch == "\n":
+                return i
             if ch == "(":
-                paren += 1
-            elif ch == ")":
-                paren -= 1
-                if paren <= 0:
+                self._depth += 1
+            elif ch == ")" and self._depth > 0:
+                self._depth -= 1
+                if self._depth == 0:
                     return i + 1
-            elif ch == "\n" and paren == 0:
-                return -i
         return None
+
+    def expire(self, now: float | None = None) -> Frame | None:
+        """The unfinished piece as one malformed frame once the client has been quiet for `timeout_s`."""
+        now = time.monotonic() if now is None else now
+        if now - self._last < self.timeout_s:
+            return None
+        return self.flush()
+
+    def flush(self) -> Frame | None:
+        """Whatever unfinished text is buffered, as one malformed frame; None if nothing is."""
+        rest = ((self._bad or "") + self._buf).strip(_SEPARATORS)[: self.max_chars + 1]
+        had_bad = self._bad is not None
+        self._buf, self._bad, self._depth = "", None, None
+        return Frame.bad(rest) if rest or had_bad else None
+
+    @property
+    def pending(self) -> bool:
+        """Text of an unfinished command or malformed piece is buffered."""
+        return self._bad is not None or bool(self._buf.strip(_SEPARATORS))
 
 
 # -- replies -------------------------------------------------------------------------------------

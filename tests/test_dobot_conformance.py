@@ -432,3 +432,45 @@ def test_stop_is_allowed_in_error_and_with_the_emergency_stop_pressed(client):
     assert client.ask("Stop()").ok  # and it still stops a motion under way
     wait_mode(client, 5)
     assert client.ask("GetAngle()").values[0] < 30.0
+
+
+def collect(c: Client, seconds: float, until: int | None = None) -> list[dobot.Reply]:
+    """The replies that arrive on `c` within `seconds` (or as soon as `until` have)."""
+    c.sock.settimeout(0.05)
+    end = time.monotonic() + seconds
+    try:
+        while time.monotonic() < end and (until is None or c.buf.count(";") < until):
+            try:
+                chunk = c.sock.recv(65536)
+            except (socket.timeout, TimeoutError):
+                continue
+            assert chunk, "controller closed the connection"
+            c.buf += chunk.decode()
+    finally:
+        c.sock.settimeout(3.0)
+    replies, c.buf = dobot.split_replies(c.buf)
+    return [dobot.parse_reply(r) for r in replies]
+
+
+def test_framing_one_reply_per_command_or_malformed_send(client):
+    """Manual: one reply per send. A command may come in several TCP segments (here 300 ms apart); a
+    malformed send (unbalanced parentheses, a 100 kB line, text left unfinished) gets exactly one
+    -10000: at its end of line or closing ')', or once the client has been quiet for 1 s."""
+    s = client.sock
+    s.sendall(b"SpeedFactor(")
+    time.sleep(0.3)
+    s.sendall(b"50)")
+    assert [r.command for r in collect(client, 0.5)] == ["SpeedFactor(50)"]
+    # ended by their closing parenthesis or newline: answered at once (a second reply would show below)
+    for line in [b"MovJ(joint={" + b"1," * 50_000 + b"1})", b"A" * 100_000 + b"\n", b")" * 30 + b"\n"]:
+        s.sendall(line)
+        replies = collect(client, 2.0, until=1)
+        assert [r.error_id for r in replies] == [-10000], line[:20]
+        assert len(replies[0].command) <= 256
+    # unbalanced and unfinished: answered once, after the 1 s time-out
+    for text in [b"RobotMode()" + b")" * 30, b"MovJ((((joint={0,0,-90,0,90,0})"]:
+        s.sendall(text)
+        replies = collect(client, 1.6)
+        assert [r.error_id for r in replies] == [-10000], text
+        assert replies[0].command.startswith(text.decode()[:9])
+    assert client.raw("RobotMode()") == "0,{4},RobotMode();"  # exactly one reply: the link works on

@@ -114,7 +114,23 @@ def test_command_splitter():
     ]
     assert sp.feed(b",4,5,6});GetPose()") == ["MovL(pose={1,2,3,4,5,6})", "GetPose()"]
     assert sp.feed(b"garbage\nRobotMode()") == ["garbage", "RobotMode()"]
-    assert sp.feed(b"A" * 5000) == ["A" * 4097]
+    assert sp.feed(b"A" * 5000) == []  # too long: one malformed frame once it ends (newline, ')' or a pause)
+    rest = sp.flush()
+    assert rest == "A" * 4097 and rest.malformed
+
+
+def test_command_splitter_frames_one_reply_per_send():
+    sp = dobot.CommandSplitter(timeout_s=1.0)
+    assert sp.feed(b"SpeedFactor(", now=0.0) == [] and sp.expire(now=0.5) is None
+    assert sp.feed(b"50)", now=0.8) == ["SpeedFactor(50)"]  # two segments, one command
+    bad = sp.feed(b"RobotMode()" + b")" * 20 + b"\nGetPose()", now=1.0)
+    assert bad == ["RobotMode()" + ")" * 20, "GetPose()"] and [f.malformed for f in bad] == [True, False]
+    assert sp.feed(b"))))", now=2.0) == [] and sp.feed(b"))))", now=2.5) == [] and sp.expire(now=3.0) is None
+    late = sp.expire(now=3.6)
+    assert late == ")" * 8 and late.malformed and not sp.pending  # one frame for the whole pause-free send
+    long = b"MovJ(joint={" + b"1," * 50_000 + b"1})"
+    frames = [f for i in range(0, len(long), 4096) for f in sp.feed(long[i : i + 4096], now=4.0)]
+    assert len(frames) == 1 and frames[0].malformed and len(frames[0]) == 4097
 
 
 def test_replies():

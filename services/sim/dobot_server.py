@@ -19,7 +19,9 @@ Commands (names case-insensitive, formats of the V4 manual; error ids in bagit.c
   ServoJ(j1..j6[,t=,aheadtime=,gain=])  ServoP(x..rz[,t=,aheadtime=,gain=])
 The simulated arm has one user frame and one tool frame: indices 0..50 are accepted and all mean
 the base and flange frames. `cp` and `r` (blending) are accepted and ignored: motions stop at each
-target. Malformed text is answered -10000 like an unknown command, never by closing the link.
+target. Malformed text is answered -10000 like an unknown command, never by closing the link: once
+per malformed send (bagit.common.dobot.CommandSplitter), and a command split over several TCP
+segments is put together first; one left unfinished for `command_timeout` (1 s) gets its -10000.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import numpy as np
 
 from bagit.common import cr5
 from bagit.common.dobot import (
+    COMMAND_TIMEOUT_S,
     DASHBOARD_PORT,
     FEEDBACK_PERIOD_S,
     FEEDBACK_PORT,
@@ -50,7 +53,7 @@ from bagit.services.sim.cr5_sim import SimulatedCR5
 
 Values = list[float] | list[int] | str | None
 CR5_MAX_LOAD_KG = 5.0
-IDLE_FLUSH_S = 0.1  # text left unfinished this long is answered as a malformed command
+POLL_S = 0.05  # how often a quiet client's unfinished command is checked against its time-out
 
 
 class _ParamError(Exception):
@@ -149,8 +152,10 @@ class DobotControllerServer:
         feedback_port: int = FEEDBACK_PORT,
         feedback_period: float = FEEDBACK_PERIOD_S,
         step_in_background: bool = False,
+        command_timeout: float = COMMAND_TIMEOUT_S,
     ):
         self.robot = robot
+        self.command_timeout = float(command_timeout)
         self.host = host
         self._ports = (dashboard_port, feedback_port)
         self.feedback_period = float(feedback_period)
@@ -274,21 +279,22 @@ class DobotControllerServer:
         self._spawn(self._client_loop, conn, name="client")
 
     def _client_loop(self, conn: socket.socket) -> None:
-        splitter = CommandSplitter()
-        conn.settimeout(IDLE_FLUSH_S)
+        """One reply per command or malformed send (see CommandSplitter); a command may span segments."""
+        splitter = CommandSplitter(timeout_s=self.command_timeout)
+        conn.settimeout(POLL_S)
         try:
             while not self._stop.is_set():
                 try:
-                    data = conn.recv(4096)
+                    data = conn.recv(65536)
                 except (socket.timeout, TimeoutError):
-                    rest = splitter.flush()  # an unfinished command and a quiet client: answer it
-                    if rest is not None:
-                        conn.sendall(self.handle(rest).encode("utf-8"))
-                    continue
-                if not data:
+                    data = None
+                if data == b"":
                     return
-                for text in splitter.feed(data):
-                    conn.sendall(self.handle(text).encode("utf-8"))
+                frames = splitter.feed(data) if data else []
+                if (late := splitter.expire()) is not None:  # unfinished and the client quiet: answer it once
+                    frames.append(late)
+                for frame in frames:
+                    conn.sendall(self.handle(frame).encode("utf-8"))
         except OSError:
             return
         finally:
@@ -336,8 +342,10 @@ class DobotControllerServer:
     # -- commands --------------------------------------------------------------------------------
 
     def handle(self, text: str) -> str:
-        """The reply to one command line (also usable without sockets)."""
+        """The reply to one command (also usable without sockets); a malformed `Frame` gets -10000."""
         echo = " ".join(text.split())[:256]
+        if getattr(text, "malformed", False):
+            return format_reply(int(ErrorId.UNKNOWN_COMMAND), None, echo)
         try:
             cmd = parse_command(text)
         except ProtocolError:
