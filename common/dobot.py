@@ -460,7 +460,7 @@ class Frame(str):
     malformed: bool = False
 
     @classmethod
-    def bad(cls, text: str) -> "Frame":
+    def bad(cls, text: str) -> Frame:
         f = cls(text)
         f.malformed = True
         return f
