@@ -17,7 +17,7 @@ DEFAULT_LAMBDA_D_M = 0.04
 class MethodParams(BaseModel):
     """Parameters of the BagIt method (sections V and VI of the paper)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN passes no bound check
 
     # Bagging ellipse (eq. 7-10): C1 inside margin, C2 concentricity (m), C3 parallelism.
     lambda_1: float = Field(0.912, gt=0.0, lt=1.0, description="C1: max F_e of any vertex (< 1)")
@@ -61,8 +61,8 @@ class MethodParams(BaseModel):
     horizon: int = Field(10, ge=1, le=100, description="MPC horizon T")
     control_rate_hz: float = Field(30.0, gt=0.0, le=500.0)
     epsilon: float = Field(0.3, gt=0.0, le=1.0, description="Broyden update rate")
-    q_weight: float = Field(1.0, gt=0.0)
-    r_weight: float = Field(0.05, ge=0.0)
+    q_weight: float = Field(1.0, gt=0.0, le=1e6)
+    r_weight: float = Field(0.05, ge=0.0, le=1e6)
     # Not in the paper: how far each gripper may turn about the line between the grippers (from its
     # start); None: no bound (the default: measured, the bound did not pay).
     max_pitch_deg: float | None = Field(None, ge=0.0, le=180.0, description="grippers turn at most this far about their common axis (deg)")

@@ -1,0 +1,139 @@
+"""Hostile input: every file, document or flag a user can hand BagIt gets a one-line answer, quickly.
+
+Each case ends either in a result or in the project's own error (a BagItError / ValueError, which the
+CLI prints as one line with exit status 2): never a traceback, an out-of-memory or a hang.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from bagit.cli import main
+from bagit.common.errors import BadScenario
+from bagit.common.scenario import MAX_SCENARIO_BYTES, MAX_SCENARIO_DEPTH, Scenario
+from bagit.common.shapes import MAX_COORDINATE_M, MAX_SIZE_M
+from bagit.scenarios import find_scenario
+
+BUNDLED = sorted(Path(find_scenario("exp01")).parent.glob("*.yaml"))
+
+
+def one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str], *words: str, limit_s: float = 5.0) -> str:
+    """Run `bagit argv` in process; it must exit 2 within `limit_s` with one stderr line naming `words`."""
+    t0 = time.monotonic()
+    try:
+        code = main(argv)
+    except SystemExit as e:  # argparse refuses a flag by exiting
+        code = e.code
+    elapsed = time.monotonic() - t0
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert code == 2, (code, err)
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert elapsed < limit_s, elapsed
+    return lines[0]
+
+
+def doc_of(name: str) -> dict:
+    return yaml.safe_load(find_scenario(name).read_text())
+
+
+# --- 1. coordinates and sizes are bounded where the scenario is read --------------------------------
+
+
+def test_every_bundled_scenario_is_within_the_bounds():
+    for path in BUNDLED:
+        s = Scenario.from_file(path)
+        assert np.abs(s.object.bottom_vertices()).max() <= MAX_COORDINATE_M
+        assert s.object.effective_height() <= MAX_SIZE_M
+
+
+@pytest.mark.parametrize("value", [1e308, -1e308, 10.5, float("inf"), float("nan")])
+def test_an_object_far_away_is_refused_when_read(value, tmp_path, capsys):
+    doc = doc_of("exp01")
+    doc["object"]["shape"]["position"] = [value, 0.0, 0.575]
+    f = tmp_path / "far.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    for cmd in ("goal", "plan", "run"):
+        one_line_error(capsys, [cmd, str(f)], "object.shape.box.position")
+
+
+@pytest.mark.parametrize(
+    "path, value, word",
+    [
+        (("object", "shape", "size"), [0.1, 0.1, 2.5], "sizes"),
+        (("object", "shape", "size"), [0.1, 0.0, 0.1], "sizes"),
+        (("object", "shape", "rpy"), [0.0, 0.0, 1e9], "angles"),
+        (("object", "marker", "position"), [0.0, 0.0, 1e12], "position"),
+        (("bag", "initial_rim", 0), [1e300, 0.0, 0.5], "within 10 m"),
+        (("bag", "color"), [0.1, -1.0, 0.5], "color"),
+        (("obstacles", 0, "size"), [0.1, 0.1, 1e300], "sizes"),
+        (("obstacles", 0, "center"), [0.0, 11.0, 0.0], "position"),
+        (("obstacles", 0, "yaw"), 1e300, "yaw"),
+        (("params", "q_weight"), 1e300, "q_weight"),
+        (("params", "lambda_1"), "nan", "NaN"),
+    ],
+)
+def test_out_of_bounds_numbers_are_one_line_bad_scenarios(path, value, word):
+    doc = doc_of("obstacles-a")
+    node = doc
+    for key in path[:-1]:
+        node = node.setdefault(key, {}) if isinstance(key, str) else node[key]
+    node[path[-1]] = value
+    with pytest.raises(BadScenario) as e:
+        Scenario.from_dict(doc)
+    assert word in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_bundle_spread_over_more_than_the_bound_is_refused():
+    parts = [{"type": "box", "size": [0.1, 0.1, 0.1], "position": [9.0, 0.0, 0.0]}]
+    doc = {"name": "x", "object": {"shape": {"type": "bundle", "parts": parts, "position": [9.0, 0.0, 0.5]}}}
+    with pytest.raises(BadScenario, match="bottom outline"):
+        Scenario.from_dict(doc)
+
+
+# --- 2. a document too deep or too large ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("loader", ["CSafeLoader", "SafeLoader"])
+def test_a_yaml_nested_100k_deep_is_refused(loader, monkeypatch, tmp_path, capsys):
+    """libyaml and the pure-Python loader (which recurses, hence RecursionError) both end in BadScenario."""
+    import bagit.common.scenario as sc
+
+    if not hasattr(yaml, loader):
+        pytest.skip(f"PyYAML built without {loader}")
+    monkeypatch.setattr(sc, "_YAML_LOADER", getattr(yaml, loader))
+    f = tmp_path / "deep.yaml"
+    f.write_text("name: deep\nobject: " + "[" * 100_000 + "]" * 100_000 + "\n")
+    one_line_error(capsys, ["goal", str(f)], str(f))
+    with pytest.raises(BadScenario, match="deep"):
+        Scenario.from_text("name: x\nobject: " + "{a: " * (MAX_SCENARIO_DEPTH + 1) + "}" * (MAX_SCENARIO_DEPTH + 1))
+
+
+def test_aliases_that_expand_to_a_billion_values_are_refused_quickly():
+    lines = ["l0: &l0 [0, 0, 0, 0, 0, 0, 0, 0, 0, 0]"]
+    lines += [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]" for i in range(1, 9)]
+    t0 = time.monotonic()
+    with pytest.raises(BadScenario, match="values"):
+        Scenario.from_text("\n".join(lines) + "\nname: x\nobject: {vertices: *l8}\n")
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_a_document_that_contains_itself_is_refused():
+    with pytest.raises(BadScenario, match="deep"):
+        Scenario.from_text("name: x\nobject: &o {vertices: [*o]}\n")
+
+
+def test_a_file_over_the_size_limit_is_not_read_whole(tmp_path):
+    f = tmp_path / "big.yaml"
+    f.write_text("name: big\ndescription: '" + "x" * MAX_SCENARIO_BYTES + "'\n")
+    with pytest.raises(BadScenario, match="MiB"):
+        Scenario.from_file(f)
+    with pytest.raises(BadScenario, match="MiB"):
+        Scenario.from_file("/dev/zero")
