@@ -137,3 +137,65 @@ def test_a_file_over_the_size_limit_is_not_read_whole(tmp_path):
         Scenario.from_file(f)
     with pytest.raises(BadScenario, match="MiB"):
         Scenario.from_file("/dev/zero")
+
+
+# --- 3. cloud headers are checked against the file before anything is allocated ---------------------
+
+
+def npy_with_header(path: Path, shape: tuple[int, ...], descr: str = "<f8", total: int = 128) -> Path:
+    """A .npy of `total` bytes whose header claims `shape`: np.save could never write it."""
+    header = f"{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}"
+    header += " " * (-(10 + len(header) + 1) % 64) + "\n"
+    data = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header.encode("latin1")
+    path.write_bytes(data + b"\0" * max(0, total - len(data)))
+    return path
+
+
+def ply_with_header(path: Path, n: int, fmt: str = "binary_little_endian", body: bytes = b"\0" * 24) -> Path:
+    path.write_bytes(f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty float x\nproperty float y\n"
+                     f"property float z\nend_header\n".encode() + body)
+    return path
+
+
+def pcd_with_header(path: Path, n: int, data: str = "binary", body: bytes = b"\0" * 24) -> Path:
+    path.write_bytes(f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\n"
+                     f"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n".encode() + body)
+    return path
+
+
+@pytest.mark.parametrize(
+    "make, word",
+    [
+        (lambda d: npy_with_header(d / "huge.npy", (10**12, 3)), "over the"),
+        (lambda d: npy_with_header(d / "short.npy", (1000, 3)), "need at least 24000 bytes"),
+        (lambda d: npy_with_header(d / "flat.npy", (10**12,)), "shape"),
+        (lambda d: npy_with_header(d / "text.npy", (10**12, 3), "<U8"), "numeric"),
+        (lambda d: ply_with_header(d / "huge.ply", 10**12), "over the"),
+        (lambda d: ply_with_header(d / "big.ply", 200_000_000), "over the"),
+        (lambda d: ply_with_header(d / "short.ply", 1000), "need at least 12000 bytes"),
+        (lambda d: ply_with_header(d / "short-ascii.ply", 1000, "ascii", b"0 0 0\n"), "need at least"),
+        (lambda d: ply_with_header(d / "neg.ply", -5), "negative"),
+        (lambda d: pcd_with_header(d / "huge.pcd", 10**12), "over the"),
+        (lambda d: pcd_with_header(d / "short.pcd", 1000), "need at least 12000 bytes"),
+        (lambda d: pcd_with_header(d / "zip.pcd", 10**7, "binary_compressed"), "need at least"),
+    ],
+)
+def test_a_cloud_header_that_claims_too_much_is_refused_unread(make, word, tmp_path, capsys):
+    from bagit.common.errors import BadCloud
+    from bagit.services.perception import load_cloud
+
+    path = make(tmp_path)
+    with pytest.raises(BadCloud, match=word):
+        load_cloud(path)
+    one_line_error(capsys, ["extract", str(path)], str(path))
+
+
+def test_clouds_within_their_headers_still_load(tmp_path):
+    from bagit.services.perception import load_cloud
+
+    np.save(tmp_path / "ok.npy", np.ones((1000, 3), np.float32))
+    ply_with_header(tmp_path / "ok.ply", 2, "ascii", b"0 0 0\n1 1 1")
+    pcd_with_header(tmp_path / "ok.pcd", 2, body=np.arange(6, dtype="<f4").tobytes())
+    assert load_cloud(tmp_path / "ok.npy").shape == (1000, 3)
+    assert np.array_equal(load_cloud(tmp_path / "ok.ply"), [[0, 0, 0], [1, 1, 1]])
+    assert np.array_equal(load_cloud(tmp_path / "ok.pcd"), [[0, 1, 2], [3, 4, 5]])
