@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from bagit.common.aruco import ARUCO_DICTIONARIES, ArucoDictionary
 from bagit.common.errors import BadScenario
+from bagit.common.names import MAX_N_X, MIN_N_X
 from bagit.common.geometry import closed_polyline_length, make_transform, pca, pose_to_matrix, resample_closed
 from bagit.common.params import DEFAULT_LAMBDA_D_M, MethodParams
 from bagit.common.shapes import MAX_ANGLE_RAD, MAX_SIZE_M, Angles, Length, Position, Shape, Size3, check_coordinates
@@ -161,7 +162,7 @@ class BagSpec(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     rim_perimeter: float | None = Field(None, gt=0.05, lt=10.0, description="R (m); measured from initial_rim when absent")
-    n_x: int = Field(32, ge=4, le=512)
+    n_x: int = Field(32, ge=MIN_N_X, le=MAX_N_X)
     initial_rim: list[list[float]] | None = Field(None, description="g0 (m); when absent perception gives it")
     kind: Literal["red-edged", "solid"] = "red-edged"
     depth: float = Field(0.30, gt=0.02, lt=2.0, description="bag depth (m), for the simulator")

@@ -199,3 +199,74 @@ def test_clouds_within_their_headers_still_load(tmp_path):
     assert load_cloud(tmp_path / "ok.npy").shape == (1000, 3)
     assert np.array_equal(load_cloud(tmp_path / "ok.ply"), [[0, 0, 0], [1, 1, 1]])
     assert np.array_equal(load_cloud(tmp_path / "ok.pcd"), [[0, 1, 2], [3, 4, 5]])
+
+
+# --- 4. every numeric flag refuses NaN, infinities and negatives at parse time ----------------------
+
+
+def numeric_flags() -> list[tuple[str, str, object]]:
+    """(command, flag, type) of every option that takes a number."""
+    import argparse
+
+    from bagit.cli import build_parser
+    from bagit.commands import _args
+
+    numeric = {_args.positive_number, _args.non_negative_number, _args.positive_seconds, _args.non_negative_seconds,
+               _args.non_negative_int, _args.positive_int, _args.seed, _args.port, _args.soi_points}
+    parser, _ = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # noqa: SLF001
+    out = []
+    for name, p in sub.choices.items():
+        for a in p._actions:  # noqa: SLF001 - argparse has no public accessor
+            if a.option_strings and a.type in numeric:
+                out.append((name, a.option_strings[-1], a.type))
+    return out
+
+
+def test_no_flag_takes_a_bare_float_or_int():
+    """`type=float` takes nan and inf, `type=int` takes -1: every number goes through bagit.commands._args."""
+    import argparse
+
+    from bagit.cli import build_parser
+
+    parser, _ = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # noqa: SLF001
+    bare = [(n, a.option_strings) for n, p in sub.choices.items() for a in p._actions if a.type in (int, float)]  # noqa: SLF001
+    assert not bare
+    assert len(numeric_flags()) >= 40
+
+
+@pytest.mark.parametrize("command, flag, kind", numeric_flags())
+def test_every_numeric_flag_refuses_nan_inf_and_negatives(command, flag, kind, capsys):
+    for value in ("nan", "inf", "-inf", "-1", "1e999", "x"):
+        line = one_line_error(capsys, [command, flag, value], flag)
+        assert line.startswith(f"bagit {command}: error: argument {flag}")
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-5", "1e308", "0.001"])
+def test_recorder_max_mb_is_validated_before_the_bus_opens(value, monkeypatch, capsys):
+    import bagit.common.bus as bus
+
+    monkeypatch.setattr(bus, "open_session", lambda *a, **k: pytest.fail("the recorder opened the bus"))
+    one_line_error(capsys, ["recorder", "--max-mb", value, "--duration", "0.1"], "--max-mb")
+
+
+def test_the_argparse_types_accept_what_they_should():
+    from bagit.commands import _args
+
+    assert _args.positive_number("2.5") == 2.5 and _args.non_negative_number("0") == 0.0
+    assert _args.seed("4294967295") == 2**32 - 1 and _args.port("0") == 0 and _args.soi_points("512") == 512
+    assert _args.positive_seconds("86400") == 86400.0 and _args.json_object('{"a": 1}') == {"a": 1}
+
+
+# --- 5. `bagit up` refuses a bad flag before any child starts -------------------------------------
+
+
+@pytest.mark.parametrize("argv, word", [(["--seed", "-1"], "--seed"), (["--seed", "1e3"], "--seed"),
+                                        (["--controller", "pid"], "--controller"), (["--rig", "a b"], "--rig"),
+                                        (["--timeout", "nan"], "--timeout"), (["no-such-scenario"], "no-such-scenario")])
+def test_up_refuses_bad_flags_before_any_child_starts(argv, word, monkeypatch, capsys):
+    import bagit.up
+
+    monkeypatch.setattr(bagit.up.Up, "start", lambda self: pytest.fail("a child was started"))
+    one_line_error(capsys, ["up", *argv], word, limit_s=2.0)
