@@ -28,7 +28,7 @@ from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
 from bagit.common.messages import Goal, ObjectDetection, Path, RunControl, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, SERVO_STAGES, ArmsMode
-from bagit.common.params import MethodParams
+from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
@@ -85,7 +85,7 @@ def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: 
         raise BagItError(f"the wall-time limit must be a positive number of seconds, got {opts.wall_limit_s}")
     t_wall = time.perf_counter()
     sc = opts.scenario
-    params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **opts.overrides})
+    params = merge_params(sc.params, opts.overrides)
     rate = params.control_rate_hz
     fps = opts.fps or rate
     if not 0 < fps <= 120:
@@ -267,7 +267,7 @@ class _Run:
         success = res.success and truth.success
         reason = res.reason if not res.success else truth.reason
         solve = np.asarray(self.trace.solve_ms, dtype=float)
-        params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **opts.overrides})
+        params = merge_params(sc.params, opts.overrides)
         return res.model_copy(update=dict(
             arms=opts.arms, success=success, reason=reason, error_cm=truth.error_cm, truth=truth,
             final_rim=points_list(self.sim.world.true_rim(sc.bag.n_x)), wall_s=round(time.perf_counter() - self.t_wall, 3),

@@ -6,9 +6,11 @@ is validated in one place; unknown keys are rejected so a typo never silently fa
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal, Mapping
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from bagit.common.errors import BadScenario
 
 # lambda_d when only V is known (no object height): a 4 cm lift of the rim along the object.
 DEFAULT_LAMBDA_D_M = 0.04
@@ -78,3 +80,13 @@ class MethodParams(BaseModel):
     max_angular_speed_rps: float = Field(0.3, gt=0.0, le=2.0, description="C7: gripper angular speed (rad/s)")
     subgoal_tol_m: float = Field(0.02, gt=0.0, le=0.2, description="advance along the path below this RMS error")
     goal_tol_m: float = Field(0.008, gt=0.0, le=0.2, description="the run is at g* below this RMS error")
+
+
+def merge_params(base: MethodParams, overrides: Mapping[str, Any] | None) -> MethodParams:
+    """`base`'s explicitly set parameters with `overrides` (a run's, e.g. `bagit run --params`) on top;
+    BadScenario naming the first bad one."""
+    try:
+        return MethodParams.model_validate({**base.model_dump(exclude_unset=True), **(overrides or {})})
+    except ValidationError as e:
+        first = e.errors()[0]
+        raise BadScenario(f"params.{'.'.join(map(str, first['loc']))}: {first['msg']}") from None

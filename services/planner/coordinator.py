@@ -27,12 +27,12 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BagItError, BadScenario
 from bagit.common.messages import ControllerStatus, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES, SERVO_STAGES
-from bagit.common.params import MethodParams
+from bagit.common.params import merge_params
 from bagit.common.results import RunResult, axis_error_cm, points_list
 from bagit.common.scenario import Scenario
 
@@ -246,13 +246,7 @@ class Coordinator:
                                    reason=f"a run is in progress (run {r.run_id if r else '?'}, stage {self.state.stage}); stop it first")
         try:
             scenario, name = self._scenario(req)
-            merged = {**scenario.params.model_dump(exclude_unset=True), **(req.params or {})}
-            try:
-                params = MethodParams.model_validate(merged)
-            except ValidationError as e:
-                first = e.errors()[0]
-                raise BadScenario(f"params.{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
-            scenario = scenario.model_copy(update={"params": params})
+            scenario = scenario.model_copy(update={"params": merge_params(scenario.params, req.params)})
             controller = req.controller or self.cfg.default_controller
             if controller not in self.cfg.controllers:
                 raise BadScenario(f"unknown controller {controller!r}; choose from {', '.join(self.cfg.controllers)}")
