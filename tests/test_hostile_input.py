@@ -270,3 +270,94 @@ def test_up_refuses_bad_flags_before_any_child_starts(argv, word, monkeypatch, c
 
     monkeypatch.setattr(bagit.up.Up, "start", lambda self: pytest.fail("a child was started"))
     one_line_error(capsys, ["up", *argv], word, limit_s=2.0)
+
+
+# --- 6. a goal out of the arms' reach is refused before anything moves -------------------------------
+
+
+def moved_scenario(dx: float = 0.0, dz: float = 0.0, name: str = "exp01") -> Scenario:
+    """A bundled scenario with its object moved by (dx, 0, dz); the bag (g0) stays where it was."""
+    doc = doc_of(name)
+    pos = doc["object"]["shape"]["position"]
+    doc["object"]["shape"]["position"] = [pos[0] + dx, pos[1], pos[2] + dz]
+    return Scenario.from_dict(doc)
+
+
+def test_every_bundled_goal_is_within_both_arms_reach():
+    from bagit.services.planner.plan import bagging_goal
+    from bagit.services.planner.reach import reach_problem
+
+    for path in BUNDLED:
+        s = Scenario.from_file(path)
+        goal, _ = bagging_goal(s, s.bag.g0())  # raises InfeasibleGoal otherwise
+        assert reach_problem({"g†": goal.g_dagger, "g*": goal.g_star}) is None
+
+
+def test_the_mounts_are_placed_where_the_simulator_clamps_the_rim():
+    """The approximation: at the rim's ends along the mounts' axis, within a few cm of the simulated mounts."""
+    from bagit.common.mounts import rim_frame
+    from bagit.services.planner.reach import rim_mount_poses
+    from bagit.services.sim.bag import bag_layout
+
+    frame = rim_frame(np.array([0.1, 0.0, 0.5]))
+    layout = bag_layout(0.68, 0.3, frame)
+    poses = rim_mount_poses(layout.vertices[layout.rim])
+    for a in ("left", "right"):
+        assert np.linalg.norm(poses[a][:3, 3] - layout.mount_home[a][:3, 3]) < 0.03
+        assert np.allclose(poses[a][:3, :3], layout.mount_home[a][:3, :3], atol=1e-9)
+    assert poses["left"][1, 3] < 0 < poses["right"][1, 3]  # left at -y, as the arms stand
+
+
+@pytest.mark.parametrize("dx, dz, word", [(3.0, 0.0, "workspace box"), (-1.0, 0.0, "workspace box"), (0.0, -0.5, "workspace box")])
+def test_an_object_out_of_reach_is_an_infeasible_goal(dx, dz, word):
+    from bagit.common.errors import InfeasibleGoal
+    from bagit.services.planner.plan import bagging_goal, plan_scenario
+
+    s = moved_scenario(dx, dz)
+    with pytest.raises(InfeasibleGoal, match=f"out of the arms' reach.*{word}"):
+        bagging_goal(s, s.bag.g0())
+    with pytest.raises(InfeasibleGoal, match="reach"):
+        plan_scenario(s)
+
+
+def test_beyond_the_cr5s_reach_with_a_wide_workspace_box():
+    """The box is the rig's rule; the CR5's inverse kinematics is the arm's own (0.9 m reach)."""
+    from bagit.common.errors import InfeasibleGoal
+    from bagit.common.rig import ARMS, RigConfig
+    from bagit.services.planner.plan import bagging_goal
+
+    rig = RigConfig()
+    wide = rig.model_copy(update={"arms": {a: rig.arms[a].model_copy(update={"workspace_min": (-3.0, -3.0, -3.0),
+                                                                                "workspace_max": (3.0, 3.0, 3.0)}) for a in ARMS}})
+    s = moved_scenario(1.5)
+    with pytest.raises(InfeasibleGoal, match="CR5 cannot reach"):
+        bagging_goal(s, s.bag.g0(), wide)
+    near = moved_scenario(0.1)
+    bagging_goal(near, near.bag.g0(), wide)  # within reach: no error
+
+
+def test_the_coordinator_fails_an_unreachable_run_at_the_goal_stage():
+    from bagit.services.planner.coordinator import PlanJob, compute_plan
+
+    s = moved_scenario(3.0)
+    out = compute_plan(PlanJob("r1", s, s.bag.g0(), "cbirrt", 0, 5.0))
+    assert out.failed_stage == "goal" and "out of the arms' reach" in out.reason and out.path is None
+
+
+@pytest.mark.parametrize("command", ["goal", "plan", "run", "up"])
+def test_the_cli_refuses_an_object_3_m_away_at_once(command, tmp_path, monkeypatch, capsys):
+    import bagit.inprocess
+    import bagit.up
+
+    monkeypatch.setattr(bagit.inprocess, "run_inprocess", lambda *a, **k: pytest.fail("the run started"))
+    monkeypatch.setattr(bagit.up.Up, "start", lambda self: pytest.fail("a child was started"))
+    f = tmp_path / "far.yaml"
+    f.write_text(moved_scenario(3.0).to_yaml())
+    one_line_error(capsys, [command, str(f)], "out of the arms' reach", "workspace box", limit_s=3.0)
+
+
+def test_bad_run_params_are_one_line(capsys, monkeypatch):
+    import bagit.inprocess
+
+    monkeypatch.setattr(bagit.inprocess, "run_inprocess", lambda *a, **k: pytest.fail("the run started"))
+    one_line_error(capsys, ["run", "exp01", "--params", '{"lambda_1": 5}'], "params.lambda_1")

@@ -31,12 +31,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from bagit.common.params import merge_params
     from bagit.common.scenario import Scenario
     from bagit.inprocess import RunOptions, run_inprocess
     from bagit.scenarios import find_scenario
+    from bagit.services.planner.plan import check_scenario_goal
 
     path = find_scenario(args.scenario)
     s = Scenario.from_file(path)
+    # bad parameters, a goal too large for the bag or out of the arms' reach: one line, before the world is built
+    check_scenario_goal(s.model_copy(update={"params": merge_params(s.params, args.params)}))
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
     stream = sys.stderr if args.json else sys.stdout
     say = lambda m: print(f"[run] {m}", file=stream, flush=True)  # noqa: E731

@@ -56,8 +56,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.scenario:
         from bagit.common.scenario import Scenario
         from bagit.scenarios import find_scenario
+        from bagit.services.planner.plan import check_scenario_goal
 
-        Scenario.from_file(find_scenario(args.scenario))  # a bad name or file is a one-line error
+        check_scenario_goal(Scenario.from_file(find_scenario(args.scenario)))  # a bad file, or a goal out of reach
     try:
         RigConfig(name=args.rig)
     except ValidationError as e:
