@@ -89,7 +89,10 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser, modules = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help, --version, or a usage error (already one line on stderr): its status
+        return e.code if isinstance(e.code, int) else 0 if e.code is None else 2
     if not args.command:
         parser.print_help()
         return 2
