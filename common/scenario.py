@@ -47,6 +47,7 @@ def _finite_points(v: list[list[float]] | None, what: str, min_points: int) -> l
     return a.tolist()
 
 
+MAX_MARKER_ID = 999  # ids of every OpenCV predefined dictionary are below 1000 (the largest has 1000)
 MARKER_THICKNESS_M = 0.001  # a printed card: the marker's face stands this far off the surface it is stuck on
 
 
@@ -60,7 +61,7 @@ class MarkerSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    id: int = Field(..., ge=0, le=999)
+    id: int = Field(..., ge=0, le=MAX_MARKER_ID)
     size: float = Field(0.05, gt=0.005, lt=0.5, description="side of the marker's black square (m)")
     dictionary: ArucoDictionary = Field("DICT_4X4_50", description="OpenCV predefined dictionary, e.g. DICT_4X4_50")
     position: Position | None = Field(None, description="marker centre in the bottom frame (m)")
@@ -89,7 +90,7 @@ class ObjectSpec(BaseModel):
     vertices: list[list[float]] | None = Field(None, description="bottom outline V, world frame (m)")
     height: Length | None = Field(None, description="how far the object reaches above its bottom (m)")
     shape: Shape | None = None
-    marker_id: int | None = Field(None, ge=0, description="shorthand for `marker: {id: ...}` (a default marker on top)")
+    marker_id: int | None = Field(None, ge=0, le=MAX_MARKER_ID, description="shorthand for `marker: {id: ...}` (a default marker on top)")
     marker: MarkerSpec | None = None
 
     @field_validator("vertices")

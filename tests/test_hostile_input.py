@@ -25,10 +25,7 @@ BUNDLED = sorted(Path(find_scenario("exp01")).parent.glob("*.yaml"))
 def one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str], *words: str, limit_s: float = 5.0) -> str:
     """Run `bagit argv` in process; it must exit 2 within `limit_s` with one stderr line naming `words`."""
     t0 = time.monotonic()
-    try:
-        code = main(argv)
-    except SystemExit as e:  # argparse refuses a flag by exiting
-        code = e.code
+    code = main(argv)
     elapsed = time.monotonic() - t0
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
@@ -361,3 +358,195 @@ def test_bad_run_params_are_one_line(capsys, monkeypatch):
 
     monkeypatch.setattr(bagit.inprocess, "run_inprocess", lambda *a, **k: pytest.fail("the run started"))
     one_line_error(capsys, ["run", "exp01", "--params", '{"lambda_1": 5}'], "params.lambda_1")
+
+
+# --- 7. fuzz: scenario fields, cloud headers and numeric flags --------------------------------------
+
+import argparse  # noqa: E402
+import contextlib  # noqa: E402
+import math  # noqa: E402
+import signal  # noqa: E402
+from typing import Any, Iterator  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from bagit.common.errors import BagItError  # noqa: E402
+
+HANG_S = 10.0  # one example taking this long is a hang (the slowest take ~0.3 s on a loaded 2-core machine)
+FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+CLEAR_ERRORS = (BagItError, ValueError)  # what the CLI prints as one line with exit status 2
+
+
+@contextlib.contextmanager
+def no_hang(seconds: float = HANG_S) -> Iterator[None]:
+    """Fail (instead of hanging the suite) when the body runs longer than `seconds` in Python code."""
+
+    def alarm(*_: Any) -> None:
+        raise AssertionError(f"still running after {seconds} s: a hang")
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+HOSTILE_NUMBERS = st.sampled_from([1e308, -1e308, math.inf, -math.inf, math.nan, 0, 0.0, -1, -1e-300, 1e-300, 5e-324,
+                                   10**400, -(10**400), 2**63, 1e9, 10.5, 2.5, 1.5, 0.5, 999, 1000, True, "nan", "1e999"])
+JUNK = st.recursive(st.none() | st.booleans() | st.text(max_size=4) | HOSTILE_NUMBERS | st.floats(),
+                    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+                    max_leaves=10)
+NUMBERS = st.one_of(HOSTILE_NUMBERS, st.floats(-12.0, 12.0), st.floats(-1e-3, 1e-3), st.floats(allow_nan=True, allow_infinity=True))
+
+
+def _vertices_doc() -> dict:
+    """exp02 with its object given as V (and a height) instead of a shape: V's numbers fuzzed directly."""
+    doc = doc_of("exp02")
+    obj = Scenario.from_dict(doc).object
+    doc["object"] = {"vertices": obj.bottom_vertices().tolist(), "height": obj.height}
+    return doc
+
+
+BASES = {**{name: doc_of(name) for name in ("exp01", "exp04", "exp11", "obstacles-a")}, "vertices": _vertices_doc()}
+
+
+def leaf_paths(node: Any, path: tuple = ()) -> list[tuple]:
+    """Paths to every value of a document (containers included), for the fuzzer to replace."""
+    out = [path] if path else []
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += leaf_paths(v, path + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            out += leaf_paths(v, path + (i,))
+    return out
+
+
+@st.composite
+def hostile_scenarios(draw: st.DrawFn) -> dict:
+    """A bundled scenario with one to three of its values replaced: numbers mostly by numbers (huge, NaN,
+    negative, tiny, or merely off), anything by nested junk now and then."""
+    import copy
+
+    doc = copy.deepcopy(BASES[draw(st.sampled_from(sorted(BASES)))])
+    paths = leaf_paths(doc)
+    for _ in range(draw(st.integers(1, 3))):
+        path = draw(st.sampled_from(paths))
+        node = doc
+        try:
+            for key in path[:-1]:
+                node = node[key]
+            numeric = isinstance(node[path[-1]], (int, float)) and not isinstance(node[path[-1]], bool)
+            node[path[-1]] = draw(NUMBERS if numeric and draw(st.integers(0, 3)) else st.one_of(NUMBERS, JUNK))
+        except (KeyError, IndexError, TypeError):  # an earlier replacement removed the path
+            pass
+    return doc
+
+
+@FUZZ
+@given(doc=hostile_scenarios(), as_text=st.booleans())
+def test_fuzz_scenarios_load_and_make_a_goal_or_say_why(doc, as_text):
+    from bagit.services.planner.plan import bagging_goal
+
+    with no_hang():
+        try:
+            if as_text:
+                s = Scenario.from_text(yaml.safe_dump(doc))
+            else:
+                s = Scenario.from_dict(doc)
+        except BadScenario as e:
+            assert str(e) and "\n" not in str(e), str(e)
+            return
+        try:
+            goal, R = bagging_goal(s, s.bag.g0())
+        except CLEAR_ERRORS as e:
+            assert str(e).strip(), type(e)
+            return
+        assert np.all(np.isfinite(goal.g_dagger)) and np.all(np.isfinite(goal.g_star)) and R > 0
+
+
+CLOUD_BODY = st.binary(max_size=512)
+COUNTS = st.one_of(st.integers(-5, 300), st.integers(0, 10**15), st.sampled_from(["abc", "1e9", "", "-0", "99999999999999999999999"]))
+
+
+@st.composite
+def npy_files(draw: st.DrawFn) -> bytes:
+    shape = tuple(draw(st.lists(st.integers(0, 10**13) | st.integers(0, 50), max_size=3)))
+    descr = draw(st.sampled_from(["<f8", "<f4", "<i4", "|u1", "<U8", "|b1", "<c16", "|O", ">f8", "junk"]))
+    header = draw(st.sampled_from([f"{{'descr': '{descr}', 'fortran_order': {draw(st.booleans())}, 'shape': {shape}, }}",
+                                   draw(st.text(max_size=40))]))
+    header += " " * (-(10 + len(header.encode('utf8')) + 1) % 64) + "\n"
+    raw = header.encode("utf8")
+    return b"\x93NUMPY\x01\x00" + len(raw).to_bytes(2, "little") + raw + draw(CLOUD_BODY)
+
+
+@st.composite
+def ply_files(draw: st.DrawFn) -> bytes:
+    fmt = draw(st.sampled_from(["ascii", "binary_little_endian", "binary_big_endian", "nonsense"]))
+    kinds = st.sampled_from(["float", "double", "uchar", "int", "list uchar int", "float128", ""])
+    props = "".join(f"property {draw(kinds)} {n}\n" for n in draw(st.lists(st.sampled_from("xyzw"), max_size=4)))
+    elements = "".join(f"element {draw(st.sampled_from(['vertex', 'face']))} {draw(COUNTS)}\n{props}"
+                       for _ in range(draw(st.integers(0, 2))))
+    return f"ply\nformat {fmt} 1.0\n{elements}end_header\n".encode() + draw(CLOUD_BODY)
+
+
+@st.composite
+def pcd_files(draw: st.DrawFn) -> bytes:
+    n = draw(COUNTS)
+    lines = ["# .PCD v0.7", "VERSION 0.7", "FIELDS x y z", f"SIZE {draw(st.sampled_from(['4 4 4', '8 8 8', 'a b c', '4']))}",
+             "TYPE F F F", f"COUNT {draw(st.sampled_from(['1 1 1', '2 2 2', 'x']))}", f"WIDTH {draw(COUNTS)}",
+             f"HEIGHT {draw(st.sampled_from(['1', '0', '-3', '1000000']))}", "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {n}",
+             f"DATA {draw(st.sampled_from(['ascii', 'binary', 'binary_compressed', 'other']))}"]
+    return ("\n".join(lines) + "\n").encode() + draw(CLOUD_BODY)
+
+
+@FUZZ
+@given(kind=st.sampled_from([".npy", ".ply", ".pcd"]), data=st.data())
+def test_fuzz_cloud_headers_load_or_say_why(kind, data, tmp_path_factory):
+    from bagit.common.errors import BadCloud
+    from bagit.services.perception import load_cloud
+
+    content = data.draw({".npy": npy_files(), ".ply": ply_files(), ".pcd": pcd_files()}[kind])
+    path = tmp_path_factory.mktemp("fuzz") / f"cloud{kind}"
+    path.write_bytes(content)
+    with no_hang():
+        try:
+            points = load_cloud(path)
+        except BadCloud as e:
+            assert str(e) and "\n" not in str(e)
+            return
+    assert points.ndim == 2 and points.shape[1] == 3 and len(points) <= len(content)
+
+
+FLAG_TEXT = st.one_of(st.floats().map(repr), st.integers(-(10**30), 10**30).map(str), HOSTILE_NUMBERS.map(str),
+                      st.text(max_size=8), st.sampled_from(["1e999", "-0", "0x10", "1_000", " 5 ", "NaN", "Infinity", "4294967296"]))
+
+
+@FUZZ
+@given(flag=st.sampled_from(numeric_flags()), text=FLAG_TEXT)
+def test_fuzz_numeric_flags_parse_or_exit_2_with_one_line(flag, text):
+    import io
+
+    from bagit.cli import build_parser
+
+    command, option, kind = flag
+    try:
+        value = kind(text)
+    except argparse.ArgumentTypeError:
+        value = None
+    if value is not None:  # what a flag's type lets through is a finite number, never negative
+        assert isinstance(value, (int, float)) and math.isfinite(value) and value >= 0
+    parser, _ = build_parser()
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            parser.parse_args([command, option, text])
+    except SystemExit as e:  # a refused value, or a missing positional: the same one-line form
+        assert e.code == 2
+        lines = err.getvalue().strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"bagit {command}: error:"), lines
+        if value is None:
+            assert option in lines[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from tokenize import TokenError
 
 import numpy as np
 import open3d as o3d
@@ -41,7 +42,8 @@ def _check_npy_header(p: Path, size: int) -> None:
             read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             shape, _, dtype = read(f)
             offset = f.tell()
-    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as e:
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError, TokenError, RecursionError, MemoryError) as e:
+        # numpy parses the header's dict with the tokenizer and ast.literal_eval: any of these on junk
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise BadCloud(f"cannot read {p} as a numpy array: {reason}") from None
     if dtype.hasobject:
