@@ -223,6 +223,16 @@ def check_document(data: Any, source: str = "scenario") -> None:
         stack.extend((c, depth + 1) for c in (node.values() if isinstance(node, dict) else node))
 
 
+def _yaml_reason(e: yaml.YAMLError) -> str:
+    """One line from a YAML error: its problem (e.g. libyaml's 'exceeded maximum nesting depth'), the
+    context it arose in and where, rather than only the context that str(e) starts with."""
+    problem, context, mark = (getattr(e, k, None) for k in ("problem", "context", "problem_mark"))
+    if not problem:
+        return str(e).splitlines()[0] if str(e) else type(e).__name__
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return f"{problem}{' ' + context if context else ''}{where}"
+
+
 # libyaml's safe loader parses the bundled scenarios (rims of hundreds of points) about 10x faster
 _YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
@@ -274,7 +284,7 @@ class Scenario(BaseModel):
         try:
             data = yaml.load(text, Loader=_YAML_LOADER)  # noqa: S506 - a safe loader (libyaml's when built in)
         except yaml.YAMLError as e:
-            raise BadScenario(f"{source}: not valid YAML/JSON: {str(e).splitlines()[0]}") from None
+            raise BadScenario(f"{source}: not valid YAML/JSON: {_yaml_reason(e)}") from None
         except RecursionError:  # the pure-Python loader composes nested nodes recursively
             raise BadScenario(f"{source}: nested too deeply (a scenario is at most {MAX_SCENARIO_DEPTH} levels deep)") from None
         except MemoryError:

@@ -108,7 +108,7 @@ def test_a_yaml_nested_100k_deep_is_refused(loader, monkeypatch, tmp_path, capsy
     monkeypatch.setattr(sc, "_YAML_LOADER", getattr(yaml, loader))
     f = tmp_path / "deep.yaml"
     f.write_text("name: deep\nobject: " + "[" * 100_000 + "]" * 100_000 + "\n")
-    one_line_error(capsys, ["goal", str(f)], str(f))
+    one_line_error(capsys, ["goal", str(f)], str(f), "nest")  # libyaml: "maximum nesting depth"; Python: "nested too deeply"
     with pytest.raises(BadScenario, match="deep"):
         Scenario.from_text("name: x\nobject: " + "{a: " * (MAX_SCENARIO_DEPTH + 1) + "}" * (MAX_SCENARIO_DEPTH + 1))
 
