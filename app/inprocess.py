@@ -105,7 +105,8 @@ class _Run:
         self.frame_dt = 1.0 / fps
         sc = opts.scenario
         self.arms: Cr5Arms | IdealArms = Cr5Arms.of(sim) if opts.arms == "cr5" else IdealArms(sim)
-        self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.time)
+        self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.time,
+                                 rig=sim.rig)
         self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, tuple(sc.bag.color))
         library = ObjectLibrary.from_scenarios()
         try:

@@ -341,6 +341,25 @@ def test_the_coordinator_fails_an_unreachable_run_at_the_goal_stage():
     assert out.failed_stage == "goal" and "out of the arms' reach" in out.reason and out.path is None
 
 
+def test_the_coordinator_checks_reach_against_its_own_rig():
+    """`bagit run` hosts the coordinator with the simulated rig's arms; the job carries them to compute_plan."""
+    from bagit.common.messages import RunControl, SoiState
+    from bagit.common.rig import ARMS, RigConfig
+    from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, compute_plan
+
+    rig = RigConfig()
+    low = rig.model_copy(update={"arms": {a: rig.arms[a].model_copy(update={"workspace_max": (0.45, 0.45, 0.3)}) for a in ARMS}})
+    t0 = 1000.0
+    c = Coordinator(CoordinatorConfig(object_source="scenario"), now=t0, rig=low)
+    for service in ("controller", "arm-driver", "perception"):
+        c.on_liveliness(service, True, t0)
+    assert c.start(RunControl(action="start", scenario="exp02"), t0).accepted
+    (eff,) = c.on_soi(SoiState(rim=c.run.scenario.bag.g0(), source_stamp=t0 + 1.9, stamp=t0 + 1.92), t0 + 2.0)
+    assert eff.job.rig is low
+    out = compute_plan(eff.job)
+    assert out.failed_stage == "goal" and "workspace box [-0.45, 0.45] x [-0.45, 0.45] x [0.15, 0.3] m" in out.reason
+
+
 @pytest.mark.parametrize("command", ["goal", "plan", "run", "up"])
 def test_the_cli_refuses_an_object_3_m_away_at_once(command, tmp_path, monkeypatch, capsys):
     import bagit.inprocess
