@@ -1,7 +1,7 @@
 """`bagit`: the one command-line entry point.
 
-Errors the user can fix (bad files, bad input, infeasible goals) print one line on stderr and exit
-with status 2; a job that ran but did not succeed exits with 1. Set BAGIT_DEBUG=1 for tracebacks.
+Errors the user can fix (bad files, bad input, infeasible goals, bad flags) print one line on stderr
+and exit with status 2; a job that ran but did not succeed exits with 1. Set BAGIT_DEBUG=1 for tracebacks.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import json
 import os
 import sys
 from types import ModuleType
-from typing import Any, Sequence
+from typing import Any, NoReturn, Sequence
 
 import numpy as np
 
@@ -64,8 +64,17 @@ def print_json(result: dict[str, Any]) -> None:
     print(json.dumps(_to_jsonable(result)))
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line, like every other error of the CLI (exit status 2):
+    `bagit run: error: argument --seed: seed must be in [0, 4294967295], got -1 (see bagit run --help)`."""
+
+    def error(self, message: str) -> NoReturn:
+        first = message.splitlines()[0] if message else "bad arguments"
+        self.exit(2, f"{self.prog}: error: {first} (see {self.prog} --help)\n")
+
+
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
-    parser = argparse.ArgumentParser(prog="bagit", description="Dual-arm bagging of objects into fabric bags.")
+    parser = OneLineParser(prog="bagit", description="Dual-arm bagging of objects into fabric bags.")
     parser.add_argument("--version", action="version", version=f"bagit {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     modules: dict[str, ModuleType] = {}
@@ -80,7 +89,10 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser, modules = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help, --version, or a usage error (already one line on stderr): its status
+        return e.code if isinstance(e.code, int) else 0 if e.code is None else 2
     if not args.command:
         parser.print_help()
         return 2

@@ -28,7 +28,7 @@ from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
 from bagit.common.messages import Goal, ObjectDetection, Path, RunControl, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, SERVO_STAGES, ArmsMode
-from bagit.common.params import MethodParams
+from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
@@ -85,7 +85,7 @@ def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: 
         raise BagItError(f"the wall-time limit must be a positive number of seconds, got {opts.wall_limit_s}")
     t_wall = time.perf_counter()
     sc = opts.scenario
-    params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **opts.overrides})
+    params = merge_params(sc.params, opts.overrides)
     rate = params.control_rate_hz
     fps = opts.fps or rate
     if not 0 < fps <= 120:
@@ -105,7 +105,8 @@ class _Run:
         self.frame_dt = 1.0 / fps
         sc = opts.scenario
         self.arms: Cr5Arms | IdealArms = Cr5Arms.of(sim) if opts.arms == "cr5" else IdealArms(sim)
-        self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.time)
+        self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.time,
+                                 rig=sim.rig)
         self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, tuple(sc.bag.color))
         library = ObjectLibrary.from_scenarios()
         try:
@@ -267,7 +268,7 @@ class _Run:
         success = res.success and truth.success
         reason = res.reason if not res.success else truth.reason
         solve = np.asarray(self.trace.solve_ms, dtype=float)
-        params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **opts.overrides})
+        params = merge_params(sc.params, opts.overrides)
         return res.model_copy(update=dict(
             arms=opts.arms, success=success, reason=reason, error_cm=truth.error_cm, truth=truth,
             final_rim=points_list(self.sim.world.true_rim(sc.bag.n_x)), wall_s=round(time.perf_counter() - self.t_wall, 3),

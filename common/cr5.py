@@ -32,6 +32,11 @@ JOINT_OFFSET = np.array([0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0])  # theta_D
 JOINT_LIMITS = np.radians([[-360, 360], [-360, 360], [-160, 160], [-360, 360], [-360, 360], [-360, 360]])
 JOINT_SPEED_LIMIT = np.radians(180.0)  # rad/s per joint
 REACH_M = 0.9
+# An elbow stretched straight (J3 = 0) is the edge of the reach and a singularity: a target there,
+# rounded to the wire's 6 decimals or solved from the controller's own seed, may have no solution,
+# and the controller alarms. The arm driver keeps the elbow this far from straight, and the planner's
+# reach check asks the same of the goal.
+ELBOW_MARGIN_RAD = float(np.radians(2.0))
 _TWO_PI = 2 * np.pi
 
 # Self-collision model: the flange and wrist as spheres against the base column and the upper arm.

@@ -26,3 +26,8 @@ DEFAULT_PLANNER: PlannerName = "cbirrt"
 # (the rig as deployed), or floating grippers that take each increment at once (an ablation).
 ArmsMode = Literal["cr5", "ideal"]
 ARMS_MODES: tuple[str, ...] = get_args(ArmsMode)
+
+# How many points an SOI may have (a scenario's bag.n_x, perception's n_x, `--n-x`): at least 4 to
+# outline a rim, at most 512 (the paper uses 32; every stage's cost grows with it).
+MIN_N_X = 4
+MAX_N_X = 512

@@ -6,9 +6,11 @@ is validated in one place; unknown keys are rejected so a typo never silently fa
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal, Mapping
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from bagit.common.errors import BadScenario
 
 # lambda_d when only V is known (no object height): a 4 cm lift of the rim along the object.
 DEFAULT_LAMBDA_D_M = 0.04
@@ -17,7 +19,7 @@ DEFAULT_LAMBDA_D_M = 0.04
 class MethodParams(BaseModel):
     """Parameters of the BagIt method (sections V and VI of the paper)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN passes no bound check
 
     # Bagging ellipse (eq. 7-10): C1 inside margin, C2 concentricity (m), C3 parallelism.
     lambda_1: float = Field(0.912, gt=0.0, lt=1.0, description="C1: max F_e of any vertex (< 1)")
@@ -61,8 +63,8 @@ class MethodParams(BaseModel):
     horizon: int = Field(10, ge=1, le=100, description="MPC horizon T")
     control_rate_hz: float = Field(30.0, gt=0.0, le=500.0)
     epsilon: float = Field(0.3, gt=0.0, le=1.0, description="Broyden update rate")
-    q_weight: float = Field(1.0, gt=0.0)
-    r_weight: float = Field(0.05, ge=0.0)
+    q_weight: float = Field(1.0, gt=0.0, le=1e6)
+    r_weight: float = Field(0.05, ge=0.0, le=1e6)
     # Not in the paper: how far each gripper may turn about the line between the grippers (from its
     # start); None: no bound (the default: measured, the bound did not pay).
     max_pitch_deg: float | None = Field(None, ge=0.0, le=180.0, description="grippers turn at most this far about their common axis (deg)")
@@ -78,3 +80,13 @@ class MethodParams(BaseModel):
     max_angular_speed_rps: float = Field(0.3, gt=0.0, le=2.0, description="C7: gripper angular speed (rad/s)")
     subgoal_tol_m: float = Field(0.02, gt=0.0, le=0.2, description="advance along the path below this RMS error")
     goal_tol_m: float = Field(0.008, gt=0.0, le=0.2, description="the run is at g* below this RMS error")
+
+
+def merge_params(base: MethodParams, overrides: Mapping[str, Any] | None) -> MethodParams:
+    """`base`'s explicitly set parameters with `overrides` (a run's, e.g. `bagit run --params`) on top;
+    BadScenario naming the first bad one."""
+    try:
+        return MethodParams.model_validate({**base.model_dump(exclude_unset=True), **(overrides or {})})
+    except ValidationError as e:
+        first = e.errors()[0]
+        raise BadScenario(f"params.{'.'.join(map(str, first['loc']))}: {first['msg']}") from None

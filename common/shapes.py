@@ -11,11 +11,20 @@ from typing import Annotated, Literal, Union
 
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
-from scipy.spatial import ConvexHull
+from scipy.spatial import ConvexHull, QhullError
 
 from bagit.common.geometry import pose_to_matrix, transform_points
 
 CIRCLE_VERTICES = 24  # polygon vertices used for a round bottom (cylinder, sphere)
+
+
+# Bounds on what a scenario may say, for a table-top rig: two CR5s (reach 0.9 m) either side of the
+# object. Every bundled scenario lies well inside them (coordinates within 0.7 m of the origin, sizes
+# at most 0.32 m, angles at most 0.4 rad); they are there so that a typo or a hostile file (an object
+# at 1e308) is refused where it is read, instead of overflowing an SVD or a hull later on.
+MAX_COORDINATE_M = 10.0  # |x|, |y|, |z| of any point or position (m): ten times the arms' reach
+MAX_SIZE_M = 2.0  # any extent of an object or obstacle: a size, a height, a diameter (m)
+MAX_ANGLE_RAD = 2 * np.pi  # |roll|, |pitch|, |yaw|: a whole turn either way names every orientation
 
 
 def _finite_vec(v: tuple[float, float, float]) -> tuple[float, float, float]:
@@ -24,7 +33,38 @@ def _finite_vec(v: tuple[float, float, float]) -> tuple[float, float, float]:
     return v
 
 
-Vec3 = Annotated[tuple[float, float, float], AfterValidator(_finite_vec)]  # a finite position or rpy
+def check_coordinates(v: object, what: str = "coordinates") -> None:
+    """ValueError unless every number in `v` is finite and within MAX_COORDINATE_M of 0."""
+    a = np.asarray(v, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} must be finite")
+    if a.size and np.abs(a).max() > MAX_COORDINATE_M:
+        raise ValueError(f"{what} must lie within {MAX_COORDINATE_M:g} m of the origin, got {np.abs(a).max():.4g} m")
+
+
+def _position(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    check_coordinates(v, "a position")
+    return v
+
+
+def _angles(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    if not all(np.isfinite(x) and abs(x) <= MAX_ANGLE_RAD for x in v):
+        raise ValueError(f"angles must be finite and within ±2π rad, got {v}")
+    return v
+
+
+def _sizes(v: tuple[float, ...]) -> tuple[float, ...]:
+    if not all(np.isfinite(x) and 0 < x <= MAX_SIZE_M for x in v):
+        raise ValueError(f"sizes must be finite, positive and at most {MAX_SIZE_M:g} m, got {v}")
+    return v
+
+
+Vec3 = Annotated[tuple[float, float, float], AfterValidator(_finite_vec)]  # a finite vector (the rig's own poses)
+Position = Annotated[tuple[float, float, float], AfterValidator(_position)]  # a scenario's position (m)
+Angles = Annotated[tuple[float, float, float], AfterValidator(_angles)]  # roll, pitch, yaw (rad)
+Size3 = Annotated[tuple[float, float, float], AfterValidator(_sizes)]  # full extents (m)
+Length = Annotated[float, Field(gt=0, le=MAX_SIZE_M)]  # a height (m)
+Radius = Annotated[float, Field(gt=0, le=MAX_SIZE_M / 2)]  # a radius: its diameter is an extent (m)
 
 
 def _circle(radius: float, z: float, n: int = CIRCLE_VERTICES) -> np.ndarray:
@@ -33,10 +73,10 @@ def _circle(radius: float, z: float, n: int = CIRCLE_VERTICES) -> np.ndarray:
 
 
 class _ShapeBase(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    position: Vec3 = (0.0, 0.0, 0.0)
-    rpy: Vec3 = (0.0, 0.0, 0.0)
+    position: Position = (0.0, 0.0, 0.0)
+    rpy: Angles = (0.0, 0.0, 0.0)
 
     def pose(self) -> np.ndarray:
         """4x4 transform parent <- shape."""
@@ -64,14 +104,7 @@ class _ShapeBase(BaseModel):
 
 class Box(_ShapeBase):
     type: Literal["box"] = "box"
-    size: tuple[float, float, float] = Field(..., description="full extents (m)")
-
-    @field_validator("size")
-    @classmethod
-    def _positive(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if not all(np.isfinite(x) and 0 < x < 5 for x in v):
-            raise ValueError("box size must be finite, positive and under 5 m")
-        return v
+    size: Size3 = Field(..., description="full extents (m)")
 
     def local_bottom(self) -> np.ndarray:
         sx, sy, sz = (s / 2 for s in self.size)
@@ -84,8 +117,8 @@ class Box(_ShapeBase):
 
 class Cylinder(_ShapeBase):
     type: Literal["cylinder"] = "cylinder"
-    radius: float = Field(..., gt=0, lt=2.5)
-    height: float = Field(..., gt=0, lt=5)
+    radius: Radius
+    height: Length
 
     def local_bottom(self) -> np.ndarray:
         return _circle(self.radius, -self.height / 2)
@@ -96,7 +129,7 @@ class Cylinder(_ShapeBase):
 
 class Sphere(_ShapeBase):
     type: Literal["sphere"] = "sphere"
-    radius: float = Field(..., gt=0, lt=2.5)
+    radius: Radius
 
     def local_bottom(self) -> np.ndarray:
         return _circle(self.radius, 0.0)
@@ -110,14 +143,14 @@ class Sphere(_ShapeBase):
 class Prism(_ShapeBase):
     type: Literal["prism"] = "prism"
     outline: list[tuple[float, float]] = Field(..., min_length=3, description="2-D polygon of the cross-section (m)")
-    height: float = Field(..., gt=0, lt=5)
+    height: Length
 
     @field_validator("outline")
     @classmethod
     def _polygon(cls, v: list[tuple[float, float]]) -> list[tuple[float, float]]:
         a = np.asarray(v, dtype=float)
-        if not np.all(np.isfinite(a)):
-            raise ValueError("prism outline must be finite")
+        if not np.all(np.isfinite(a)) or np.abs(a).max() > MAX_SIZE_M:
+            raise ValueError(f"prism outline must be finite and within {MAX_SIZE_M:g} m of the prism's axis")
         x, y = a[:, 0], a[:, 1]
         area = 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
         if area < 1e-6:
@@ -144,7 +177,10 @@ class Bundle(_ShapeBase):
         z0 = min(p.hull_points()[:, 2].min() for p in self.parts)
         z0 = min(z0, bottoms[:, 2].min())
         xy = bottoms[:, :2]
-        hull = ConvexHull(xy)
+        try:
+            hull = ConvexHull(xy)
+        except QhullError:  # a ValueError, so the scenario's validation names it
+            raise ValueError("the bundle's parts outline no bottom face (they are too small or in a line)") from None
         ring = xy[hull.vertices]  # counter-clockwise
         return np.column_stack([ring, np.full(len(ring), z0)])
 

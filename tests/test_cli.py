@@ -112,9 +112,12 @@ def test_the_service_example_configs_load():
 
 def test_planner_run_time_limit_is_validated(capsys, tmp_path):
     """`bagit up` lengthens the coordinator's wall-clock limit for a simulator that may run slowly."""
-    assert main(["planner", "--run-time-limit", "-3", "--duration", "1"]) == 2
+    assert main(["planner", "--run-time-limit", "-3", "--duration", "1"]) == 2  # refused by the flag's type
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--run-time-limit" in err[0] and "greater than 0" in err[0]
+    assert len(err) == 1 and "--run-time-limit" in err[0] and "> 0" in err[0]
+    assert main(["planner", "--run-time-limit", "5000", "--duration", "1"]) == 2  # the coordinator's own bound
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--run-time-limit" in err[0] and "less than or equal to 3600" in err[0]
     from bagit.up import Up, UpOptions
 
     up = Up(UpOptions(run_time_limit_s=400.0, workdir=tmp_path))

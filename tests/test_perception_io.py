@@ -99,7 +99,7 @@ def test_extract_command_human_output_and_errors(tmp_path, capsys, cloud_and_rim
     text = capsys.readouterr().out
     assert text.startswith("SOI: 8 points from 6000") and len(text.strip().splitlines()) == 9
     assert main(["extract", str(tmp_path / "c.npy"), "--n-x", "3"]) == 2
-    assert "n_x" in capsys.readouterr().err
+    assert "--n-x" in capsys.readouterr().err
     np.save(tmp_path / "nan.npy", np.full((50, 3), np.nan))
     assert main(["extract", str(tmp_path / "nan.npy")]) == 2
     assert "NaN" in capsys.readouterr().err

@@ -12,6 +12,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "arm-driver"
 HELP = "drive both CR5s from controller/cmd, publish their state, latch the e-stop"
 
@@ -21,9 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--config", metavar="YAML", help="service config (rig_config, driver, state_rate_hz, bus); flags override it")
     p.add_argument("--rig-config", metavar="YAML", help="rig config: the CR5s' addresses and ports, bases, safety limits (default: built-in)")
-    p.add_argument("--state-rate", type=float, metavar="HZ", help="publish arm states at most this often (default: every feedback packet)")
+    p.add_argument("--state-rate", type=_args.positive_number, metavar="HZ", help="publish arm states at most this often (default: every feedback packet)")
     p.add_argument("--servo-command", choices=["servop", "servoj"], help="ServoP (default) or ServoJ")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     add_bus_arguments(p)
 
 

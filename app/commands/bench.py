@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "bench"
 HELP = "run the benchmarks: `stages`, `paper`, or `compare OLD NEW`"
 
@@ -23,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
-    p.add_argument("--seeds", type=int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3)")
+    p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3)")
     p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
     p.add_argument(
         "--closed-loop", type=Path, action="append", default=None,

@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "calibrate"
 HELP = "estimate the camera-to-world extrinsics from a ChArUco board and write them into a rig config"
 
@@ -24,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("--image", metavar="PNG", help="a colour image of the board (intrinsics from the rig config)")
     src.add_argument("--print-board", metavar="PNG", help="only write the board image to print, and stop")
     p.add_argument("--serial", help="live RealSense serial (default: the rig config's, or the only one attached)")
-    p.add_argument("--frames", type=int, default=10, metavar="N", help="frames to average from a camera or recording (default 10)")
+    p.add_argument("--frames", type=_args.positive_int, default=10, metavar="N", help="frames to average from a camera or recording (default 10)")
 
 
 def _frames_from_image(path: str, rig) -> list:

@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "camera"
 HELP = "publish a RealSense's (or a RealSense recording's) RGB-D frames on camera/rgbd"
 
@@ -22,13 +24,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--file", metavar="REC", help="play this RealSense recording (.db3, or an older .bag) instead of a live camera")
     p.add_argument("--serial", help="the RealSense's serial number (default: the rig config's, or the only one attached)")
     p.add_argument("--rig-config", metavar="YAML", help="rig config: camera extrinsics, serial, resolution (default: the built-in rig)")
-    p.add_argument("--width", type=int, help="stream width (default: the rig config's, 640)")
-    p.add_argument("--height", type=int, help="stream height (default: the rig config's, 480)")
-    p.add_argument("--fps", type=int, help="frame rate (default: the rig config's, 30)")
+    p.add_argument("--width", type=_args.positive_int, help="stream width (default: the rig config's, 640)")
+    p.add_argument("--height", type=_args.positive_int, help="stream height (default: the rig config's, 480)")
+    p.add_argument("--fps", type=_args.positive_int, help="frame rate (default: the rig config's, 30)")
     p.add_argument("--fast", action="store_true", help="--file: as fast as frames are published, not at recorded speed")
     p.add_argument("--loop", action="store_true", help="--file: start again at the end")
-    p.add_argument("--frames", type=int, default=None, metavar="N", help="stop after N frames")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--frames", type=_args.positive_int, default=None, metavar="N", help="stop after N frames")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds")
     add_bus_arguments(p)
 
 
@@ -46,10 +48,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.common.rig import RigConfig
     from bagit.services.perception.sources import SourceConfig, open_source
 
-    if args.frames is not None and args.frames < 1:
-        raise CameraError(f"--frames must be at least 1, got {args.frames}")
-    if args.duration is not None and not args.duration > 0:
-        raise CameraError(f"--duration must be positive, got {args.duration}")
     rig = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
     cam = rig.camera
     try:

@@ -13,6 +13,8 @@ from typing import Any
 
 from bagit.common.names import CONTROLLER_NAMES
 
+from bagit.commands import _args
+
 NAME = "controller"
 HELP = "servo the current run: SOI and arm states in, arm increments out (mpc, ibvs, ssvs)"
 
@@ -22,10 +24,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--config", metavar="YAML", help="service config (controller, control_rate_hz, soi_max_age_s, arm_max_age_s, params, bus)")
     p.add_argument("--controller", choices=CONTROLLER_NAMES, help="force this controller (default: the run's, else mpc)")
-    p.add_argument("--rate", type=float, metavar="HZ", help="control rate (default: the run's params.control_rate_hz)")
-    p.add_argument("--soi-max-age", type=float, metavar="S", help="hold on a SOI older than this (default 0.5 s)")
-    p.add_argument("--arm-max-age", type=float, metavar="S", help="hold on arm states older than this (default 0.3 s)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--rate", type=_args.positive_number, metavar="HZ", help="control rate (default: the run's params.control_rate_hz)")
+    p.add_argument("--soi-max-age", type=_args.positive_seconds, metavar="S", help="hold on a SOI older than this (default 0.5 s)")
+    p.add_argument("--arm-max-age", type=_args.positive_seconds, metavar="S", help="hold on arm states older than this (default 0.3 s)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     add_bus_arguments(p)
 
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "dashboard"
 HELP = "serve the web dashboard: live scene, plots and health; start, stop and E-STOP the rig"
 
@@ -19,12 +21,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.common.bus import add_bus_arguments
 
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="HTTP/websocket port (default 8080; 0 = any free port)")
+    p.add_argument("--port", type=_args.port, default=8080, help="HTTP/websocket port (default 8080; 0 = any free port)")
     p.add_argument("--rig-config", metavar="YAML", help="rig config (arm bases, camera) used to draw the arms; default: the paper's set-up")
     p.add_argument("--scenario", metavar="NAME", help="bundled scenario the picker starts on (name or unique prefix); default the first")
-    p.add_argument("--max-cloud-points", type=int, default=20000, help="points of a cloud drawn at most (default 20000)")
-    p.add_argument("--query-timeout", type=float, default=5.0, help="seconds to wait for run/control answers (default 5)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--max-cloud-points", type=_args.positive_int, default=20000, help="points of a cloud drawn at most (default 20000)")
+    p.add_argument("--query-timeout", type=_args.positive_seconds, default=5.0, help="seconds to wait for run/control answers (default 5)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     add_bus_arguments(p)
 
 
@@ -42,8 +44,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.dashboard.node import DashboardNode
     from bagit.dashboard.server import DashboardConfig
 
-    if args.duration is not None and not args.duration > 0:
-        raise BusError(f"--duration must be positive, got {args.duration}")
     if not 0 < args.query_timeout <= 120:
         raise BusError(f"--query-timeout must be in (0, 120] s, got {args.query_timeout}")
     try:

@@ -9,6 +9,8 @@ import argparse
 from importlib import resources
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "demo"
 HELP = "run the demo: a simulated bagging run (or, with --sample, SOI extraction from a bundled cloud)"
 
@@ -16,7 +18,7 @@ HELP = "run the demo: a simulated bagging run (or, with --sample, SOI extraction
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="exp02-canned-pineapple", help="bundled scenario to bag")
     p.add_argument("--sample", action="store_true", help="only extract the SOI from the bundled sample rim cloud")
-    p.add_argument("--n-x", type=int, default=32, help="number of SOI points for --sample (default 32)")
+    p.add_argument("--n-x", type=_args.soi_points, default=32, help="number of SOI points for --sample (default 32)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

@@ -12,13 +12,15 @@ from typing import Any
 
 import numpy as np
 
+from bagit.commands import _args
+
 NAME = "extract"
 HELP = "extract the bag rim (SOI) from a point-cloud file"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("cloud", help="rim cloud: .ply, .pcd or .npy, world frame, metres")
-    p.add_argument("--n-x", type=int, default=32, help="number of SOI points (default 32)")
+    p.add_argument("--n-x", type=_args.soi_points, default=32, help="number of SOI points (default 32)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

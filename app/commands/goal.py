@@ -16,19 +16,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import time
 
-    from bagit.common.errors import BadScenario
-    from bagit.common.geometry import closed_polyline_length
     from bagit.common.scenario import Scenario
     from bagit.scenarios import find_scenario
-    from bagit.services.planner import bagging_soi
+    from bagit.services.planner.plan import bagging_goal
 
     s = Scenario.from_file(find_scenario(args.scenario))
-    g0 = s.bag.g0()
-    R = s.bag.rim_perimeter or (closed_polyline_length(g0) if g0 is not None else None)
-    if R is None:
-        raise BadScenario(f"scenario {s.name!r} gives neither bag.rim_perimeter nor bag.initial_rim")
     t0 = time.perf_counter()
-    g = bagging_soi(s.object.bottom_vertices(), R, s.bag.n_x, s.params, lambda_d=s.lambda_d(), g0=g0)
+    g, R = bagging_goal(s, s.bag.g0())  # the coordinator's goal rule, reach included
     return {
         "scenario": s.name,
         "rim_perimeter": R,

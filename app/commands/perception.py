@@ -12,6 +12,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "perception"
 HELP = "find the bag rim (SOI) in RGB-D frames from the bus, a RealSense or a recording"
 
@@ -26,10 +28,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fast", action="store_true", default=None, help="realsense-file: as fast as frames are processed, not at recorded speed")
     p.add_argument("--loop", action="store_true", default=None, help="realsense-file: start again at the end")
     p.add_argument("--rig-config", metavar="YAML", help="rig config: camera extrinsics for realsense sources (default: built-in rig)")
-    p.add_argument("--n-x", type=int, help="SOI points (default: the run's scenario, else 32)")
+    p.add_argument("--n-x", type=_args.soi_points, help="SOI points (default: the run's scenario, else 32)")
     p.add_argument("--bag-kind", choices=["red-edged", "solid"], help="the bag (default: the run's scenario, else red-edged)")
-    p.add_argument("--cloud-rate", type=float, metavar="HZ", help="display cloud rate (default 10 Hz; 0: none)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--cloud-rate", type=_args.non_negative_number, metavar="HZ", help="display cloud rate (default 10 Hz; 0: none)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     add_bus_arguments(p)
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "plan"
 HELP = "plan the SOI path g0 -> g† -> g* for a scenario"
 
@@ -14,8 +16,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("scenario", help="scenario file, or the name of a bundled scenario")
     p.add_argument("--planner", choices=sorted(PLANNERS), default="cbirrt")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--time-budget", type=float, default=10.0, help="seconds before the search gives up")
+    p.add_argument("--seed", type=_args.seed, default=0)
+    p.add_argument("--time-budget", type=_args.positive_seconds, default=10.0, help="seconds before the search gives up")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

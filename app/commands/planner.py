@@ -14,6 +14,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "planner"
 HELP = "run the planner service: the run coordinator (run/control, run/state), goal and SOI path"
 
@@ -22,10 +24,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.common.bus import add_bus_arguments
 
     p.add_argument("--config", type=Path, metavar="YAML", help="service config (coordinator timing, publish_hz, bus)")
-    p.add_argument("--publish-hz", type=float, default=None, help="run/state republish rate (default 2)")
-    p.add_argument("--run-time-limit", type=float, default=None, metavar="S",
+    p.add_argument("--publish-hz", type=_args.positive_number, default=None, help="run/state republish rate (default 2)")
+    p.add_argument("--run-time-limit", type=_args.positive_seconds, default=None, metavar="S",
                    help="a run still servoing after S seconds of wall time fails (default 180)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until stopped)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: until stopped)")
     add_bus_arguments(p)
 
 
@@ -62,11 +64,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.common.errors import BusError
     from bagit.services.planner.node import PlannerNode, PlannerServiceConfig
 
-    if args.duration is not None and not args.duration > 0:
-        raise BusError(f"--duration must be positive, got {args.duration}")
     cfg = load_config(args.config, PlannerServiceConfig)
     if args.publish_hz is not None:
-        cfg = cfg.model_copy(update={"publish_hz": PlannerServiceConfig(publish_hz=args.publish_hz).publish_hz})
+        try:
+            cfg = cfg.model_copy(update={"publish_hz": PlannerServiceConfig(publish_hz=args.publish_hz).publish_hz})
+        except ValidationError as e:
+            raise BusError(f"--publish-hz: {e.errors()[0]['msg']}") from None
     if args.run_time_limit is not None:
         try:
             coord = cfg.coordinator.model_validate({**cfg.coordinator.model_dump(), "run_time_limit_s": args.run_time_limit})

@@ -8,8 +8,11 @@ complete chunk (at most --flush-s of data lost).
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import Any
+
+from bagit.commands import _args
 
 NAME = "recorder"
 HELP = "record every message of a rig to MCAP files (one per run, rolling while idle)"
@@ -20,16 +23,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_bus_arguments(p)
     p.add_argument("--dir", type=Path, default=Path("recordings"), help="folder of the recordings (default ./recordings)")
-    p.add_argument("--max-mb", type=float, default=1024.0, help="rotate a file at this size in MB (default 1024)")
-    p.add_argument("--chunk-kb", type=float, default=1024.0, help="MCAP chunk size in KB (default 1024)")
-    p.add_argument("--flush-s", type=float, default=1.0, help="close a chunk at most this long after its first message")
-    p.add_argument("--linger-s", type=float, default=2.0, help="keep a finished run's file open this long (its last states)")
-    p.add_argument("--keep-idle", type=int, default=4, help="idle files of the rig kept (older ones deleted)")
+    p.add_argument("--max-mb", type=_args.positive_number, default=1024.0, help="rotate a file at this size in MB (default 1024)")
+    p.add_argument("--chunk-kb", type=_args.positive_number, default=1024.0, help="MCAP chunk size in KB (default 1024)")
+    p.add_argument("--flush-s", type=_args.positive_seconds, default=1.0, help="close a chunk at most this long after its first message")
+    p.add_argument("--linger-s", type=_args.non_negative_seconds, default=2.0, help="keep a finished run's file open this long (its last states)")
+    p.add_argument("--keep-idle", type=_args.positive_int, default=4, help="idle files of the rig kept (older ones deleted)")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="lz4",
                    help="chunk compression (default lz4: keeps up with 30 Hz RGB-D; zstd: ~40%% smaller, ~2x the CPU)")
     p.add_argument("--exclude", action="append", default=[], metavar="KEY",
                    help="key under bagit/<rig>/ not to record, e.g. camera/rgbd (repeatable; wildcards allowed)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until stopped)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: until stopped)")
+
+
+# RecorderConfig's fields, as the flags that set them (its bounds are the flags' bounds)
+FLAGS = {"max_bytes": "--max-mb", "chunk_bytes": "--chunk-kb", "flush_s": "--flush-s", "linger_s": "--linger-s",
+         "keep_idle": "--keep-idle", "dir": "--dir"}
+
+
+def _bytes(value: float, unit: float) -> int:
+    """`value` units in whole bytes; a product too large for a float stays too large (not an OverflowError)."""
+    b = value * unit
+    return int(b) if math.isfinite(b) else 1 << 1024
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -46,16 +60,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.services.recorder.node import RecorderNode
     from bagit.services.recorder.writer import RecorderConfig, RecordingWriter
 
-    if args.duration is not None and not args.duration > 0:
-        raise BadRecording(f"--duration must be positive, got {args.duration}")
     try:
         cfg = RecorderConfig(
-            dir=args.dir, max_bytes=int(args.max_mb * 1e6), chunk_bytes=int(args.chunk_kb * 1e3), flush_s=args.flush_s,
+            dir=args.dir, max_bytes=_bytes(args.max_mb, 1e6), chunk_bytes=_bytes(args.chunk_kb, 1e3), flush_s=args.flush_s,
             linger_s=args.linger_s, keep_idle=args.keep_idle, compression=args.compression,
         )
     except ValidationError as e:
         first = e.errors()[0]
-        raise BadRecording(f"recorder option {first['loc'][0]}: {first['msg']}") from None
+        field = str(first["loc"][0])
+        raise BadRecording(f"{FLAGS.get(field, field)}: {first['msg']}{' bytes' if field in ('max_bytes', 'chunk_bytes') else ''}") from None
     bus = bus_config_from_args(args)
     keys = Keys(bus.rig)
     stop = threading.Event()

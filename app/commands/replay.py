@@ -11,6 +11,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "replay"
 HELP = "publish a recording back onto Zenoh with its original timing"
 
@@ -19,10 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.common.bus import add_bus_arguments
 
     p.add_argument("file", type=Path, help="an MCAP file written by `bagit recorder`")
-    p.add_argument("--speed", type=float, default=1.0, help="playback speed factor (default 1)")
+    p.add_argument("--speed", type=_args.positive_number, default=1.0, help="playback speed factor (default 1)")
     p.add_argument("--loop", action="store_true", help="start over at the end until stopped")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    p.add_argument("--wait-s", type=float, default=2.0, help="wait this long for a subscriber before starting (default 2)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--wait-s", type=_args.non_negative_seconds, default=2.0, help="wait this long for a subscriber before starting (default 2)")
     p.add_argument("--keep-stamps", action="store_true", help="publish the recorded stamps, not restamped to now")
     p.add_argument("--with-commands", action="store_true",
                    help="also replay controller/cmd and estop (refused while something subscribes to controller/cmd)")
@@ -41,16 +43,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.services.recorder.node import Replayer
     from bagit.services.recorder.reading import Recording
 
-    if not (args.speed > 0 and args.speed < float("inf")):
-        raise BadRecording(f"--speed must be a positive finite number, got {args.speed}")
     if not args.file.is_file():
         raise BadRecording(f"{args.file}: no such recording")
-    for flag in ("duration",):
-        v = getattr(args, flag)
-        if v is not None and not v > 0:
-            raise BadRecording(f"--{flag} must be positive, got {v}")
-    if not args.wait_s >= 0:
-        raise BadRecording(f"--wait-s must be >= 0, got {args.wait_s}")
     rig = args.rig
     if rig is None:  # the recording's own rig: from its first record
         first = next(iter(Recording(args.file).records()), None)

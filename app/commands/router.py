@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "router"
 HELP = "run the Zenoh router of a multi-host rig (zenoh-python in router mode)"
 
@@ -29,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tls-ca", metavar="PEM", help="CA certificate of the rig")
     g.add_argument("--tls-cert", metavar="PEM", help="the router's certificate")
     g.add_argument("--tls-key", metavar="PEM", help="the router's private key")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: run until stopped)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: run until stopped)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -41,10 +43,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import zenoh
 
     from bagit.common.bus import config_value, open_session, parse_bus_config
-    from bagit.common.errors import BusError
 
-    if args.duration is not None and not args.duration > 0:
-        raise BusError(f"--duration must be positive, got {args.duration}")
     data: dict[str, Any] = {"mode": "router", "config_file": args.zenoh_config or default_config_path()}
     for flag, field in (("listen", "listen"), ("connect", "connect"), ("tls_ca", "tls_ca"), ("tls_cert", "tls_cert"), ("tls_key", "tls_key")):
         if getattr(args, flag, None) is not None:

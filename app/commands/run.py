@@ -5,70 +5,42 @@ simulator's clock. See bagit.inprocess."""
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import math
 import sys
 from typing import Any
 
+from bagit.commands import _args
 from bagit.common.names import ARMS_MODES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES
 
 NAME = "run"
 HELP = "run a whole simulated bagging in one process: camera -> SOI -> goal -> plan -> MPC -> arm driver -> CR5s"
 
 
-def positive_seconds(text: str) -> float:
-    """An argparse type: a finite number of seconds > 0 (a clear error for -1, nan, inf)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
-    return v
-
-
-def non_negative_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
-
-
-def json_object(text: str) -> dict[str, Any]:
-    try:
-        v = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise argparse.ArgumentTypeError(f"not JSON: {e}") from None
-    if not isinstance(v, dict):
-        raise argparse.ArgumentTypeError("must be a JSON object of method parameters")
-    return v
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario file, or the name of a bundled scenario")
     p.add_argument("--controller", choices=CONTROLLER_NAMES, default=DEFAULT_CONTROLLER)
     p.add_argument("--planner", choices=PLANNER_NAMES, default=DEFAULT_PLANNER)
-    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--seed", type=_args.seed, default=0)
     p.add_argument("--arms", choices=ARMS_MODES, default="cr5",
                    help="cr5: the two CR5s through the arm driver's rules (default); ideal: floating grippers (an ablation)")
-    p.add_argument("--params", type=json_object, default=None, help='method parameters over the scenario\'s, JSON, e.g. \'{"twist_weight": 0}\'')
-    p.add_argument("--fps", type=positive_seconds, default=None, help="camera frames per simulated second (default: the control rate)")
-    p.add_argument("--time-limit", type=positive_seconds, default=40.0, help="simulated seconds of servoing before the run fails")
-    p.add_argument("--wall-limit", type=positive_seconds, default=900.0, help="wall-clock seconds before the run is stopped as too slow")
+    p.add_argument("--params", type=_args.json_object, default=None, help='method parameters over the scenario\'s, JSON, e.g. \'{"twist_weight": 0}\'')
+    p.add_argument("--fps", type=_args.positive_number, default=None, help="camera frames per simulated second (default: the control rate)")
+    p.add_argument("--time-limit", type=_args.positive_seconds, default=40.0, help="simulated seconds of servoing before the run fails")
+    p.add_argument("--wall-limit", type=_args.positive_seconds, default=900.0, help="wall-clock seconds before the run is stopped as too slow")
     p.add_argument("--headless", action="store_true", help="no viewer (the only mode: runs are always headless)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from bagit.common.params import merge_params
     from bagit.common.scenario import Scenario
     from bagit.inprocess import RunOptions, run_inprocess
     from bagit.scenarios import find_scenario
+    from bagit.services.planner.plan import check_scenario_goal
 
     path = find_scenario(args.scenario)
     s = Scenario.from_file(path)
+    # bad parameters, a goal too large for the bag or out of the arms' reach: one line, before the world is built
+    check_scenario_goal(s.model_copy(update={"params": merge_params(s.params, args.params)}))
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
     stream = sys.stderr if args.json else sys.stdout
     say = lambda m: print(f"[run] {m}", file=stream, flush=True)  # noqa: E731

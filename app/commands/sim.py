@@ -18,6 +18,8 @@ import sys
 import threading
 from typing import Any
 
+from bagit.commands import _args
+
 NAME = "sim"
 HELP = "run the simulated rig: bag, object, camera and two CR5 controllers speaking Dobot's protocol"
 
@@ -27,14 +29,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("scenario", help="scenario file, or the name of a bundled scenario (the world until a run says otherwise)")
     p.add_argument("--rig-config", metavar="YAML", help="rig config YAML (arm bases, controller ports, camera); default: the paper's set-up")
-    p.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second (default 1)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds (default: run until Ctrl-C)")
+    p.add_argument("--speed", type=_args.positive_number, default=1.0, help="simulated seconds per wall second (default 1)")
+    p.add_argument("--duration", type=_args.positive_seconds, default=None, help="stop after this many simulated seconds (default: run until Ctrl-C)")
     p.add_argument("--no-camera", action="store_true", help="no camera frames (faster)")
-    p.add_argument("--fps", type=float, default=10.0, help="camera frames per simulated second (default 10, at most the camera's rate)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--fps", type=_args.positive_number, default=10.0, help="camera frames per simulated second (default 10, at most the camera's rate)")
+    p.add_argument("--seed", type=_args.seed, default=0)
     p.add_argument("--ephemeral-ports", action="store_true", help="listen on free ports instead of the rig config's")
     p.add_argument("--no-bus", action="store_true", help="no Zenoh: frames are rendered but not published, no resets")
-    p.add_argument("--truth-hz", type=float, default=2.0, help="ground truth on sim/truth this often (default 2 Hz)")
+    p.add_argument("--truth-hz", type=_args.positive_number, default=2.0, help="ground truth on sim/truth this often (default 2 Hz)")
     add_bus_arguments(p)
 
 
@@ -45,12 +47,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.scenarios import find_scenario
     from bagit.services.sim.rig_sim import RealtimeStats, SimRig
 
-    if not args.speed > 0 or args.speed > 1000:
-        raise BadScenario(f"--speed must be in (0, 1000], got {args.speed}")
-    if not 0 < args.fps <= 120:
-        raise BadScenario(f"--fps must be in (0, 120], got {args.fps}")
-    if args.duration is not None and not args.duration > 0:
-        raise BadScenario(f"--duration must be > 0, got {args.duration}")
+    from pydantic import ValidationError
+
+    from bagit.services.sim.node import SimNodeConfig
+
+    try:  # the node's bounds on the flags, before the world is built
+        SimNodeConfig(speed=args.speed, fps=args.fps, truth_hz=args.truth_hz)
+    except ValidationError as e:
+        first = e.errors()[0]
+        raise BadScenario(f"--{str(first['loc'][0]).replace('_', '-')}: {first['msg']}") from None
     scenario = Scenario.from_file(find_scenario(args.scenario))
     rig_cfg = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
     out = sys.stderr if args.json else sys.stdout

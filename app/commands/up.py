@@ -14,6 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from bagit.commands import _args
+from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES
+
 NAME = "up"
 HELP = "bring the whole simulated rig up: sim, perception, planner, controller, arm driver, dashboard"
 
@@ -21,15 +24,15 @@ HELP = "bring the whole simulated rig up: sim, perception, planner, controller, 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", nargs="?", help="start a run of this scenario once every service is up")
     p.add_argument("--exit-when-done", action="store_true", help="exit when the run ends, with its result")
-    p.add_argument("--controller", help="controller of the run (mpc, ibvs, ssvs; default mpc)")
-    p.add_argument("--planner", help="planner of the run (default cbirrt)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the run and the simulated world")
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, help=f"controller of the run (default {DEFAULT_CONTROLLER})")
+    p.add_argument("--planner", choices=PLANNER_NAMES, help=f"planner of the run (default {DEFAULT_PLANNER})")
+    p.add_argument("--seed", type=_args.seed, default=0, help="seed of the run and the simulated world")
     p.add_argument("--no-dashboard", action="store_true", help="do not start the dashboard")
     p.add_argument("--record", type=Path, metavar="DIR", help="also run the recorder into DIR")
     p.add_argument("--rig", default="sim", help="rig name (key prefix bagit/<rig>/; default sim)")
-    p.add_argument("--fps", type=float, default=10.0, help="simulated camera frames per second (default 10)")
-    p.add_argument("--dashboard-port", type=int, default=0, help="dashboard port (default: a free one)")
-    p.add_argument("--timeout", type=float, default=600.0, help="with --exit-when-done: give up after S seconds (default 600)")
+    p.add_argument("--fps", type=_args.positive_number, default=10.0, help="simulated camera frames per second (default 10)")
+    p.add_argument("--dashboard-port", type=_args.port, default=0, help="dashboard port (default: a free one)")
+    p.add_argument("--timeout", type=_args.positive_seconds, default=600.0, help="with --exit-when-done: give up after S seconds (default 600)")
     p.add_argument("--status-file", type=Path, help="write the rig's status (child PIDs, hub endpoint, URL) here as JSON")
     p.add_argument("--services", metavar="LIST", help="comma-separated subset of the services to start (default: all)")
     p.add_argument("--workdir", type=Path, help="folder for the generated Zenoh config and rig YAML (default: a temporary one)")
@@ -40,15 +43,26 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import threading
     import time
 
+    from pydantic import ValidationError
+
     from bagit.common.errors import BadScenario
+    from bagit.common.rig import RigConfig
     from bagit.up import SERVICES, Up, UpOptions
 
+    # Everything a child would only refuse after the rig is up (their logs have the reason; `up` would
+    # only see them missing after ready_timeout_s) is refused here, before any child starts.
     if args.exit_when_done and not args.scenario:
         raise BadScenario("--exit-when-done needs a SCENARIO to run")
     if args.scenario:
+        from bagit.common.scenario import Scenario
         from bagit.scenarios import find_scenario
+        from bagit.services.planner.plan import check_scenario_goal
 
-        find_scenario(args.scenario)  # a bad name is a one-line error before anything starts
+        check_scenario_goal(Scenario.from_file(find_scenario(args.scenario)))  # a bad file, or a goal out of reach
+    try:
+        RigConfig(name=args.rig)
+    except ValidationError as e:
+        raise BadScenario(f"--rig {args.rig!r}: {e.errors()[0]['msg']}") from None
     if not 0 < args.fps <= 30:
         raise BadScenario(f"--fps must be in (0, 30], got {args.fps}")
     services = tuple(x.strip() for x in args.services.split(",") if x.strip()) if args.services else SERVICES

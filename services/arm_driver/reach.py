@@ -29,10 +29,7 @@ Joints = dict[str, np.ndarray]  # arm -> (6,) rad
 Solver = Callable[[Poses], tuple[Joints | None, str | None]]
 
 BISECTIONS = 10  # the fraction sent is within 1/1024 of the longest that can be followed
-# An elbow stretched straight (J3 = 0) is the edge of the reach and a singularity: a target there,
-# rounded to the wire's 6 decimals or solved from the controller's own seed, may have no solution,
-# and the controller alarms. The driver keeps the elbow this far from straight.
-ELBOW_MARGIN_RAD = np.radians(2.0)
+ELBOW_MARGIN_RAD = cr5.ELBOW_MARGIN_RAD  # the driver keeps the elbow this far from straight
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.errors import BagItError
 from bagit.common.geometry import points_to_polyline_distance, transform_points
 from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState
+from bagit.common.names import MAX_N_X, MIN_N_X
 from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import back_project
@@ -59,7 +60,7 @@ class PerceptionServiceConfig(BaseModel):
 
     source: SourceConfig = Field(default_factory=SourceConfig)
     rig_config: str | None = Field(None, description="rig config YAML: camera extrinsics for realsense sources (default: built-in rig)")
-    n_x: int | None = Field(None, ge=4, le=512, description="SOI points; None: the run's scenario, else 32")
+    n_x: int | None = Field(None, ge=MIN_N_X, le=MAX_N_X, description="SOI points; None: the run's scenario, else 32")
     bag_kind: Literal["red-edged", "solid"] | None = Field(None, description="None: the run's scenario, else red-edged")
     bag_color: tuple[float, float, float] | None = Field(None, description="solid bag colour, RGB 0..1; None: the run's scenario")
     max_jump_m: float = Field(0.05, gt=0.0, le=1.0, description="a warm SOI further than this from the last one: refit cold")

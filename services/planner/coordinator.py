@@ -27,13 +27,14 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BagItError, BadScenario
 from bagit.common.messages import ControllerStatus, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES, SERVO_STAGES
-from bagit.common.params import MethodParams
+from bagit.common.params import merge_params
 from bagit.common.results import RunResult, axis_error_cm, points_list
+from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 
 
@@ -72,6 +73,7 @@ class PlanJob:
     planner: str
     seed: int
     time_budget_s: float
+    rig: RigConfig | None = None  # whose arms must reach the goal (None: the default rig, RigConfig())
 
 
 @dataclass
@@ -109,7 +111,7 @@ def compute_plan(job: PlanJob, on_goal: Callable[[Goal], None] | None = None) ->
     try:
         if g0.ndim != 2 or g0.shape[1] != 3 or len(g0) < 4 or not np.all(np.isfinite(g0)):
             raise BadScenario(f"g0 must be (n >= 4, 3) and finite, got shape {g0.shape}")
-        goal, R = bagging_goal(sc, g0)
+        goal, R = bagging_goal(sc, g0, job.rig)  # InfeasibleGoal too when the arms cannot reach it
     except BagItError as e:
         return PlanOutcome(job.run_id, failed_stage="goal", reason=f"goal: {e}", time_s=time.perf_counter() - t0)
     goal_msg = goal.to_message(job.run_id, object_height=float(sc.object.effective_height()))
@@ -158,8 +160,9 @@ class _Run:
 class Coordinator:
     """One run at a time per rig (see the module docstring). Not thread-safe: the node serialises calls."""
 
-    def __init__(self, config: CoordinatorConfig | None = None, now: float | None = None) -> None:
+    def __init__(self, config: CoordinatorConfig | None = None, now: float | None = None, rig: RigConfig | None = None) -> None:
         self.cfg = config or CoordinatorConfig()
+        self.rig = rig  # the arms the goals must be within reach of (None: the default rig)
         self.run: _Run | None = None
         self.state = RunState(stage="idle", stamp=time.time() if now is None else now)
         self.alive: set[str] = set()
@@ -246,13 +249,7 @@ class Coordinator:
                                    reason=f"a run is in progress (run {r.run_id if r else '?'}, stage {self.state.stage}); stop it first")
         try:
             scenario, name = self._scenario(req)
-            merged = {**scenario.params.model_dump(exclude_unset=True), **(req.params or {})}
-            try:
-                params = MethodParams.model_validate(merged)
-            except ValidationError as e:
-                first = e.errors()[0]
-                raise BadScenario(f"params.{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
-            scenario = scenario.model_copy(update={"params": params})
+            scenario = scenario.model_copy(update={"params": merge_params(scenario.params, req.params)})
             controller = req.controller or self.cfg.default_controller
             if controller not in self.cfg.controllers:
                 raise BadScenario(f"unknown controller {controller!r}; choose from {', '.join(self.cfg.controllers)}")
@@ -369,7 +366,7 @@ class Coordinator:
         scenario, info = self._object_for_plan(r)
         r.extra["object"] = info
         self._set(now, stage="goal", progress=0.0)
-        job = PlanJob(r.run_id, scenario, np.array(soi.rim, dtype=float), r.planner, r.seed, self.cfg.plan_time_budget_s)
+        job = PlanJob(r.run_id, scenario, np.array(soi.rim, dtype=float), r.planner, r.seed, self.cfg.plan_time_budget_s, self.rig)
         return [Effect("plan", job=job)]
 
     def _object_for_plan(self, r: "_Run") -> tuple[Scenario, dict[str, Any]]:

@@ -8,13 +8,15 @@ from os import PathLike
 
 import numpy as np
 
-from bagit.common.errors import BadCloud, BadScenario, NumericalFailure
+from bagit.common.errors import BadCloud, BadScenario, InfeasibleGoal, NumericalFailure
 from bagit.common.geometry import align_cyclic, as_points, closed_polyline_length
 from bagit.common.messages import Path
 from bagit.common.params import MethodParams
+from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.planner.collision import RimCollision, box_polytope, prism_polytope
 from bagit.services.planner.goal import BaggingGoal, bagging_soi
+from bagit.services.planner.reach import reach_problem
 from bagit.services.planner.rrt import PLANNERS, postprocess
 from bagit.services.planner.space import SoiSpace
 
@@ -161,12 +163,31 @@ def plan_scenario(
     return path_to_goal(scenario, g0, goal, perimeter, planner, seed, time_budget_s)
 
 
-def bagging_goal(scenario: Scenario, g0: np.ndarray) -> tuple[BaggingGoal, float]:
+def bagging_goal(scenario: Scenario, g0: np.ndarray | None, rig: RigConfig | None = None) -> tuple[BaggingGoal, float]:
     """The bagging ellipse, g† and g* for the scenario's object from g0 `(n_x, 3)`, and the rim perimeter R
-    they were made for (the bag's, else g0's length). The one goal rule: the coordinator and `bagit plan` use it."""
-    perimeter = scenario.bag.rim_perimeter or closed_polyline_length(g0)
-    goal = bagging_soi(scenario.object.bottom_vertices(), perimeter, len(g0), scenario.params, lambda_d=scenario.lambda_d(), g0=g0)
+    they were made for (the bag's, else g0's length). The one goal rule: the coordinator, `bagit goal` and
+    `bagit plan` use it. Without g0 (not perceived yet) the goal has the bag's n_x points and R.
+
+    InfeasibleGoal when no ellipse of perimeter R holds the object, or when the two arms of `rig` (the
+    default rig when None) cannot hold g† or g* (`reach.reach_problem`): known before anything moves.
+    """
+    perimeter = scenario.bag.rim_perimeter or (closed_polyline_length(g0) if g0 is not None else None)
+    if perimeter is None:
+        raise BadScenario(f"scenario {scenario.name!r} gives neither bag.rim_perimeter nor bag.initial_rim")
+    n_x = len(g0) if g0 is not None else scenario.bag.n_x
+    goal = bagging_soi(scenario.object.bottom_vertices(), perimeter, n_x, scenario.params, lambda_d=scenario.lambda_d(), g0=g0)
+    why = reach_problem({"g†": goal.g_dagger, "g*": goal.g_star}, rig)
+    if why is not None:
+        raise InfeasibleGoal(why)
     return goal, perimeter
+
+
+def check_scenario_goal(scenario: Scenario, rig: RigConfig | None = None) -> None:
+    """InfeasibleGoal now, for a host that would learn it only after perception (`bagit run`, `bagit up`),
+    when the goal the scenario's own object and bag give cannot be made or reached (`bagging_goal`).
+    Needs R (bag.rim_perimeter, or an initial rim); without it the coordinator decides once g0 is seen."""
+    if scenario.bag.rim_perimeter is not None:
+        bagging_goal(scenario, scenario.bag.g0(), rig)
 
 
 def path_to_goal(scenario: Scenario, g0: np.ndarray, goal: BaggingGoal, perimeter: float, planner: str, seed: int,

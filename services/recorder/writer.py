@@ -38,6 +38,7 @@ from bagit.services.recorder.schema import MESSAGE_ENCODING, SCHEMA_ENCODING, js
 
 TERMINAL_STAGES = FINAL_STAGES
 RUN_METADATA = "bagit.run"
+MAX_FILE_BYTES = 1 << 40  # rotate at 1 TiB at most: a file must stay small enough to copy, open and recover
 RECORDING_METADATA = "bagit.recording"
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
 
@@ -48,7 +49,7 @@ class RecorderConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     dir: Path = Field(Path("recordings"), description="folder of the MCAP files")
-    max_bytes: int = Field(1 << 30, ge=1 << 16, description="rotate a file when it reaches this size")
+    max_bytes: int = Field(1 << 30, ge=1 << 16, le=MAX_FILE_BYTES, description="rotate a file when it reaches this size")
     chunk_bytes: int = Field(1 << 20, ge=1 << 10, le=1 << 28, description="close an MCAP chunk at this size (uncompressed)")
     flush_s: float = Field(1.0, gt=0, le=60, description="close a chunk this long after its first message")
     linger_s: float = Field(2.0, ge=0, le=600, description="keep a finished run's file open this long for its last states")

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bagit.common.geometry import ramanujan_perimeter
+from bagit.common.mounts import mount_rotation
 
 N_AROUND = 24
 N_RINGS = 5
@@ -33,35 +34,6 @@ class BagLayout:
     handles: dict[str, np.ndarray]  # 'left'/'right' -> rim vertex ids clamped by that mount
     mount_home: dict[str, np.ndarray]  # 'left'/'right' -> (4, 4) world <- mount
     frame: np.ndarray  # (4, 4) world <- rim frame: x across the bag, y along the handles, z the rim normal (up)
-
-
-def rim_frame(center: np.ndarray, normal: np.ndarray | None = None) -> np.ndarray:
-    """(4, 4) world <- rim frame: origin `center (3,)`, z `normal` (turned upward), y world y laid into the plane."""
-    n = np.array([0.0, 0.0, 1.0]) if normal is None else np.asarray(normal, dtype=float)
-    n = n / np.linalg.norm(n)
-    if n[2] < 0:
-        n = -n
-    ey = np.array([0.0, 1.0, 0.0]) - n[1] * n
-    if np.linalg.norm(ey) < 1e-6:  # rim plane across world y: any in-plane direction will do
-        ey = np.cross(n, [1.0, 0.0, 0.0])
-    ey /= np.linalg.norm(ey)
-    ex = np.cross(ey, n)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([ex, ey, n])
-    T[:3, 3] = center
-    return T
-
-
-def mount_rotation(frame: np.ndarray, side: str) -> np.ndarray:
-    """(3, 3) world <- mount of the mount on `side`: z points from the handle into the bag (the tool axis,
-    so the flange sits outside the rim), y points down the rim normal, x completes the frame."""
-    ex, ey, n = frame[:3, 0], frame[:3, 1], frame[:3, 2]
-    s = -1.0 if side == "left" else 1.0
-    z = -s * ey  # left handle is on -e_y: its tool points +e_y, into the bag
-    x = -s * ex
-    y = np.cross(z, x)  # == -n for both sides
-    assert np.allclose(y, -n)
-    return np.column_stack([x, y, z])
 
 
 def bag_layout(perimeter: float, depth: float, frame: np.ndarray, aspect: float = RIM_ASPECT) -> BagLayout:

@@ -23,7 +23,8 @@ from bagit.common.geometry import closed_polyline_length, make_transform, resamp
 from bagit.common.messages import RgbdFrame  # noqa: E402
 from bagit.common.rig import ARMS, RigConfig  # noqa: E402
 from bagit.common.scenario import Scenario  # noqa: E402
-from bagit.services.sim.bag import BagLayout, bag_layout, rim_frame  # noqa: E402
+from bagit.common.mounts import rim_frame  # noqa: E402
+from bagit.services.sim.bag import BagLayout, bag_layout  # noqa: E402
 from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise  # noqa: E402
 from bagit.services.sim.objects import object_mesh, object_parts, object_pose  # noqa: E402
 from bagit.services.sim.scene import TIMESTEP, build_mjcf, scene_files  # noqa: E402
