@@ -4,6 +4,7 @@
                                                               # (on_event: (kind, detail) of each event)
     drv.start()                     # connect, ClearError, EnableRobot(payload), SpeedFactor; loop running
     drv.submit(command)             # the controller's 12-D increment (bagit.common.messages.Command)
+    drv.hold("run over")            # brake to rest; a later command starts a new stream
     drv.estop("operator")           # EmergencyStop(1) to both controllers at once; latched
     drv.reset_estop()               # only this clears it
     drv.close()                     # smooth stop, hold, DisableRobot, disconnect
@@ -53,6 +54,7 @@ from bagit.common.rig import ARMS, RigConfig
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
+from bagit.services.arm_driver.gate import Refusal
 from bagit.services.arm_driver.motion import ArmMotion
 
 _RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
@@ -120,6 +122,7 @@ class ArmDriver:
         self._failed_requests = {a: 0 for a in ARMS}
         self.violation_counts = self.motion.violation_counts
         self.rejections: Counter[str] = Counter()
+        self.last_refusal: Refusal | None = None  # the last command refused, and why
         self.cycle_ms: deque[float] = deque(maxlen=1000)  # compute time of each cycle
         self.cycle_starts: deque[float] = deque(maxlen=1000)  # monotonic start of each cycle
         self.send_times: deque[float] = deque(maxlen=1000)  # when each period's motion commands went out
@@ -233,16 +236,33 @@ class ArmDriver:
     # -- input -----------------------------------------------------------------------------------
 
     def submit(self, cmd: Command) -> bool:
-        """Take one controller command; False (and counted with its reason) if it was refused.
+        """Take one controller command; False (and counted with its reason, `last_refusal`) if it was refused.
 
-        `mode='hold'` brakes both arms to rest; a later servo command starts a new stream.
+        `mode='hold'` brakes both arms to rest; a later servo command starts a new stream. Which run
+        may command the arms is the node's business (it knows run/state).
         """
         if cmd.mode == "hold":
             with self._lock:
                 self.counters["commands"] += 1
-                self.motion.hold(cmd.reason or "controller asked to hold", time.monotonic())
+            self.hold(cmd.reason or "controller asked to hold")
             return True
         return self.submit_increment(np.asarray(cmd.u), float(cmd.dt), seq=cmd.seq)
+
+    def hold(self, reason: str) -> None:
+        """Brake both arms to rest (a hold command, or the node when the run it streamed for ends)."""
+        with self._lock:
+            self.motion.hold(reason, time.monotonic())
+
+    def refuse(self, refusal: Refusal) -> None:
+        """Count a command refused before it reached the driver (the node's run gate) with the driver's own."""
+        with self._lock:
+            self.counters["commands"] += 1
+            self._count_refusal(refusal)
+
+    def _count_refusal(self, refusal: Refusal) -> None:
+        self.rejections[refusal.reason] += 1
+        self.counters["rejected"] += 1
+        self.last_refusal = refusal
 
     def submit_increment(self, u: np.ndarray, dt: float, seq: int | None = None) -> bool:
         """Increment `u (12,)` (world, m and rad; left then right) over `dt` seconds."""
@@ -251,20 +271,17 @@ class ArmDriver:
             self.counters["commands"] += 1
             why = self._refusal()
             if why is not None:
-                self.rejections[why] += 1
-                self.counters["rejected"] += 1
+                self._count_refusal(Refusal(why, f"command {seq}: the driver is {why.replace('_', ' ')}"))
                 return False
             if not self.pipe.moving:
                 # A new stream from rest starts at the MEASURED poses, never at the last commanded
                 # ones: while the arms held, someone may have jogged them (or a simulator reset its
                 # world), and streaming from a stale target would drive them back to it.
                 if not self._restart_from_measured():
-                    self.rejections["no_feedback"] += 1
-                    self.counters["rejected"] += 1
+                    self._count_refusal(Refusal("no_feedback", f"command {seq}: no feedback to start a stream from"))
                     return False
                 if self._fault is not None:
-                    self.rejections["fault"] += 1
-                    self.counters["rejected"] += 1
+                    self._count_refusal(Refusal("fault", f"command {seq}: {self._fault}"))
                     return False
                 self.counters["reseeds"] += 1
             if seq is not None and self._last_seq is not None and seq <= self._last_seq:
@@ -272,7 +289,8 @@ class ArmDriver:
             self._last_seq = seq if seq is not None else self._last_seq
             found = self.motion.submit(u, dt, now)
             if any(v.kind == "non_finite" for v in found):
-                self.rejections["non_finite"] += 1
+                self.rejections["non_finite"] += 1  # ArmMotion counted it as rejected
+                self.last_refusal = Refusal("non_finite", f"command {seq}: not 12 finite numbers over 0 < dt <= 10 s")
                 return False
             return True
 

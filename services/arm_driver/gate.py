@@ -1,0 +1,67 @@
+"""Which commands may move the arms: the arm driver's gate, pure.
+
+The arms move only for the run the coordinator announced on run/state as servoing (its stage in
+`SERVO_STAGES`):
+
+    why = command_refusal(cmd, run)            # the node, for each command: None, or a Refusal
+    why = stream_end(streaming_run, run)       # the node, on run/state: the run it streamed for is over
+
+A hold is always taken (holding is always safe). Each refusal has a short `reason`, counted in
+the driver's `rejections`, and a sentence for the event. No bus, no clock: the node passes in
+what it knows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from bagit.common.messages import Command, RunState
+from bagit.common.names import SERVO_STAGES
+
+NO_ACTIVE_RUN = "no_active_run"  # no run/state yet, no run id, or the run is not in a servo stage
+WRONG_RUN = "wrong_run"  # a command for another run (or for none) than the servoing one
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a command was not taken: `reason` is counted, `detail` is said."""
+
+    reason: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.reason}: {self.detail}"
+
+
+def servoing(run: RunState | None) -> bool:
+    """True if `run` (the last run/state) names a run whose arms the controller moves now."""
+    return run is not None and run.run_id is not None and run.stage in SERVO_STAGES
+
+
+def command_refusal(cmd: Command, run: RunState | None) -> Refusal | None:
+    """None if `cmd` may go to the driver under the last run/state `run`; else why not.
+
+    Hold commands always pass. A servo command must carry the run id of a run that run/state shows in
+    a servo stage: a sender that is not the run's controller, or a command from a run that is over,
+    never moves the arms."""
+    if cmd.mode == "hold":
+        return None
+    if not servoing(run):
+        where = "no run/state yet" if run is None else f"run/state: run {run.run_id} {run.stage}"
+        return Refusal(NO_ACTIVE_RUN, f"command {cmd.seq} for run {cmd.run_id}: no run is servoing ({where})")
+    assert run is not None
+    if cmd.run_id != run.run_id:
+        return Refusal(WRONG_RUN, f"command {cmd.seq} is for run {cmd.run_id}, the servoing run is {run.run_id}")
+    return None
+
+
+def stream_end(streaming_run: str | None, run: RunState) -> str | None:
+    """Why the arms must hold now that run/state says `run`, if they were streaming for `streaming_run`."""
+    if streaming_run is None:
+        return None
+    if run.run_id != streaming_run:
+        return f"run {streaming_run} is over (run/state: run {run.run_id} {run.stage})"
+    if run.stage not in SERVO_STAGES:
+        return f"run {streaming_run} {run.stage}" + (f": {run.reason}" if run.reason else "")
+    return None
+
