@@ -22,9 +22,12 @@ from bagit.common.names import SERVO_STAGES, STAGES
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import (
+    CLOCK_SKEW,
     NO_ACTIVE_RUN,
+    STALE,
     WRONG_RUN,
     command_refusal,
+    stale_refusal,
     stream_end,
 )
 from bagit.services.arm_driver.node import ArmDriverNode
@@ -61,6 +64,16 @@ def test_no_run_no_run_id_or_another_run_is_refused_and_a_hold_always_passes():
     hold = Command(u=np.zeros(12), mode="hold", reason="stale SOI")
     for run in (None, RunState(), RunState(run_id="r1", stage="done"), bagging):
         assert command_refusal(hold, run) is None
+
+
+def test_a_command_older_or_further_ahead_than_the_watchdog_is_refused():
+    assert stale_refusal(100.0, 100.15, 0.2) is None
+    assert stale_refusal(100.15, 100.0, 0.2) is None  # a little ahead: clocks a few ms apart
+    old = stale_refusal(100.0, 102.0, 0.2)
+    assert old.reason == STALE and "2.00 s ago" in old.detail
+    assert stale_refusal(102.0, 100.0, 0.2).reason == CLOCK_SKEW
+    for bad in (float("nan"), float("inf"), float("-inf")):
+        assert stale_refusal(bad, 100.0, 0.2).reason == CLOCK_SKEW
 
 
 def test_the_stream_ends_when_its_run_leaves_the_servo_stages_or_another_run_replaces_it():

@@ -1,18 +1,20 @@
 """Which commands may move the arms: the arm driver's gate, pure.
 
 The arms move only for the run the coordinator announced on run/state as servoing (its stage in
-`SERVO_STAGES`):
+`SERVO_STAGES`), and only on commands that are still fresh when they are applied:
 
     why = command_refusal(cmd, run)            # the node, for each command: None, or a Refusal
+    why = stale_refusal(cmd.stamp, now, 0.2)   # the driver, as it applies one: None, or a Refusal
     why = stream_end(streaming_run, run)       # the node, on run/state: the run it streamed for is over
 
-A hold is always taken (holding is always safe). Each refusal has a short `reason`, counted in
-the driver's `rejections`, and a sentence for the event. No bus, no clock: the node passes in
-what it knows.
+A hold is always taken (holding is always safe). Each refusal has
+a short `reason`, counted in the driver's `rejections`, and a sentence for the event. No bus, no
+clock: the node and the driver pass in what they know.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from bagit.common.messages import Command, RunState
@@ -20,6 +22,8 @@ from bagit.common.names import SERVO_STAGES
 
 NO_ACTIVE_RUN = "no_active_run"  # no run/state yet, no run id, or the run is not in a servo stage
 WRONG_RUN = "wrong_run"  # a command for another run (or for none) than the servoing one
+STALE = "stale"  # made longer ago than the watchdog: queued while the driver was stopped, or late
+CLOCK_SKEW = "clock_skew"  # stamped further ahead of this host's clock than the watchdog
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,22 @@ def command_refusal(cmd: Command, run: RunState | None) -> Refusal | None:
     assert run is not None
     if cmd.run_id != run.run_id:
         return Refusal(WRONG_RUN, f"command {cmd.seq} is for run {cmd.run_id}, the servoing run is {run.run_id}")
+    return None
+
+
+def stale_refusal(stamp: float, now: float, max_age_s: float) -> Refusal | None:
+    """None if a command made at `stamp` (its sender's wall clock) is fresh at `now` (ours); else why not.
+
+    Older than `max_age_s` (the watchdog's time): it waited in a queue while the driver was stopped or
+    starved, and the watchdog would already have stopped the arms it meant to move. Further ahead than
+    that, or not a number: the hosts' clocks disagree, and no age can be trusted."""
+    age = now - stamp
+    if not math.isfinite(age):
+        return Refusal(CLOCK_SKEW, f"its stamp {stamp!r} is no time")
+    if age < -max_age_s:
+        return Refusal(CLOCK_SKEW, f"stamped {-age:.2f} s ahead of this host's clock (limit {max_age_s:g} s): are the clocks synchronised?")
+    if age > max_age_s:
+        return Refusal(STALE, f"made {age:.2f} s ago, longer than the watchdog's {max_age_s:g} s")
     return None
 
 
