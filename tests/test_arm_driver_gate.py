@@ -1,10 +1,10 @@
-"""Who may move the arms (services/arm_driver/gate.py and the node around it).
+"""Who may move the arms and release the e-stop (services/arm_driver/gate.py and the node around it).
 
 The pure rules first; then the arm-driver node on Zenoh against two simulated CR5s: a command moves
 the arms only if it names the run run/state shows servoing; a process that is not the run's
 controller (no run, no run id, another run) moves nothing, and every refusal is counted and shown;
 holds always pass; when the run the arms streamed for ends they hold at once, even while its
-commands keep coming.
+commands keep coming; an e-stop engages from anyone but is released only by the dashboard or the CLI.
 """
 
 from __future__ import annotations
@@ -17,16 +17,18 @@ from arm_driver_support import servo_positions, start_sims
 from bus_support import session_pair, wait_until
 
 from bagit.common.bus import Keys, LatestCache, Publisher
-from bagit.common.messages import ArmState, Command, RunState
-from bagit.common.names import SERVO_STAGES, STAGES
+from bagit.common.messages import ArmState, Command, EStop, RunState
+from bagit.common.names import ESTOP_RELEASE_SOURCES, ESTOP_SOURCE_CLI, ESTOP_SOURCE_DASHBOARD, SERVO_STAGES, STAGES
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import (
     CLOCK_SKEW,
+    ESTOP_RELEASE_SOURCE,
     NO_ACTIVE_RUN,
     STALE,
     WRONG_RUN,
     command_refusal,
+    estop_refusal,
     stale_refusal,
     stream_end,
 )
@@ -83,6 +85,17 @@ def test_the_stream_ends_when_its_run_leaves_the_servo_stages_or_another_run_rep
     assert stream_end("r1", RunState(run_id="r1", stage="failed", reason="arm-driver gone")) == "run r1 failed: arm-driver gone"
     assert "run r1 is over" in stream_end("r1", RunState(run_id="r2", stage="bagging"))
     assert "run r1 is over" in stream_end("r1", RunState())  # reset to idle
+
+
+def test_an_estop_engages_from_anyone_and_is_released_only_by_the_operators_tools():
+    assert ESTOP_RELEASE_SOURCES == (ESTOP_SOURCE_DASHBOARD, ESTOP_SOURCE_CLI) == ("dashboard", "cli")
+    for source in ("controller", "planner", "arm-driver", "unknown", "", ESTOP_SOURCE_DASHBOARD):
+        assert estop_refusal(EStop(engage=True, source=source)) is None
+    for source in ESTOP_RELEASE_SOURCES:
+        assert estop_refusal(EStop(engage=False, source=source)) is None
+    for source in ("controller", "test", "unknown", "", "Dashboard", "cli "):
+        why = estop_refusal(EStop(engage=False, source=source))
+        assert why is not None and why.reason == ESTOP_RELEASE_SOURCE and "only dashboard and cli" in why.detail
 
 
 # -- the node on the bus ------------------------------------------------------------------------
@@ -190,3 +203,26 @@ def test_the_arms_hold_when_the_run_they_streamed_for_ends_while_its_commands_ke
     run.put(RunState(run_id="r3", stage="perceiving"))
     assert wait_until(lambda: node.driver.mode == "holding", 2.0)
     assert any(e.startswith("hold: run r2 is over (run/state: run r3 perceiving)") for e in node.events)
+
+
+def test_an_estop_release_is_taken_only_from_the_dashboard_or_the_cli(rigbus):
+    sims, node, peer, keys = rigbus
+    estop = Publisher(peer, keys.estop, EStop)
+    assert wait_until(lambda: estop.matched, 5.0)
+    estop.put(EStop(engage=True, source="perception", reason="anyone may stop the arms"))
+    assert wait_until(lambda: node.driver.mode == "estopped", 2.0)
+    for source in ("controller", "test", "unknown"):
+        estop.put(EStop(engage=False, source=source))
+    assert wait_until(lambda: node.status()["estops_received"] == 4, 2.0)
+    time.sleep(0.3)
+    assert node.driver.mode == "estopped" and all(sims.robots[a].estop_pressed for a in ("left", "right"))
+    assert node.driver.counters["estop_releases_refused"] == 3
+    assert any(e.startswith("estop: reset refused, the e-stop stays latched: estop_release_source: a release from 'controller'")
+               for e in node.events), node.events
+    estop.put(EStop(engage=False, source=ESTOP_SOURCE_CLI))
+    assert wait_until(lambda: node.driver.mode == "holding", 5.0)
+    assert not any(sims.robots[a].estop_pressed for a in ("left", "right"))
+    estop.put(EStop(engage=True, source="arm-driver"))
+    assert wait_until(lambda: node.driver.mode == "estopped", 2.0)
+    estop.put(EStop(engage=False, source=ESTOP_SOURCE_DASHBOARD))
+    assert wait_until(lambda: node.driver.mode == "holding", 5.0)

@@ -16,6 +16,7 @@ from bagit.cli import main
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Publisher, Subscriber, locators, open_session
 from bagit.common.dobot import Alarm
 from bagit.common.messages import ArmState, Command, EStop, RunState
+from bagit.common.names import ESTOP_SOURCE_DASHBOARD
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.node import ArmDriverNode
@@ -133,7 +134,7 @@ def test_hold_command_stops_the_arms_and_estop_over_zenoh_latches_both(rigbus):
         assert np.allclose(states.get(keys.arm_state(a)).tool_pose[:3], pos[a], atol=1e-4)
         assert sims.robots[a].estop_pressed
     # reset over the bus: released, enabled, and a new stream moves again
-    estop.put(EStop(engage=False, source="test"))
+    estop.put(EStop(engage=False, source=ESTOP_SOURCE_DASHBOARD))
     assert wait_until(lambda: node.driver.mode == "holding", 5.0)
     assert wait_until(lambda: not any(states.get(keys.arm_state(a)).estopped for a in ("left", "right")), 2.0)
     assert all(sims.robots[a].enabled and not sims.robots[a].estop_pressed for a in ("left", "right"))

@@ -19,6 +19,7 @@ import pytest
 from bagit.common.dobot import Alarm
 from bagit.common.errors import ProtocolError
 from bagit.common.messages import Command, EStop
+from bagit.common.names import ESTOP_SOURCE_CLI
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
@@ -253,7 +254,7 @@ def test_estop_reaches_both_controllers_within_50_ms_and_stays_latched(rig):
         assert late == []  # ... and nothing was streamed after it
     assert not drv.submit(Command(u=u))
     # only an explicit reset clears it (here as the EStop message would), and motion needs a new stream
-    drv.handle_estop(EStop(engage=False, source="test"))
+    drv.handle_estop(EStop(engage=False, source=ESTOP_SOURCE_CLI))
     assert drv.mode in ("restarting", "holding")
     assert wait_until(lambda: drv.mode == "holding", 2.0)
     for a in sims.robots:

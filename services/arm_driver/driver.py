@@ -60,7 +60,7 @@ from bagit.common.rig import ARMS, RigConfig
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
-from bagit.services.arm_driver.gate import Refusal, stale_refusal
+from bagit.services.arm_driver.gate import Refusal, estop_refusal, stale_refusal
 from bagit.services.arm_driver.motion import ArmMotion
 
 _RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
@@ -328,11 +328,17 @@ class ArmDriver:
         return None
 
     def handle_estop(self, msg: EStop) -> None:
-        """An `EStop` message: engage latches the e-stop, `engage=False` resets it."""
+        """An `EStop` message: engage (from anyone) latches the e-stop; `engage=False` resets it if its
+        source is one of ESTOP_RELEASE_SOURCES, else SafetyViolation (counted) and the latch stays."""
         if msg.engage:
             self.estop(f"{msg.source}: {msg.reason or 'e-stop'}")
-        else:
-            self.reset_estop()
+            return
+        refused = estop_refusal(msg)
+        if refused is not None:
+            with self._lock:
+                self.counters["estop_releases_refused"] += 1
+            raise SafetyViolation(str(refused))
+        self.reset_estop()
 
     # -- e-stop ----------------------------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""Which commands may move the arms: the arm driver's gate, pure.
+"""Which commands may move the arms, and who may release the e-stop: the arm driver's gate, pure.
 
 The arms move only for the run the coordinator announced on run/state as servoing (its stage in
 `SERVO_STAGES`), and only on commands that are still fresh when they are applied:
@@ -6,8 +6,9 @@ The arms move only for the run the coordinator announced on run/state as servoin
     why = command_refusal(cmd, run)            # the node, for each command: None, or a Refusal
     why = stale_refusal(cmd.stamp, now, 0.2)   # the driver, as it applies one: None, or a Refusal
     why = stream_end(streaming_run, run)       # the node, on run/state: the run it streamed for is over
+    why = estop_refusal(msg)                   # a release from anyone but the operator's tools
 
-A hold is always taken (holding is always safe). Each refusal has
+A hold is always taken (holding is always safe), and an e-stop engage from anyone. Each refusal has
 a short `reason`, counted in the driver's `rejections`, and a sentence for the event. No bus, no
 clock: the node and the driver pass in what they know.
 """
@@ -17,18 +18,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from bagit.common.messages import Command, RunState
-from bagit.common.names import SERVO_STAGES
+from bagit.common.messages import Command, EStop, RunState
+from bagit.common.names import ESTOP_RELEASE_SOURCES, SERVO_STAGES
 
 NO_ACTIVE_RUN = "no_active_run"  # no run/state yet, no run id, or the run is not in a servo stage
 WRONG_RUN = "wrong_run"  # a command for another run (or for none) than the servoing one
 STALE = "stale"  # made longer ago than the watchdog: queued while the driver was stopped, or late
 CLOCK_SKEW = "clock_skew"  # stamped further ahead of this host's clock than the watchdog
+ESTOP_RELEASE_SOURCE = "estop_release_source"  # a release from a source not in ESTOP_RELEASE_SOURCES
 
 
 @dataclass(frozen=True)
 class Refusal:
-    """Why a command was not taken: `reason` is counted, `detail` is said."""
+    """Why a command (or an e-stop release) was not taken: `reason` is counted, `detail` is said."""
 
     reason: str
     detail: str
@@ -85,3 +87,10 @@ def stream_end(streaming_run: str | None, run: RunState) -> str | None:
         return f"run {streaming_run} {run.stage}" + (f": {run.reason}" if run.reason else "")
     return None
 
+
+def estop_refusal(msg: EStop) -> Refusal | None:
+    """None if `msg` may act: any engage, or a release from one of ESTOP_RELEASE_SOURCES."""
+    if msg.engage or msg.source in ESTOP_RELEASE_SOURCES:
+        return None
+    return Refusal(ESTOP_RELEASE_SOURCE,
+                   f"a release from {msg.source!r}: only {' and '.join(ESTOP_RELEASE_SOURCES)} may release the e-stop")

@@ -5,9 +5,10 @@
     node.close()                          # smooth stop, hold, DisableRobot, disconnect
 
 In: `controller/cmd` (each Command to `ArmDriver.submit`: servo increments, or hold), `estop`
-(engage latches EmergencyStop on both controllers; engage=False resets it) and `run/state` (a new
-run clears a fault latched in the last one: starting a run is the operator's reset; the e-stop
-latch is never cleared this way, and a fault whose cause persists latches again).
+(engage, from anyone, latches EmergencyStop on both controllers; engage=False resets it, from the
+dashboard or the CLI only: `ESTOP_RELEASE_SOURCES`) and `run/state` (a new run clears a fault
+latched in the last one: starting a run is the operator's reset; the e-stop latch is never cleared
+this way, and a fault whose cause persists latches again).
 
 The run gate (`gate.command_refusal`): a servo command moves the arms only if its `run_id` is the
 run run/state shows in a servo stage (pre-bagging, bagging); anything else is refused, counted in
@@ -128,7 +129,8 @@ class ArmDriverNode:
         try:
             self.driver.handle_estop(msg)
         except BagItError as e:
-            self._on_event("estop", f"reset refused, the e-stop stays latched: {e}")
+            latched = ", the e-stop stays latched" if self.driver.mode == "estopped" else ""
+            self._on_event("estop", f"reset refused{latched}: {e}")
         except Exception as e:  # noqa: BLE001 - a reset that fails must not take the node down
             self._on_event("estop", f"reset failed, the e-stop stays latched: {type(e).__name__}: {e}")
 
