@@ -14,6 +14,13 @@ ACTIVE_STAGES: tuple[str, ...] = ("perceiving", "goal", "planning", "pre-bagging
 SERVO_STAGES: tuple[str, ...] = ("pre-bagging", "bagging")  # the controller moves the arms
 FINAL_STAGES: tuple[str, ...] = ("done", "failed", "aborted")
 
+# Who may release the e-stop (EStop(engage=False) with this `source`): the operator's own tools, the
+# dashboard and the CLI. An engage is taken from anyone. On the secure rig these are also the only
+# identities the router lets put on `estop` (deploy/secure/zenoh-router-secure.json5).
+ESTOP_SOURCE_DASHBOARD = "dashboard"
+ESTOP_SOURCE_CLI = "cli"
+ESTOP_RELEASE_SOURCES: tuple[str, ...] = (ESTOP_SOURCE_DASHBOARD, ESTOP_SOURCE_CLI)
+
 ControllerName = Literal["mpc", "ibvs", "ssvs"]  # mpc is the paper's; ibvs and ssvs its baselines
 CONTROLLER_NAMES: tuple[str, ...] = get_args(ControllerName)
 DEFAULT_CONTROLLER: ControllerName = "mpc"

@@ -34,6 +34,7 @@ from bagit.common.messages import (
     RunState,
     SoiState,
 )
+from bagit.common.names import ESTOP_SOURCE_DASHBOARD
 from bagit.common.rig import RigConfig
 from bagit.dashboard.server import Dashboard, DashboardConfig
 
@@ -43,9 +44,10 @@ SERVICE_NAME = "dashboard"
 
 
 class ZenohRunLink:
-    """RunLink over the bus: run/control queries and puts on estop."""
+    """RunLink over the bus: run/control queries and puts on estop. Its e-stops carry `source`, by default
+    the dashboard's name in ESTOP_RELEASE_SOURCES: the arm driver takes a release from those only."""
 
-    def __init__(self, session: Any, keys: Keys, timeout_s: float = 5.0, source: str = SERVICE_NAME) -> None:
+    def __init__(self, session: Any, keys: Keys, timeout_s: float = 5.0, source: str = ESTOP_SOURCE_DASHBOARD) -> None:
         self.session = session
         self.keys = keys
         self.timeout_s = timeout_s

@@ -22,7 +22,7 @@ import viser.uplot
 
 from bagit.common.errors import BadScenario, BagItError
 from bagit.common.messages import ArmState, ControllerStatus, EStop, RunControlReply, RunState
-from bagit.common.names import SERVO_STAGES
+from bagit.common.names import ESTOP_SOURCE_DASHBOARD, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.scenario import Scenario
 from bagit.dashboard.health import HealthBoard, health_markdown
@@ -206,7 +206,7 @@ class Panel:
             self._say(f"E-STOP could NOT be sent: {error}", "error")
             return
         with self._lock:
-            self._estop = {"engaged": True, "source": "dashboard", "reason": ESTOP_REASON, "wall": time.time(), "at": now}
+            self._estop = {"engaged": True, "source": ESTOP_SOURCE_DASHBOARD, "reason": ESTOP_REASON, "wall": time.time(), "at": now}
         self._set(self.release_button, "disabled", False)
         self._say("sent; the arms are told to stop.", "estop")
 

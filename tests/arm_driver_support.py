@@ -104,6 +104,15 @@ def start_sims(rig: RigConfig | None = None, poses: dict[str, np.ndarray] | None
     return SimPair(rig.model_copy(update={"arms": arms}), robots, servers, proxies)
 
 
+def servo_positions(server: RecordingServer, t0: float = -np.inf, t1: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """(times, flange positions (n, 3) m in the base frame) of the ServoP commands a controller accepted."""
+    rows = [(t, text) for t, text, reply in server.commands("ServoP") if t0 <= t <= t1 and reply.startswith("0,")]
+    if not rows:
+        return np.zeros(0), np.zeros((0, 3))
+    xyz = np.array([[float(v) for v in text[len("ServoP(") :].split(",")[:3]] for _, text in rows]) / 1000.0
+    return np.array([r[0] for r in rows]), xyz
+
+
 class FeedbackRecorder:
     """Listens to a controller's feedback port on its own connection and keeps every packet: (monotonic t, record)."""
 

@@ -1,7 +1,8 @@
 """The arm-driver service on Zenoh against two simulated CR5s (ephemeral loopback ports): commands on
-controller/cmd move the arms, arm/<side>/state reports them, the watchdog holds the arms when the
-commands stop, an e-stop over the bus reaches both controllers and latches, and a new stream after
-a hold starts from the measured poses (never from a stale target)."""
+controller/cmd for the run run/state shows servoing move the arms, arm/<side>/state reports them,
+the watchdog holds the arms when the commands stop, an e-stop over the bus reaches both controllers
+and latches, and a new stream after a hold starts from the measured poses (never from a stale
+target). Who may move the arms at all (the run gate) is tests/test_arm_driver_gate.py."""
 
 import threading
 import time
@@ -15,6 +16,7 @@ from bagit.cli import main
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Publisher, Subscriber, locators, open_session
 from bagit.common.dobot import Alarm
 from bagit.common.messages import ArmState, Command, EStop, RunState
+from bagit.common.names import ESTOP_SOURCE_DASHBOARD
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.node import ArmDriverNode
@@ -40,14 +42,27 @@ def rigbus(request):
         sims.close()
 
 
-def _stream(pub, u, seconds, rate=30.0, seq0=0):
+RUN = "r1"
+
+
+def _announce(node, peer, keys, run_id=RUN, stage="bagging"):
+    """Publish run/state for a servoing run (the node moves the arms for it only) and wait until the
+    node has it; returns the publisher."""
+    run = Publisher(peer, keys.run_state, RunState)
+    assert wait_until(lambda: run.matched, 5.0)
+    run.put(RunState(run_id=run_id, stage=stage))
+    assert wait_until(lambda: node.run_state is not None and (node.run_state.run_id, node.run_state.stage) == (run_id, stage), 3.0)
+    return run
+
+
+def _stream(pub, u, seconds, rate=30.0, seq0=0, run_id=RUN):
     t0 = time.monotonic()
     k = 0
     while k / rate < seconds:
         wait = t0 + k / rate - time.monotonic()
         if wait > 0:
             time.sleep(wait)
-        pub.put(Command(u=u, dt=1 / rate, seq=seq0 + k))
+        pub.put(Command(u=u, dt=1 / rate, seq=seq0 + k, run_id=run_id))
         k += 1
     return time.monotonic(), seq0 + k
 
@@ -60,6 +75,7 @@ def test_commands_over_zenoh_move_the_arms_and_they_hold_when_commands_stop(rigb
                lambda s: trace.append((time.monotonic(), s.arm, s.tool_pose.copy(), s.tool_speed, s.error_reason)))
     cmd = Publisher(peer, keys.controller_cmd, Command)
     assert wait_until(lambda: len(states.items()) == 2 and cmd.matched, 5.0)
+    _announce(node, peer, keys)
     before = {a: states.get(keys.arm_state(a)).tool_pose[:3].copy() for a in ("left", "right")}
     v0 = 0.04
     u = np.zeros(12)
@@ -94,6 +110,7 @@ def test_hold_command_stops_the_arms_and_estop_over_zenoh_latches_both(rigbus):
     cmd = Publisher(peer, keys.controller_cmd, Command)
     estop = Publisher(peer, keys.estop, EStop)
     assert wait_until(lambda: len(states.items()) == 2 and cmd.matched and estop.matched, 5.0)
+    _announce(node, peer, keys)
     u = np.zeros(12)
     u[1], u[7] = -0.03 / 30, 0.03 / 30
     _, seq = _stream(cmd, u, 0.3)
@@ -117,7 +134,7 @@ def test_hold_command_stops_the_arms_and_estop_over_zenoh_latches_both(rigbus):
         assert np.allclose(states.get(keys.arm_state(a)).tool_pose[:3], pos[a], atol=1e-4)
         assert sims.robots[a].estop_pressed
     # reset over the bus: released, enabled, and a new stream moves again
-    estop.put(EStop(engage=False, source="test"))
+    estop.put(EStop(engage=False, source=ESTOP_SOURCE_DASHBOARD))
     assert wait_until(lambda: node.driver.mode == "holding", 5.0)
     assert wait_until(lambda: not any(states.get(keys.arm_state(a)).estopped for a in ("left", "right")), 2.0)
     assert all(sims.robots[a].enabled and not sims.robots[a].estop_pressed for a in ("left", "right"))
@@ -225,10 +242,12 @@ def test_a_new_run_clears_a_fault_latched_in_the_last_one_but_never_the_estop(ri
     run.put(RunState(run_id="r3", stage="perceiving"))  # a new run: ClearError, enable, restart
     assert wait_until(lambda: node.driver.mode == "holding", 5.0), node.driver.status()
     assert not sims.robots["left"].alarms() and any(e.startswith("fault_cleared: run r3") for e in node.events)
+    run.put(RunState(run_id="r3", stage="pre-bagging"))  # r3 servoes: its commands move the arms again
+    assert wait_until(lambda: node.run_state.stage == "pre-bagging", 3.0)
     u = np.zeros(12)
     u[2] = u[8] = 0.03 / 30
     z0 = states.get(keys.arm_state("left")).tool_pose[2]
-    _stream(cmd, u, 0.4)
+    _stream(cmd, u, 0.4, run_id="r3")
     assert wait_until(lambda: states.get(keys.arm_state("left")).tool_pose[2] > z0 + 0.004, 2.0)
     # an e-stop latched is not released by starting a run
     estop.put(EStop(engage=True, source="test"))

@@ -19,11 +19,12 @@ import pytest
 from bagit.common.dobot import Alarm
 from bagit.common.errors import ProtocolError
 from bagit.common.messages import Command, EStop
+from bagit.common.names import ESTOP_SOURCE_CLI
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 
-from arm_driver_support import FeedbackRecorder, Streamer, home_poses, start_sims
+from arm_driver_support import FeedbackRecorder, Streamer, home_poses, servo_positions, start_sims
 
 # On a loaded CI machine the simulated controllers' feedback threads can stall for a while; only the
 # feedback-loss test uses the (shorter) production default.
@@ -60,15 +61,6 @@ def stream(drv, u_of_t, seconds, rate=30.0, t_start=None):
         last = time.monotonic()
         accepted += drv.submit(Command(u=u_of_t(t), dt=1 / rate, seq=k))
         k += 1
-
-
-def servo_positions(server, t0=-np.inf, t1=np.inf):
-    """(times, flange positions (n, 3) m in the base frame) of the ServoP commands a controller received."""
-    rows = [(t, text) for t, text, reply in server.commands("ServoP") if t0 <= t <= t1 and reply.startswith("0,")]
-    if not rows:
-        return np.zeros(0), np.zeros((0, 3))
-    xyz = np.array([[float(v) for v in text[len("ServoP(") :].split(",")[:3]] for _, text in rows]) / 1000.0
-    return np.array([r[0] for r in rows]), xyz
 
 
 def loop_stall(drv, t0, t1):
@@ -262,7 +254,7 @@ def test_estop_reaches_both_controllers_within_50_ms_and_stays_latched(rig):
         assert late == []  # ... and nothing was streamed after it
     assert not drv.submit(Command(u=u))
     # only an explicit reset clears it (here as the EStop message would), and motion needs a new stream
-    drv.handle_estop(EStop(engage=False, source="test"))
+    drv.handle_estop(EStop(engage=False, source=ESTOP_SOURCE_CLI))
     assert drv.mode in ("restarting", "holding")
     assert wait_until(lambda: drv.mode == "holding", 2.0)
     for a in sims.robots:

@@ -32,6 +32,7 @@ from bagit.common.bus import (
 )
 from bagit.common.errors import BusError
 from bagit.common.messages import Command, EStop, RunControl, RunControlReply, SoiState
+from bagit.common.names import ESTOP_RELEASE_SOURCES
 from bagit.deploy.certs import write_lab_pki
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -114,6 +115,8 @@ def test_only_the_controller_can_drive_the_arms(rig):
 
 
 def test_estop_only_from_the_dashboard_and_the_cli(rig):
+    """Engage or release: only the operator's tools may put on estop (the arm driver also takes a
+    release only from those sources, ESTOP_RELEASE_SOURCES, which on loopback is all there is)."""
     c = rig["clients"]
     keys = Keys(RIG)
     got: list[EStop] = []
@@ -123,9 +126,23 @@ def test_estop_only_from_the_dashboard_and_the_cli(rig):
     time.sleep(0.2)
     for n, p in pubs.items():
         p.put(EStop(source=n))
-    assert wait_until(lambda: len(got) >= 2, 5.0)
+        p.put(EStop(engage=False, source="dashboard"))  # whatever name a release claims, the identity decides
+    assert wait_until(lambda: len(got) >= 4, 5.0)
     time.sleep(0.3)
-    assert sorted(m.source for m in got) == ["cli", "dashboard"]
+    assert sorted((m.engage, m.source) for m in got) == [(False, "dashboard")] * 2 + [(True, "cli"), (True, "dashboard")]
+
+
+def test_the_identities_that_may_put_on_estop_are_the_release_sources():
+    """The router's rule and the arm driver's rule name the same two: ESTOP_RELEASE_SOURCES."""
+    zc = zenoh.Config.from_file(str(ROUTER_CFG))
+    acl = json.loads(zc.get_json("access_control"))
+    rules = {r["id"]: r for r in acl["rules"]}
+    estop_rules = {rid for rid, r in rules.items() if r["permission"] == "allow" and "put" in r["messages"]
+                   and any(k.endswith("/estop") for k in r["key_exprs"])}
+    assert estop_rules == {"operator-estop"}
+    subjects = {s["id"]: set(s["cert_common_names"]) for s in acl["subjects"]}
+    names = set().union(*(subjects[sid] for p in acl["policies"] if set(p["rules"]) & estop_rules for sid in p["subjects"]))
+    assert names == set(ESTOP_RELEASE_SOURCES)
 
 
 def test_run_control_only_from_the_dashboard_and_the_cli(rig):

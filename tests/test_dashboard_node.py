@@ -13,6 +13,7 @@ import pytest
 
 from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, declare_alive, locators, open_session, serve_run_control
 from bagit.common.messages import ArmState, ControllerStatus, EStop, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.names import ESTOP_RELEASE_SOURCES, ESTOP_SOURCE_DASHBOARD
 from bagit.dashboard.node import DashboardNode
 from bagit.dashboard.server import DashboardConfig
 from dashboard_support import scene_messages, wait_until
@@ -71,7 +72,8 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
         assert [r.action for r in requests] == ["start", "stop", "reset"]
         d.panel.press_estop()
         assert wait_until(lambda: len(estops) == 1, 3.0)
-        assert estops[0].engage and estops[0].source == "dashboard"
+        assert estops[0].engage and estops[0].source == ESTOP_SOURCE_DASHBOARD  # a name the arm driver takes a release from
+        assert ESTOP_SOURCE_DASHBOARD in ESTOP_RELEASE_SOURCES
         # its own e-stop comes back on the bus and is shown
         assert wait_until(lambda: "E-STOP ENGAGED" in d.panel.status_markdown(), 3.0)
         # liveliness: a service appears, then dies

@@ -10,6 +10,7 @@ Modules, each doing one thing (none imports Zenoh; a node wraps `ArmDriver`):
   reach     a step the joints cannot follow (near a singularity) is shortened, not refused
   client    DobotClient: dashboard requests matched to replies, 1440-byte feedback, reconnect
   driver    ArmDriver: both arms, bring-up/shutdown, servo loop, watchdog, e-stop, faults
+  gate      which commands may move the arms (the servoing run's, fresh) and who may release the e-stop
 """
 
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient

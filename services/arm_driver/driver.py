@@ -4,6 +4,7 @@
                                                               # (on_event: (kind, detail) of each event)
     drv.start()                     # connect, ClearError, EnableRobot(payload), SpeedFactor; loop running
     drv.submit(command)             # the controller's 12-D increment (bagit.common.messages.Command)
+    drv.hold("run over")            # brake to rest; a later command starts a new stream
     drv.estop("operator")           # EmergencyStop(1) to both controllers at once; latched
     drv.reset_estop()               # only this clears it
     drv.close()                     # smooth stop, hold, DisableRobot, disconnect
@@ -18,6 +19,12 @@ What stops the arms, and how:
 - watchdog: no command for `watchdog_s` (200 ms). The stop is issued at the last tick before the
   deadline, Ruckig brakes to rest (velocity target zero), then the arms hold. A later command
   starts a new stream from the pose the arms are at.
+- a stale command: one made (its `stamp`) longer than `watchdog_s` before it is applied, e.g. queued
+  while the process was stopped, is refused (`gate.stale_refusal`); so is one stamped that far ahead.
+- a pause of the servo loop longer than `watchdog_s` (SIGSTOP, a machine that kept the process off
+  the CPU): no ServoP went out, so the controllers stopped the arms at the last target when its `t`
+  ran out. The trajectory is dropped, not braked (braking from its old velocity would move the
+  arms again): nothing moves until a new command starts a new stream from the measured poses.
 - a controller in error or collision, an arm disabled behind the driver's back, a ServoP refused,
   or too many requests without a good reply: a fault. Both arms brake (the arm in error is stopped
   by its controller); the fault stays until `clear_fault()` (the node clears it when a new run
@@ -53,6 +60,7 @@ from bagit.common.rig import ARMS, RigConfig
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
+from bagit.services.arm_driver.gate import Refusal, estop_refusal, stale_refusal
 from bagit.services.arm_driver.motion import ArmMotion
 
 _RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
@@ -120,6 +128,8 @@ class ArmDriver:
         self._failed_requests = {a: 0 for a in ARMS}
         self.violation_counts = self.motion.violation_counts
         self.rejections: Counter[str] = Counter()
+        self.last_refusal: Refusal | None = None  # the last command refused, and why
+        self._last_cycle = -np.inf  # monotonic time of the servo loop's last cycle (a pause shows as a gap)
         self.cycle_ms: deque[float] = deque(maxlen=1000)  # compute time of each cycle
         self.cycle_starts: deque[float] = deque(maxlen=1000)  # monotonic start of each cycle
         self.send_times: deque[float] = deque(maxlen=1000)  # when each period's motion commands went out
@@ -165,6 +175,7 @@ class ArmDriver:
             raise
         with self._lock:
             self._restart_from_measured()
+            self._last_cycle = time.monotonic()
             self._event("started", "both arms enabled")
         self.started = True
         self._stop.clear()
@@ -233,38 +244,60 @@ class ArmDriver:
     # -- input -----------------------------------------------------------------------------------
 
     def submit(self, cmd: Command) -> bool:
-        """Take one controller command; False (and counted with its reason) if it was refused.
+        """Take one controller command; False (and counted with its reason, `last_refusal`) if it was refused.
 
-        `mode='hold'` brakes both arms to rest; a later servo command starts a new stream.
+        `mode='hold'` brakes both arms to rest; a later servo command starts a new stream. A servo
+        command whose `stamp` is further than the watchdog's time from this host's clock is refused.
+        Which run may command the arms is the node's business (it knows run/state).
         """
         if cmd.mode == "hold":
             with self._lock:
                 self.counters["commands"] += 1
-                self.motion.hold(cmd.reason or "controller asked to hold", time.monotonic())
+            self.hold(cmd.reason or "controller asked to hold")
             return True
-        return self.submit_increment(np.asarray(cmd.u), float(cmd.dt), seq=cmd.seq)
+        return self.submit_increment(np.asarray(cmd.u), float(cmd.dt), seq=cmd.seq, stamp=cmd.stamp)
 
-    def submit_increment(self, u: np.ndarray, dt: float, seq: int | None = None) -> bool:
-        """Increment `u (12,)` (world, m and rad; left then right) over `dt` seconds."""
-        now = time.monotonic()
+    def hold(self, reason: str) -> None:
+        """Brake both arms to rest (a hold command, or the node when the run it streamed for ends)."""
         with self._lock:
+            self.motion.hold(reason, time.monotonic())
+
+    def refuse(self, refusal: Refusal) -> None:
+        """Count a command refused before it reached the driver (the node's run gate) with the driver's own."""
+        with self._lock:
+            self.counters["commands"] += 1
+            self._count_refusal(refusal)
+
+    def _count_refusal(self, refusal: Refusal) -> None:
+        self.rejections[refusal.reason] += 1
+        self.counters["rejected"] += 1
+        self.last_refusal = refusal
+
+    def submit_increment(self, u: np.ndarray, dt: float, seq: int | None = None, stamp: float | None = None) -> bool:
+        """Increment `u (12,)` (world, m and rad; left then right) over `dt` seconds, made at `stamp`
+        (wall clock; None: now, by an in-process caller)."""
+        with self._lock:
+            now = time.monotonic()  # under the lock: a submit that waited for it is timed when it applies
             self.counters["commands"] += 1
             why = self._refusal()
             if why is not None:
-                self.rejections[why] += 1
-                self.counters["rejected"] += 1
+                self._count_refusal(Refusal(why, f"command {seq}: the driver is {why.replace('_', ' ')}"))
                 return False
+            if stamp is not None:
+                stale = stale_refusal(stamp, time.time(), self.limits.watchdog_s)
+                if stale is not None:
+                    self._count_refusal(Refusal(stale.reason, f"command {seq}: {stale.detail}"))
+                    return False
+            self._check_stall(now)
             if not self.pipe.moving:
                 # A new stream from rest starts at the MEASURED poses, never at the last commanded
                 # ones: while the arms held, someone may have jogged them (or a simulator reset its
                 # world), and streaming from a stale target would drive them back to it.
                 if not self._restart_from_measured():
-                    self.rejections["no_feedback"] += 1
-                    self.counters["rejected"] += 1
+                    self._count_refusal(Refusal("no_feedback", f"command {seq}: no feedback to start a stream from"))
                     return False
                 if self._fault is not None:
-                    self.rejections["fault"] += 1
-                    self.counters["rejected"] += 1
+                    self._count_refusal(Refusal("fault", f"command {seq}: {self._fault}"))
                     return False
                 self.counters["reseeds"] += 1
             if seq is not None and self._last_seq is not None and seq <= self._last_seq:
@@ -272,7 +305,8 @@ class ArmDriver:
             self._last_seq = seq if seq is not None else self._last_seq
             found = self.motion.submit(u, dt, now)
             if any(v.kind == "non_finite" for v in found):
-                self.rejections["non_finite"] += 1
+                self.rejections["non_finite"] += 1  # ArmMotion counted it as rejected
+                self.last_refusal = Refusal("non_finite", f"command {seq}: not 12 finite numbers over 0 < dt <= 10 s")
                 return False
             return True
 
@@ -294,11 +328,17 @@ class ArmDriver:
         return None
 
     def handle_estop(self, msg: EStop) -> None:
-        """An `EStop` message: engage latches the e-stop, `engage=False` resets it."""
+        """An `EStop` message: engage (from anyone) latches the e-stop; `engage=False` resets it if its
+        source is one of ESTOP_RELEASE_SOURCES, else SafetyViolation (counted) and the latch stays."""
         if msg.engage:
             self.estop(f"{msg.source}: {msg.reason or 'e-stop'}")
-        else:
-            self.reset_estop()
+            return
+        refused = estop_refusal(msg)
+        if refused is not None:
+            with self._lock:
+                self.counters["estop_releases_refused"] += 1
+            raise SafetyViolation(str(refused))
+        self.reset_estop()
 
     # -- e-stop ----------------------------------------------------------------------------------
 
@@ -508,12 +548,15 @@ class ArmDriver:
             if delay > 0:
                 self._stop.wait(delay)
 
-    def _cycle(self, now: float) -> bool:
+    def _cycle(self, t0: float) -> bool:
         """One servo period; True if motion commands went out."""
-        self._check_replies(now)
+        self._check_replies(t0)
         sends: dict[str, str] = {}
         with self._lock:
+            now = time.monotonic()  # under the lock: a cycle that waited for it must not act on an old clock
             self.counters["cycles"] += 1
+            self._check_stall(now)
+            self._last_cycle = now
             self._watch(now)
             if self._estop:
                 return False
@@ -577,6 +620,18 @@ class ArmDriver:
                     if self._failed_requests[a] >= self.cfg.max_failed_requests:
                         with self._lock:
                             self._set_fault(f"{a}: {self._failed_requests[a]} motion requests in a row without a good reply ({e})")
+
+    def _check_stall(self, now: float) -> None:
+        """Drop the trajectory if the servo loop has not run for longer than the watchdog's time (with the
+        lock held): the arms stopped at the last target when its ServoP ran out, so braking from the
+        trajectory's old velocity would move them again. A new command starts a new stream from the
+        measured poses; until one comes nothing moves."""
+        gap = now - self._last_cycle
+        if self.pipe.moving and gap > self.limits.watchdog_s:
+            self.pipe.halt()
+            self.counters["stalls"] += 1
+            self._event("stalled", f"no servo cycle for {gap * 1000:.0f} ms (the process was paused or starved): "
+                        "the arms stopped at their last target and hold; a new command starts a new stream")
 
     def _settled(self) -> bool:
         """Both controllers report the arm idle and still, so the measured pose is where it will stay."""

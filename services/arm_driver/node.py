@@ -5,9 +5,16 @@
     node.close()                          # smooth stop, hold, DisableRobot, disconnect
 
 In: `controller/cmd` (each Command to `ArmDriver.submit`: servo increments, or hold), `estop`
-(engage latches EmergencyStop on both controllers; engage=False resets it) and `run/state` (a new
-run clears a fault latched in the last one: starting a run is the operator's reset; the e-stop
-latch is never cleared this way, and a fault whose cause persists latches again). Out: `arm/<side>/state`
+(engage, from anyone, latches EmergencyStop on both controllers; engage=False resets it, from the
+dashboard or the CLI only: `ESTOP_RELEASE_SOURCES`) and `run/state` (a new run clears a fault
+latched in the last one: starting a run is the operator's reset; the e-stop latch is never cleared
+this way, and a fault whose cause persists latches again).
+
+The run gate (`gate.command_refusal`): a servo command moves the arms only if its `run_id` is the
+run run/state shows in a servo stage (pre-bagging, bagging); anything else is refused, counted in
+the driver's `rejections` (`no_active_run`, `wrong_run`) and shown as the event `refused: ...`.
+Holds always pass. When the run the arms streamed for leaves the servo stages, or another run
+replaces it, the node holds the arms. Out: `arm/<side>/state`
 from each feedback packet (or at most `state_rate_hz`), with the driver's own condition laid over
 the controller's: `estopped` while the latch holds, `error` and `error_reason` while a driver
 fault (or a lost link) stops the arms, and for `notice_s` after a watchdog stop, a clipped
@@ -34,6 +41,7 @@ from bagit.common.names import FINAL_STAGES
 from bagit.common.results import ARM_EVENT_KINDS
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.driver import ArmDriver
+from bagit.services.arm_driver.gate import command_refusal, stream_end
 
 REPEAT_S = 5.0  # the same event is printed again at most this often
 
@@ -70,6 +78,11 @@ class ArmDriverNode:
         self.refused = 0
         self.estops = 0
         self._pubs = {a: Publisher(session, keys.arm_state(a), ArmState) for a in ARMS}
+        # the run gate: run/state as last heard, and the run the arms last streamed for; `_gate` makes
+        # a command's check and its submit one step against a run/state that ends the run
+        self._gate = threading.Lock()
+        self._run_state: RunState | None = None
+        self._streaming_run: str | None = None
         driver.on_state = self._on_state
         driver.on_event = self._on_event
         driver.start()  # ProtocolError: a controller is unreachable or refuses; nothing declared yet
@@ -78,17 +91,33 @@ class ArmDriverNode:
         self._run_id: str | None = None
         self._run_sub = Subscriber(session, keys.run_state, RunState, self._on_run_state)
 
+    @property
+    def run_state(self) -> RunState | None:
+        """The last run/state heard (None: none yet): the run gate's view of which run servoes."""
+        with self._gate:
+            return self._run_state
+
     # -- in ----------------------------------------------------------------------------------------
 
     def _on_command(self, cmd: Command) -> None:
-        ok = self.driver.submit(cmd)
+        with self._gate:
+            refusal = command_refusal(cmd, self._run_state)
+            if refusal is None:
+                ok = self.driver.submit(cmd)
+                refusal = None if ok else self.driver.last_refusal
+            else:
+                ok = False
+                self.driver.refuse(refusal)
+            if ok and cmd.mode == "servo":
+                self._streaming_run = cmd.run_id
         with self._lock:
             self.commands += 1
             if not ok:
                 self.refused += 1
         if not ok:
-            why = ", ".join(f"{k} {v}" for k, v in self.driver.rejections.items())
-            self._on_event("refused", f"command {cmd.seq} refused (so far: {why})")
+            so_far = ", ".join(f"{k} {v}" for k, v in self.driver.rejections.items())
+            self._on_event("refused", f"{refusal or f'command {cmd.seq}'} (so far: {so_far})",
+                           repeat_key=f"refused {refusal.reason if refusal else ''}")
         clipped = self.driver.counters.get("clipped", 0)
         if clipped != self._clipped_seen:
             self._clipped_seen = clipped
@@ -100,11 +129,18 @@ class ArmDriverNode:
         try:
             self.driver.handle_estop(msg)
         except BagItError as e:
-            self._on_event("estop", f"reset refused, the e-stop stays latched: {e}")
+            latched = ", the e-stop stays latched" if self.driver.mode == "estopped" else ""
+            self._on_event("estop", f"reset refused{latched}: {e}")
         except Exception as e:  # noqa: BLE001 - a reset that fails must not take the node down
             self._on_event("estop", f"reset failed, the e-stop stays latched: {type(e).__name__}: {e}")
 
     def _on_run_state(self, msg: RunState) -> None:
+        with self._gate:
+            self._run_state = msg
+            why = stream_end(self._streaming_run, msg)
+            if why is not None:
+                self._streaming_run = None
+                self.driver.hold(why)
         if msg.run_id is None or msg.run_id == self._run_id or msg.stage in FINAL_STAGES + ("idle",):
             return
         self._run_id = msg.run_id
@@ -123,16 +159,19 @@ class ArmDriverNode:
 
     # -- out ---------------------------------------------------------------------------------------
 
-    def _on_event(self, kind: str, detail: str) -> None:
+    def _on_event(self, kind: str, detail: str, repeat_key: str | None = None) -> None:
+        """Show an event on ArmState for `notice_s` and print it; the same text (or the same
+        `repeat_key`: a flood of refusals for one reason) is printed again at most every REPEAT_S."""
         now = time.monotonic()
         text = f"{kind}: {detail}"
+        key = repeat_key or text
         with self._lock:
             if kind not in ("started", "closed", "estop_reset", "fault_cleared", "reconnected"):
                 self._notice = (now, text)
             last = self._printed.get(kind)
-            due = last is None or last[1] != text or now - last[0] >= REPEAT_S
+            due = last is None or last[1] != key or now - last[0] >= REPEAT_S
             if due:
-                self._printed[kind] = (now, text)
+                self._printed[kind] = (now, key)
         if due:
             self.report(text)
 
@@ -182,6 +221,7 @@ class ArmDriverNode:
                 "fault": st["fault"],
                 "commands": self.commands,
                 "refused": self.refused,
+                "rejections": st["rejections"],
                 "estops_received": self.estops,
                 "states_published": dict(self.published),
                 "driver_counters": st["counters"],
