@@ -32,6 +32,7 @@ from typing import Any, Callable, Literal
 from mcap.writer import CompressionType, Writer
 from pydantic import BaseModel, ConfigDict, Field
 
+from bagit.common.errors import BadMessage
 from bagit.common.messages import SCHEMA_VERSION, Message, RunState
 from bagit.common.names import FINAL_STAGES
 from bagit.services.recorder.schema import MESSAGE_ENCODING, SCHEMA_ENCODING, json_schema_bytes, schema_name, to_json
@@ -154,7 +155,8 @@ class RecordingWriter:
         self.messages = 0
         self.lost = 0
         self.errors = 0
-        self.error: str | None = None
+        self.error: str | None = None  # the write error in progress (None once recording resumed)
+        self.last_error: str | None = None  # the latest write error, kept after recovery for the summary
         self.retry_at = 0.0
         self.reported_at = 0.0
         self.failed: tuple[str, str | None, int] | None = None
@@ -164,7 +166,11 @@ class RecordingWriter:
     # ---- routing -------------------------------------------------------------------------------
 
     def write(self, key: str, msg: Message, log_time_ns: int) -> bool:
-        """Record one message received on `key` at `log_time_ns` (ns since the epoch). False if lost."""
+        """Record one message received on `key` at `log_time_ns` (ns since the epoch). False if lost.
+
+        BadMessage if the message cannot be made a record (e.g. fields nested deeper than the JSON
+        encoder goes): nothing is written and the message has no effect, not even on the run."""
+        data = record_bytes(msg)
         now = self.clock()
         if isinstance(msg, RunState):
             self._follow_run(msg, now)
@@ -173,7 +179,7 @@ class RecordingWriter:
             return False
         try:
             f = self._current(log_time_ns)
-            self._add(f, key, msg, log_time_ns, now)
+            self._add(f, key, msg, data, log_time_ns, now)
         except OSError as e:
             self._fail(e, now)
             self.lost += 1
@@ -269,7 +275,7 @@ class RecordingWriter:
             self._prune_idle()
         return self.cur
 
-    def _add(self, f: _Open, key: str, msg: Message, log_time_ns: int, now: float) -> None:
+    def _add(self, f: _Open, key: str, msg: Message, data: bytes, log_time_ns: int, now: float) -> None:
         cls = type(msg)
         ch = f.channels.get(key)
         if ch is None:
@@ -280,7 +286,7 @@ class RecordingWriter:
                 key, MESSAGE_ENCODING, sid, {"kind": cls.KIND, "schema_version": str(SCHEMA_VERSION)}
             )
         publish_ns = int(msg.stamp * 1e9) if 0 < msg.stamp < 1e11 else log_time_ns
-        f.writer.add_message(ch, log_time=log_time_ns, data=to_json(msg), publish_time=publish_ns, sequence=f.messages)
+        f.writer.add_message(ch, log_time=log_time_ns, data=data, publish_time=publish_ns, sequence=f.messages)
         f.messages += 1
         if isinstance(msg, RunState):
             f.last_run_state = msg
@@ -312,8 +318,9 @@ class RecordingWriter:
             self.failed = (f.kind, f.run_id, f.part)
         self.errors += 1
         self.retry_at = now + self.cfg.retry_s
+        self.last_error = describe_os_error(e, f.path if f is not None else None)
         if self.error is None:
-            self.error = describe_os_error(e, f.path if f is not None else None)
+            self.error = self.last_error
             self.reported_at = now
             self.on_event("error", f"recording stopped: {self.error}; retrying every {self.cfg.retry_s:g} s")
         elif now - self.reported_at >= 60.0:
@@ -343,7 +350,16 @@ class RecordingWriter:
             "lost": self.lost,
             "errors": self.errors,
             "error": self.error,
+            "last_error": self.last_error,
         }
+
+
+def record_bytes(msg: Message) -> bytes:
+    """The MCAP record of a message; BadMessage if it has none (a hostile message must not stop the writer)."""
+    try:
+        return to_json(msg)
+    except Exception as e:  # noqa: BLE001 - pydantic/json raise ValueError, RecursionError, TypeError...
+        raise BadMessage(f"{msg.KIND}: cannot be recorded: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
 
 
 def run_metadata(st: RunState) -> dict[str, str]:

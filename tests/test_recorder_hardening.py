@@ -1,0 +1,158 @@
+"""Recorder hardening: a hostile message cannot stop the writer, a dead writer is never silent,
+a SIGKILLed file opens in the standard mcap reader, a restarted recorder continues its run at
+once, and rotation keeps files under --max-mb.
+
+Bus tests use in-process peers on loopback (multicast scouting off); the kill and restart tests
+run `bagit recorder` as a subprocess, as `bagit up` does."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+
+from bagit.common import wire
+from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
+from bagit.common.errors import BadMessage
+from bagit.common.messages import SCHEMA_VERSION, RunState, SoiState
+from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messages
+from bagit.services.recorder.node import RecorderNode, outcome
+from bagit.services.recorder.writer import _RawFile
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def nested_payload(depth: int, kind: str = "run_state") -> bytes:
+    """A wire payload whose header nests `depth` JSON arrays in a dict field (RunState.result):
+    100,000 levels make the ~200 kB header a user found killing the recorder's writer thread."""
+    nest = "[" * depth + "]" * depth
+    header = (f'{{"kind": "{kind}", "v": {SCHEMA_VERSION}, "fields": {{"run_id": "evil", "stage": "bagging", '
+              f'"result": {{"a": {nest}}}}}, "arrays": {{}}}}').encode()
+    return wire.MAGIC + struct.pack("<I", len(header)) + header
+
+
+def spawn_recorder(args: list[str], cwd: Path) -> subprocess.Popen:
+    """`bagit recorder ...` as its own process (as `bagit up` starts it), output captured."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen([sys.executable, "-m", "bagit.cli", "recorder", *args], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+# ---- 1. a hostile message cannot stop the writer; a dead writer is never silent ------------------
+
+
+def test_deeply_nested_header_is_a_bad_message_not_a_recursion_error():
+    """json's C parser raises RecursionError on deep nesting; decode must turn it into BadMessage."""
+    with pytest.raises(BadMessage, match="nested too deeply"):
+        wire.decode(nested_payload(100_000))
+    out: list[BaseException] = []
+
+    def in_thread() -> None:  # the recorder decodes in its writer thread
+        try:
+            wire.decode(nested_payload(100_000))
+        except BaseException as e:  # noqa: BLE001
+            out.append(e)
+
+    t = threading.Thread(target=in_thread)
+    t.start()
+    t.join()
+    assert len(out) == 1 and isinstance(out[0], BadMessage)
+
+
+def test_hostile_headers_are_counted_as_malformed_and_the_recorder_keeps_recording(tmp_path):
+    """The user's case through the real command: a ~200 kB nested header on any key (and one that
+    decodes but nests too deep for a JSON record) are malformed; everything after is recorded."""
+    rig = "hostile"
+    a = open_session(BusConfig(rig=rig, adminspace=True))
+    try:
+        proc = spawn_recorder(["--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--linger-s", "30", "--json"],
+                              tmp_path)
+        state = Publisher(a, f"bagit/{rig}/run/state", RunState)
+        soi = Publisher(a, f"bagit/{rig}/perception/soi", SoiState)
+        assert wait_until(lambda: state.matched and soi.matched, 20.0), "the recorder did not subscribe"
+        deep = nested_payload(100_000)
+        assert len(deep) > 200_000
+        a.put(f"bagit/{rig}/anything/at/all", deep)
+        a.put(f"bagit/{rig}/run/state", deep)
+        a.put(f"bagit/{rig}/run/state", nested_payload(600))  # decodes; pydantic cannot serialise it
+        state.put(RunState(run_id="h1", stage="bagging"))
+        for i in range(50):
+            soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))
+            threading.Event().wait(0.005)
+        state.put(RunState(run_id="h1", stage="done", progress=1.0))
+        threading.Event().wait(0.5)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        a.close()
+    assert proc.returncode == 0, err
+    res = json.loads(out)
+    assert res["success"] and res["malformed"] == 3 and res["lost"] == 0 and res["dead"] is None, res
+    assert res["messages"] == 52
+    assert "malformed message #1" in err and "nested too deeply" in err
+    sois = []
+    for f in tmp_path.glob(f"{rig}_*.mcap"):  # the first SOI may overtake the run state (higher priority): idle file
+        got, rec = read_messages(f)
+        assert rec.complete
+        sois += [m.seq for _, m in got if isinstance(m, SoiState)]
+    assert sorted(sois) == list(range(50))
+
+
+class BrokenFile(_RawFile):
+    """A file that takes `room` bytes and then fails with what no retry gets past: an exception
+    that is not an OSError (here the ValueError of writing to a closed file)."""
+
+    def __init__(self, path: Path, room: int) -> None:
+        super().__init__(path)
+        self.room = room
+
+    def write(self, data: Any) -> int:
+        if self.tell() + len(data) > self.room:
+            raise ValueError("I/O operation on closed file")
+        return super().write(data)
+
+
+def test_a_dead_writer_takes_the_token_down_and_reports_the_loss(tmp_path, pair):
+    """A writer fault ends recording loudly: liveliness gone, reason on run/state, `stopped` set,
+    every message in hand, queued or received afterwards counted lost, the summary a failure."""
+    a, b = pair
+    rig = "deadwriter"
+    keys = Keys(rig)
+    watcher = LivelinessWatcher(a, keys)
+    states: list[RunState] = []
+    Subscriber(a, keys.run_state, RunState, states.append)
+    w = RecordingWriter(RecorderConfig(dir=tmp_path, chunk_bytes=1024), rig, opener=lambda p: BrokenFile(p, 6000))
+    reports: list[tuple[str, str]] = []
+    node = RecorderNode(b, keys, w, report=lambda lvl, txt: reports.append((lvl, txt)))
+    try:
+        assert watcher.wait_for("recorder", True, 5.0)
+        pub_state = Publisher(a, keys.run_state, RunState)
+        pub_soi = Publisher(a, keys.perception_soi, SoiState)
+        assert wait_until(lambda: pub_soi.matched and pub_state.matched)
+        pub_state.put(RunState(run_id="d1", stage="bagging"))
+        for i in range(60):
+            pub_soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))
+            threading.Event().wait(0.002)
+        assert node.stopped.wait(5.0), "the writer did not die"
+        assert watcher.wait_for("recorder", False, 5.0), "the liveliness token stayed up"
+        assert wait_until(lambda: any((s.reason or "").startswith("recorder: writer died: ValueError") for s in states), 5.0)
+        before = node.status()["lost"]
+        for i in range(10):  # after the death: received, counted lost, never queued
+            pub_soi.put(SoiState(seq=100 + i, rim=np.zeros((32, 3))))
+        assert wait_until(lambda: node.status()["lost"] >= before + 10, 5.0)
+    finally:
+        status = node.close()
+        watcher.close()
+    ok, reason = outcome(status)
+    assert not ok and status["lost"] >= 10 and "writer died: ValueError: I/O operation on closed file" in (reason or "")
+    assert any(lvl == "error" and "writer died" in t for lvl, t in reports)
