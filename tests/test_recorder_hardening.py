@@ -7,6 +7,7 @@ run `bagit recorder` as a subprocess, as `bagit up` does."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -14,12 +15,15 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+from mcap.reader import make_reader
+from test_recorder_files import T0, Clock, FullDisk
 
 from bagit.common import wire
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
@@ -116,10 +120,10 @@ class BrokenFile(_RawFile):
         super().__init__(path)
         self.room = room
 
-    def write(self, data: Any) -> int:
-        if self.tell() + len(data) > self.room:
+    def _pwrite(self, parts: list[bytes], offset: int) -> None:
+        if offset + sum(len(p) for p in parts) > self.room:
             raise ValueError("I/O operation on closed file")
-        return super().write(data)
+        super()._pwrite(parts, offset)
 
 
 def test_a_dead_writer_takes_the_token_down_and_reports_the_loss(tmp_path, pair):
@@ -155,4 +159,96 @@ def test_a_dead_writer_takes_the_token_down_and_reports_the_loss(tmp_path, pair)
         watcher.close()
     ok, reason = outcome(status)
     assert not ok and status["lost"] >= 10 and "writer died: ValueError: I/O operation on closed file" in (reason or "")
+    assert status["messages"] + status["lost"] == status["received"]  # nothing unaccounted for
     assert any(lvl == "error" and "writer died" in t for lvl, t in reports)
+
+
+# ---- 2. a file cut by SIGKILL opens in the standard mcap reader ----------------------------------
+
+
+def standard_read(data: bytes) -> list[tuple[str, int]]:
+    """(topic, log time) of every message `mcap.reader.make_reader(f).iter_messages()` returns."""
+    return [(ch.topic, m.log_time) for _, ch, m in make_reader(io.BytesIO(data)).iter_messages()]
+
+
+def test_the_file_on_disk_is_valid_mcap_after_every_chunk(tmp_path):
+    """Snapshot the file after every write: the standard reader always returns exactly the messages
+    of the chunks written so far (the open chunk is in memory only)."""
+    clock = Clock()
+    w = RecordingWriter(RecorderConfig(dir=tmp_path, chunk_bytes=4096, flush_s=0.05), "lab", clock=clock)
+    t = T0
+    sent: list[tuple[str, int]] = []
+    chunks_seen = 0
+    for i in range(150):
+        t += 10_000_000
+        clock.t += 0.01
+        key = "bagit/lab/run/state" if i % 20 == 0 else "bagit/lab/perception/soi"
+        msg = RunState(run_id="s1", stage="bagging", progress=i / 150) if i % 20 == 0 else SoiState(seq=i, rim=np.full((8, 3), float(i)))
+        assert w.write(key, msg, t)
+        sent.append((key, t))
+        if i % 7 == 0:
+            w.tick()
+        f = w.cur
+        assert f is not None
+        on_disk = len(sent) - f.chunk_messages
+        got = standard_read(f.path.read_bytes())
+        assert got == sent[:on_disk]
+        chunks_seen += on_disk > 0
+    assert chunks_seen > 100
+    path = w.cur.path
+    w.close()
+    assert standard_read(path.read_bytes()) == sent
+    _, rec = read_messages(path)
+    assert rec.complete
+
+
+def test_a_file_abandoned_on_a_full_disk_opens_in_the_standard_reader(tmp_path):
+    """ENOSPC in the middle of a chunk's write: the file is ended again at its last complete chunk."""
+    w = RecordingWriter(RecorderConfig(dir=tmp_path, chunk_bytes=2048), "lab", opener=lambda p: FullDisk(p, 9000))
+    w.write("bagit/lab/run/state", RunState(run_id="f1", stage="planning"), T0)
+    rng = np.random.default_rng(3)  # incompressible rims: lz4 cannot make them fit
+    ok = [w.write("bagit/lab/perception/soi", SoiState(seq=i, rim=rng.normal(size=(16, 3))), T0 + i + 1) for i in range(40)]
+    assert not all(ok) and w.errors == 1
+    first = Path(w.files[0])
+    got, rec = read_messages(first)
+    assert not rec.complete and len(got) > 0
+    assert standard_read(first.read_bytes()) == [(r.topic, r.log_time_ns) for r, _ in got]
+    assert w.messages == len(got) and w.messages + w.lost == 41  # the messages of the failed chunk are counted lost
+
+
+def test_recorder_killed_with_sigkill_leaves_a_file_the_standard_reader_opens(tmp_path):
+    """The user's case: `make_reader(f).iter_messages()` on a SIGKILLed recorder's file returns every
+    message up to the last complete chunk (it returned none: RecordLengthLimitExceeded)."""
+    rig = "sigkill"
+    a = open_session(BusConfig(rig=rig, adminspace=True))
+    proc = None
+    try:
+        proc = spawn_recorder(["--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--flush-s", "0.2"], tmp_path)
+        state = Publisher(a, f"bagit/{rig}/run/state", RunState)
+        soi = Publisher(a, f"bagit/{rig}/perception/soi", SoiState)
+        assert wait_until(lambda: state.matched and soi.matched, 20.0), "the recorder did not subscribe"
+        state.put(RunState(run_id="k2", stage="bagging"))
+        threading.Event().wait(0.2)
+        sent_at: list[float] = []
+        for i in range(300):
+            if i == 250:
+                proc.send_signal(signal.SIGKILL)
+                proc.wait(5)
+            soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))
+            sent_at.append(time.monotonic())
+            threading.Event().wait(0.008)
+        killed_at = sent_at[250]
+        assert proc.returncode == -signal.SIGKILL
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        a.close()
+    (run_file,) = tmp_path.glob(f"{rig}_*_run-k2.mcap")
+    with open(run_file, "rb") as fh:
+        std = [(ch.topic, m.log_time, bytes(m.data)) for _, ch, m in make_reader(fh).iter_messages()]
+    got, rec = read_messages(run_file)
+    assert not rec.complete and rec.truncated
+    assert std == [(r.topic, r.log_time_ns, r.data) for r, _ in got]
+    seqs = [m.seq for _, m in got if isinstance(m, SoiState)]
+    settled = sum(1 for t in sent_at[:250] if t < killed_at - 1.0)  # older than --flush-s plus a margin
+    assert settled > 50 and seqs[:settled] == list(range(settled)), (settled, seqs[:5], len(seqs))

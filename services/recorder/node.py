@@ -74,7 +74,6 @@ class RecorderNode:
         self.stop_ok = False
         self.stop_reason: str | None = None
         self._queued_bytes = 0
-        self._in_hand = 0
         self._lock = threading.Lock()
         self._q: queue.Queue = queue.Queue()
         writer.on_event = self._on_event
@@ -130,9 +129,7 @@ class RecorderNode:
                 key, payload, t = item
                 with self._lock:
                     self._queued_bytes -= len(payload)
-                    self._in_hand = 1
                 self._record(key, payload, t)
-                self._in_hand = 0
             if time.monotonic() >= next_tick:
                 self.writer.tick()
                 next_tick = time.monotonic() + self.tick_s
@@ -160,21 +157,19 @@ class RecorderNode:
         """The writer thread is ending on a fault: stop recording, count what is lost, take the
         liveliness token down, say why (stderr and run/state), and set `stopped`."""
         with self._lock:
-            self.dead = f"writer died: {reason}"
-            lost = self._in_hand
+            self.dead = f"writer died: {reason}"  # from now on _on_sample counts, never queues
             while True:
                 try:
-                    item = self._q.get_nowait()
+                    self._q.get_nowait()
                 except queue.Empty:
                     break
-                if item is not _STOP:
-                    lost += 1
             self._queued_bytes = 0
-            self.dropped_dead += lost
         try:
             self.writer.close()  # finish the open file if the writer still can
-        except Exception:  # noqa: BLE001 - it may be what failed; the file stays readable as written
-            pass
+        except Exception:  # noqa: BLE001 - it may be what failed; the writer then abandoned the file
+            self.writer.abandon()
+        with self._lock:  # everything received and neither recorded nor counted elsewhere is lost
+            self.dropped_dead = self.received - self.writer.messages - self.writer.lost - self.bad - self.overflow
         self._undeclare_token()
         self.stop_reason = f"recorder {self.dead}"
         self._on_event("error", f"{self.dead}; recording stopped ({self.dropped_dead} messages lost so far)")

@@ -7,13 +7,17 @@
 - Outside runs, messages go to a rolling `<rig>_<UTC start>_idle.mcap`, opened on the first idle
   message; only the newest `keep_idle` idle files of the rig are kept.
 - Any file is rotated when it reaches `max_bytes`: the next part is `..._p2.mcap`, `..._p3.mcap`.
-- Chunked and compressed MCAP, written with unbuffered writes: a chunk is closed when it reaches
-  `chunk_bytes` or `flush_s` after its first message, so a recorder killed with SIGKILL leaves a
-  file readable up to its last complete chunk (at most `flush_s` of data lost). A closed file
-  ends with the summary, the `bagit.run` metadata (the last run state) and the footer.
-- A write error (disk full: ENOSPC, or any OSError) abandons the file, is reported through
-  `on_event("error", ...)` once, counts the messages that could not be written, and is retried
-  with a new part every `retry_s`; success is reported as `on_event("info", "recording resumed...")`.
+- Chunked and compressed MCAP: a chunk is closed when it reaches `chunk_bytes` (uncompressed)
+  or `flush_s` after its first message, and written at once, in one write with a provisional
+  trailer (an empty DataEnd, a Footer without summary, the magic) over the previous one. So a
+  file is a valid MCAP file after every chunk: one cut by SIGKILL opens in the standard reader
+  (`mcap.reader.make_reader`, which streams a file without summary) up to its last complete chunk,
+  at most `flush_s` of data lost. A closed file ends with the `bagit.run` metadata (the last run
+  state), the summary and the footer, byte for byte what the mcap writer makes.
+- A write error (disk full: ENOSPC, or any OSError) abandons the file (ended again at its last
+  complete chunk), is reported through `on_event("error", ...)` once, counts the messages that
+  did not reach the disk (those of the open chunk too), and is retried with a new part every
+  `retry_s`; success is reported as `on_event("info", "recording resumed...")`.
 
 No Zenoh here: `node.py` feeds decoded messages in and turns events into stderr lines and run state.
 """
@@ -24,12 +28,15 @@ import errno
 import json
 import os
 import re
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal
 
-from mcap.writer import CompressionType, Writer
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, DataEnd, Footer, Schema
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BadMessage
@@ -42,6 +49,10 @@ RUN_METADATA = "bagit.run"
 MAX_FILE_BYTES = 1 << 40  # rotate at 1 TiB at most: a file must stay small enough to copy, open and recover
 RECORDING_METADATA = "bagit.recording"
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
+MESSAGE_RECORD_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel id, sequence, log and publish time
+MESSAGE_INDEX_ENTRY = 8 + 8  # log time and offset of a message in its chunk's MessageIndex
+_NEVER = sys.maxsize  # the mcap Writer's chunk size: it never closes a chunk itself
+_IOV_MAX = 512  # buffers per pwritev (Linux takes 1024); more are joined first
 
 
 class RecorderConfig(BaseModel):
@@ -61,31 +72,77 @@ class RecorderConfig(BaseModel):
     )
 
 
+def _record_bytes(*records: Any) -> bytes:
+    """MCAP records serialised as the mcap writer serialises them."""
+    b = RecordBuilder()
+    for r in records:
+        r.write(b)
+    return b.end()
+
+
+# What a file being written ends with between chunks: an empty DataEnd, a Footer without a
+# summary, the closing magic. The standard reader (mcap.reader.make_reader) finds the footer, sees
+# no summary and streams the file from its start, so a file cut by SIGKILL opens anywhere.
+OPEN_TRAILER = _record_bytes(DataEnd(data_section_crc=0), Footer(summary_start=0, summary_offset_start=0, summary_crc=0)) + MCAP0_MAGIC
+
+
 class _RawFile:
-    """An unbuffered file the MCAP writer writes through: every write reaches the OS at once (no
-    Python buffer to lose on SIGKILL) and short writes are completed, so ENOSPC raises."""
+    """The file the MCAP writer writes through. Its writes are collected and put on disk by
+    `commit()` in one positioned write: the new records over the previous trailer, followed by a
+    fresh OPEN_TRAILER (none when `final`, after the writer's own summary and footer). So at any
+    time the file on disk is a valid MCAP file ending at its last complete chunk. Nothing is
+    buffered between commits that a SIGKILL could lose beyond the open chunk, short writes are
+    completed, ENOSPC raises."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        self._pos = 0
+        self._done = 0  # bytes of records on disk; the trailer follows them
+        self._parts: list[bytes] = []  # what the MCAP writer wrote since the last commit (not copied)
+        self._pending = 0
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
-        view = memoryview(data).cast("B")
-        done = 0
-        while done < len(view):
-            n = os.write(self._fd, view[done:])
-            if n <= 0:
-                raise OSError(errno.ENOSPC, "no progress writing", str(self.path))
-            done += n
-        self._pos += done
-        return done
+        self._parts.append(data if isinstance(data, bytes) else bytes(data))
+        self._pending += len(data)
+        return len(data)
 
     def tell(self) -> int:
-        return self._pos
+        return self._done + self._pending
 
     def flush(self) -> None:
         pass
+
+    def commit(self, final: bool = False) -> None:
+        """Put what was written since the last commit on disk, with the trailer (module doc)."""
+        self._pwrite(self._parts if final else [*self._parts, OPEN_TRAILER], self._done)
+        self._done += self._pending
+        self._parts, self._pending = [], 0
+        if final:
+            os.ftruncate(self._fd, self._done)
+
+    def _pwrite(self, parts: list[bytes], offset: int) -> None:
+        """Write `parts` at `offset` in one pwritev (the rest after a short write)."""
+        total = sum(len(p) for p in parts)
+        n = os.pwritev(self._fd, parts, offset) if 0 < len(parts) <= _IOV_MAX else 0
+        if n < total:
+            rest = memoryview(b"".join(parts))[n:]
+            while rest:
+                k = os.pwrite(self._fd, rest, offset + total - len(rest))
+                if k <= 0:
+                    raise OSError(errno.ENOSPC, "no progress writing", str(self.path))
+                rest = rest[k:]
+
+    def abandon(self) -> None:
+        """After a failed commit: drop what was not written and end the file at its last complete
+        chunk again (the old trailer's place is already allocated), then close it. Never raises."""
+        self._parts, self._pending = [], 0
+        try:
+            if self._fd >= 0:
+                self._pwrite([OPEN_TRAILER], self._done)
+                os.ftruncate(self._fd, self._done + len(OPEN_TRAILER))
+        except OSError:
+            pass
+        _quiet_close(self)
 
     def close(self) -> None:
         if self._fd >= 0:
@@ -93,7 +150,7 @@ class _RawFile:
             os.close(fd)
 
 
-Opener = Callable[[Path], Any]
+Opener = Callable[[Path], _RawFile]
 
 
 def default_opener(path: Path) -> _RawFile:
@@ -125,7 +182,9 @@ class _Open:
     schemas: dict[type, int] = field(default_factory=dict)
     channels: dict[str, int] = field(default_factory=dict)
     messages: int = 0
-    chunk_started: float | None = None
+    chunk_started: float | None = None  # clock time of the open chunk's first message
+    chunk_messages: int = 0  # messages in the open chunk (not on disk yet)
+    chunk_bytes: int = 0  # the open chunk's records and message index, uncompressed
     last_run_state: RunState | None = None
 
 
@@ -161,6 +220,7 @@ class RecordingWriter:
         self.reported_at = 0.0
         self.failed: tuple[str, str | None, int] | None = None
         self.last_run_state: RunState | None = None
+        self.chunk_limit = cfg.chunk_bytes
         cfg.dir.mkdir(parents=True, exist_ok=True)
 
     # ---- routing -------------------------------------------------------------------------------
@@ -179,15 +239,17 @@ class RecordingWriter:
             return False
         try:
             f = self._current(log_time_ns)
-            self._add(f, key, msg, data, log_time_ns, now)
         except OSError as e:
             self._fail(e, now)
             self.lost += 1
             return False
+        self._add(f, key, msg, data, log_time_ns, now)
+        self.messages += 1
+        if f.chunk_bytes >= self.chunk_limit and not self._close_chunk(f, now):
+            return False  # the chunk did not reach the disk: its messages, this one included, are lost
         if self.error is not None:
             self.on_event("info", f"recording resumed in {f.path} after {self.lost} lost messages")
             self.error = None
-        self.messages += 1
         return True
 
     def _follow_run(self, st: RunState, now: float) -> None:
@@ -217,11 +279,18 @@ class RecordingWriter:
             self._end_run()
         f = self.cur
         if f is not None and f.chunk_started is not None and now - f.chunk_started >= self.cfg.flush_s:
-            try:
-                f.writer.flush()
-                f.chunk_started = None
-            except OSError as e:
-                self._fail(e, now)
+            self._close_chunk(f, now)
+
+    def _close_chunk(self, f: _Open, now: float) -> bool:
+        """Write the open chunk (and a fresh trailer); False after a write error (reported, counted)."""
+        try:
+            f.writer.flush()
+            f.fh.commit()
+        except OSError as e:
+            self._fail(e, now, f)
+            return False
+        f.chunk_started, f.chunk_messages, f.chunk_bytes = None, 0, 0
+        return True
 
     # ---- files ---------------------------------------------------------------------------------
 
@@ -258,15 +327,16 @@ class RecordingWriter:
         fh = self.opener(path)
         try:
             compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[self.cfg.compression]
-            w = Writer(fh, chunk_size=self.cfg.chunk_bytes, compression=compression)
+            w = Writer(fh, chunk_size=_NEVER, compression=compression)  # chunks are closed here, not by mcap
             w.start(profile="", library=f"bagit {self.version}".strip())
             w.add_metadata(RECORDING_METADATA, {
                 "rig": self.rig, "kind": kind, "run_id": rid or "", "part": str(part),
                 "started_ns": str(log_time_ns), "schema_version": str(SCHEMA_VERSION),
                 "encoding": "json records: arrays as {dtype, shape, data: base64 of the wire bytes}",
             })
+            fh.commit()
         except BaseException:
-            _quiet_close(fh)
+            fh.abandon()
             raise
         self.cur = _Open(path=path, kind=kind, run_id=rid, part=part, fh=fh, writer=w, started_ns=log_time_ns)
         self.files.append(str(path))
@@ -281,13 +351,18 @@ class RecordingWriter:
         if ch is None:
             sid = f.schemas.get(cls)
             if sid is None:
-                sid = f.schemas[cls] = f.writer.register_schema(schema_name(cls), SCHEMA_ENCODING, json_schema_bytes(cls))
-            ch = f.channels[key] = f.writer.register_channel(
-                key, MESSAGE_ENCODING, sid, {"kind": cls.KIND, "schema_version": str(SCHEMA_VERSION)}
-            )
+                schema = Schema(id=0, name=schema_name(cls), encoding=SCHEMA_ENCODING, data=json_schema_bytes(cls))
+                sid = f.schemas[cls] = f.writer.register_schema(schema.name, schema.encoding, schema.data)
+                f.chunk_bytes += len(_record_bytes(schema))
+            channel = Channel(id=0, topic=key, message_encoding=MESSAGE_ENCODING, schema_id=sid,
+                              metadata={"kind": cls.KIND, "schema_version": str(SCHEMA_VERSION)})
+            ch = f.channels[key] = f.writer.register_channel(channel.topic, channel.message_encoding, sid, channel.metadata)
+            f.chunk_bytes += len(_record_bytes(channel))
         publish_ns = int(msg.stamp * 1e9) if 0 < msg.stamp < 1e11 else log_time_ns
         f.writer.add_message(ch, log_time=log_time_ns, data=data, publish_time=publish_ns, sequence=f.messages)
         f.messages += 1
+        f.chunk_messages += 1
+        f.chunk_bytes += message_bytes(data)
         if isinstance(msg, RunState):
             f.last_run_state = msg
         if f.chunk_started is None:
@@ -303,18 +378,29 @@ class RecordingWriter:
             if st is not None:
                 f.writer.add_metadata(RUN_METADATA, run_metadata(st))
             f.writer.finish()
+            f.fh.commit(final=True)
         except OSError as e:
             self._fail(e, self.clock(), f)
-        finally:
-            _quiet_close(f.fh)
+            return
+        except BaseException:
+            self._drop(f)
+            raise
+        _quiet_close(f.fh)
         self.on_event("info", f"closed {f.path} ({f.messages} messages)")
+
+    def _drop(self, f: _Open) -> None:
+        """Give up a file: the open chunk's messages are lost, the file ends at its last complete chunk."""
+        self.messages -= f.chunk_messages
+        self.lost += f.chunk_messages
+        f.chunk_messages = 0
+        f.fh.abandon()
 
     def _fail(self, e: OSError, now: float, f: _Open | None = None) -> None:
         f = f or self.cur
         if f is self.cur:
             self.cur = None
         if f is not None:
-            _quiet_close(f.fh)
+            self._drop(f)
             self.failed = (f.kind, f.run_id, f.part)
         self.errors += 1
         self.retry_at = now + self.cfg.retry_s
@@ -341,6 +427,12 @@ class RecordingWriter:
         """Finish the open file, if any."""
         self._close()
 
+    def abandon(self) -> None:
+        """Give up the open file without finishing it (after a writer fault): its open chunk is lost."""
+        f, self.cur = self.cur, None
+        if f is not None:
+            self._drop(f)
+
     def status(self) -> dict[str, Any]:
         return {
             "file": str(self.cur.path) if self.cur is not None else None,
@@ -352,6 +444,11 @@ class RecordingWriter:
             "error": self.error,
             "last_error": self.last_error,
         }
+
+
+def message_bytes(data: bytes) -> int:
+    """What a message with this record adds to its chunk: its Message record and message index entry."""
+    return MESSAGE_RECORD_OVERHEAD + len(data) + MESSAGE_INDEX_ENTRY
 
 
 def record_bytes(msg: Message) -> bytes:
