@@ -28,7 +28,7 @@ from test_recorder_files import T0, Clock, FullDisk
 from bagit.common import wire
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
 from bagit.common.errors import BadMessage
-from bagit.common.messages import SCHEMA_VERSION, RunState, SoiState
+from bagit.common.messages import SCHEMA_VERSION, ArmState, CameraInfo, PointCloud, RgbdFrame, RunState, SoiState
 from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messages
 from bagit.services.recorder.node import RecorderNode, outcome
 from bagit.services.recorder.writer import _RawFile
@@ -252,3 +252,61 @@ def test_recorder_killed_with_sigkill_leaves_a_file_the_standard_reader_opens(tm
     seqs = [m.seq for _, m in got if isinstance(m, SoiState)]
     settled = sum(1 for t in sent_at[:250] if t < killed_at - 1.0)  # older than --flush-s plus a margin
     assert settled > 50 and seqs[:settled] == list(range(settled)), (settled, seqs[:5], len(seqs))
+
+
+# ---- 4. rotation keeps files under --max-mb -----------------------------------------------------
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", "none"])
+def test_rotation_keeps_every_file_under_max_bytes_with_a_small_limit(tmp_path, compression):
+    """--max-mb 0.1 with the default 1 MB chunks made ~13x larger files (a file was only checked
+    once a whole chunk was on disk). Now: every file at most max_bytes, nearly full, complete, and
+    together every message in order; a message larger than the limit gets a file of its own."""
+    max_bytes = 100_000
+    w = RecordingWriter(RecorderConfig(dir=tmp_path, max_bytes=max_bytes, compression=compression, keep_idle=10_000), "lab",
+                        clock=Clock())
+    rng = np.random.default_rng(4)
+    t = T0
+    sent: list[tuple[str, int]] = []
+    huge_at = 700
+
+    def put(key: str, msg: Any) -> None:
+        nonlocal t
+        t += 1_000_000
+        assert w.write(f"bagit/lab/{key}", msg, t)
+        sent.append((f"bagit/lab/{key}", t))
+
+    put("run/state", RunState(run_id="m1", stage="bagging"))
+    for i in range(1400):
+        put("perception/soi", SoiState(seq=i, rim=rng.normal(size=(32, 3))))
+        put("arm/left/state", ArmState(arm="left", q=rng.normal(size=6), qd=np.zeros(6), tool_pose=rng.normal(size=6)))
+        if i % 15 == 0:
+            put("run/state", RunState(run_id="m1", stage="bagging", progress=i / 1400, result={"note": "x" * (i % 300)}))
+        if i % 100 == 50:
+            put("perception/cloud", PointCloud(points=rng.normal(size=(2000, 3)).astype(np.float32)))
+        if i == huge_at:  # ~130 kB of JSON: larger than the limit by itself
+            put("camera/rgbd", RgbdFrame(seq=i, camera=CameraInfo(width=160, height=120),
+                                         color=rng.integers(0, 255, (120, 160, 3), dtype=np.uint8),
+                                         depth=rng.integers(0, 4000, (120, 160), dtype=np.uint16)))
+    w.close()
+    files = [Path(f) for f in w.files]
+    assert len(files) > 10 and all(f.name.endswith(f"_p{i + 1}.mcap") for i, f in enumerate(files) if i)
+    got: list[tuple[str, int]] = []
+    first_record: list[int] = []
+    alone = []
+    for i, f in enumerate(files):
+        msgs, rec = read_messages(f)
+        assert rec.complete, f
+        got += [(r.topic, r.log_time_ns) for r, _ in msgs]
+        first_record.append(len(msgs[0][0].data))
+        size = f.stat().st_size
+        if size > max_bytes:
+            alone.append(i)
+            assert [type(m).__name__ for _, m in msgs] == ["RgbdFrame"], (f.name, size)
+    assert got == sent
+    assert len(alone) == 1
+    sizes = [f.stat().st_size for f in files]
+    # closed when the next message would not fit, not long before: a file and the next file's first
+    # record come near the limit (most files are over 95 % full; those before a 33 kB cloud less)
+    fill = [(sizes[i] + first_record[i + 1]) / max_bytes for i in range(len(files) - 1) if i != alone[0]]
+    assert min(fill) > 0.9, sorted(fill)[:3]

@@ -6,7 +6,11 @@
   a later run/state of the same, finished run does not reopen it.
 - Outside runs, messages go to a rolling `<rig>_<UTC start>_idle.mcap`, opened on the first idle
   message; only the newest `keep_idle` idle files of the rig are kept.
-- Any file is rotated when it reaches `max_bytes`: the next part is `..._p2.mcap`, `..._p3.mcap`.
+- A file is closed before a message would take it over `max_bytes` (summary and footer
+  included), and the next part opened: `..._p2.mcap`, `..._p3.mcap`. Only a message larger than
+  `max_bytes` by itself makes a larger file (of that message alone). Chunks are at most
+  `max_bytes / CHUNKS_PER_FILE`, so the open chunk, counted at its uncompressed bound until
+  written, never leaves much of a file unused.
 - Chunked and compressed MCAP: a chunk is closed when it reaches `chunk_bytes` (uncompressed)
   or `flush_s` after its first message, and written at once, in one write with a provisional
   trailer (an empty DataEnd, a Footer without summary, the magic) over the previous one. So a
@@ -31,11 +35,12 @@ import re
 import sys
 import time
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Literal
 
 from mcap.data_stream import RecordBuilder
-from mcap.records import Channel, DataEnd, Footer, Schema
+from mcap.records import Channel, DataEnd, Footer, Metadata, Schema
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -52,6 +57,14 @@ _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
 MESSAGE_RECORD_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel id, sequence, log and publish time
 MESSAGE_INDEX_ENTRY = 8 + 8  # log time and offset of a message in its chunk's MessageIndex
 _NEVER = sys.maxsize  # the mcap Writer's chunk size: it never closes a chunk itself
+CHUNKS_PER_FILE = 8  # chunks are at most max_bytes / this (and chunk_bytes)
+CHUNK_RECORD_OVERHEAD = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 4 + 8  # a Chunk record around its data ("zstd" the longest name)
+MESSAGE_INDEX_HEADER = 1 + 8 + 2 + 4  # a MessageIndex record per channel of a chunk, before its entries
+STATISTICS_PER_CHANNEL = 2 + 8  # the Statistics record's message count of a channel
+# what closing adds besides the open chunk, the schemas, channels, chunk indexes and bagit.run: the
+# DataEnd (13), Statistics without channels (55), metadata indexes (2 x ~45), summary offsets (6 x 26),
+# Footer (29) and magic (8), rounded up
+CLOSE_OVERHEAD = 512
 _IOV_MAX = 512  # buffers per pwritev (Linux takes 1024); more are joined first
 
 
@@ -61,7 +74,7 @@ class RecorderConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     dir: Path = Field(Path("recordings"), description="folder of the MCAP files")
-    max_bytes: int = Field(1 << 30, ge=1 << 16, le=MAX_FILE_BYTES, description="rotate a file when it reaches this size")
+    max_bytes: int = Field(1 << 30, ge=1 << 16, le=MAX_FILE_BYTES, description="close a file before a message would take it over this size")
     chunk_bytes: int = Field(1 << 20, ge=1 << 10, le=1 << 28, description="close an MCAP chunk at this size (uncompressed)")
     flush_s: float = Field(1.0, gt=0, le=60, description="close a chunk this long after its first message")
     linger_s: float = Field(2.0, ge=0, le=600, description="keep a finished run's file open this long for its last states")
@@ -185,6 +198,8 @@ class _Open:
     chunk_started: float | None = None  # clock time of the open chunk's first message
     chunk_messages: int = 0  # messages in the open chunk (not on disk yet)
     chunk_bytes: int = 0  # the open chunk's records and message index, uncompressed
+    summary_bytes: int = 0  # what the summary will hold: schemas, channels, chunk indexes, counts
+    run_meta_bytes: int = 0  # the bagit.run metadata record closing will add
     last_run_state: RunState | None = None
 
 
@@ -220,7 +235,8 @@ class RecordingWriter:
         self.reported_at = 0.0
         self.failed: tuple[str, str | None, int] | None = None
         self.last_run_state: RunState | None = None
-        self.chunk_limit = cfg.chunk_bytes
+        # a file holds at least CHUNKS_PER_FILE chunks, so chunks stay small next to a small --max-mb
+        self.chunk_limit = min(cfg.chunk_bytes, cfg.max_bytes // CHUNKS_PER_FILE)
         cfg.dir.mkdir(parents=True, exist_ok=True)
 
     # ---- routing -------------------------------------------------------------------------------
@@ -238,7 +254,7 @@ class RecordingWriter:
             self.lost += 1
             return False
         try:
-            f = self._current(log_time_ns)
+            f = self._current(log_time_ns, key, msg, data, now)
         except OSError as e:
             self._fail(e, now)
             self.lost += 1
@@ -284,30 +300,41 @@ class RecordingWriter:
     def _close_chunk(self, f: _Open, now: float) -> bool:
         """Write the open chunk (and a fresh trailer); False after a write error (reported, counted)."""
         try:
-            f.writer.flush()
-            f.fh.commit()
+            self._write_chunk(f)
         except OSError as e:
             self._fail(e, now, f)
             return False
-        f.chunk_started, f.chunk_messages, f.chunk_bytes = None, 0, 0
         return True
+
+    def _write_chunk(self, f: _Open) -> None:
+        """Write the open chunk now (OSError on a write error, the chunk then still open)."""
+        f.writer.flush()
+        f.fh.commit()
+        f.summary_bytes += chunk_index_bytes(len(f.channels))
+        f.chunk_started, f.chunk_messages, f.chunk_bytes = None, 0, 0
 
     # ---- files ---------------------------------------------------------------------------------
 
     def _wanted(self) -> tuple[str, str | None]:
         return ("run", self.run_id) if self.run_id is not None else ("idle", None)
 
-    def _current(self, log_time_ns: int) -> _Open:
+    def _current(self, log_time_ns: int, key: str, msg: Message, data: bytes, now: float) -> _Open:
+        """The file this message goes to. A file it would take over max_bytes is closed first (the
+        open chunk is written first, so its compressed size counts, not a bound), unless the file
+        holds nothing yet: a message larger than max_bytes gets a file of its own."""
         kind, rid = self._wanted()
         f = self.cur
         if f is not None and (f.kind != kind or f.run_id != rid):
             self._close()
             f = None
         part = 1
-        if f is not None and f.fh.tell() >= self.cfg.max_bytes:
-            part = f.part + 1
-            self._close()
-            f = None
+        if f is not None and f.messages > 0 and self._size_bound(f, key, msg, data) > self.cfg.max_bytes:
+            if f.chunk_messages:
+                self._write_chunk(f)
+            if self._size_bound(f, key, msg, data) > self.cfg.max_bytes:
+                part = f.part + 1
+                self._close()
+                f = None
         elif f is None and self.error is not None and self.failed is not None and self.failed[:2] == (kind, rid):
             part = self.failed[2] + 1  # a retry after a write error continues the same run or idle period
         if f is None:
@@ -345,19 +372,36 @@ class RecordingWriter:
             self._prune_idle()
         return self.cur
 
+    def _new_records(self, f: _Open, key: str, cls: type[Message]) -> int:
+        """Bytes of the schema and channel records a message on `key` adds to `f` (0 if it has them);
+        each goes in the chunk and again in the summary."""
+        if key in f.channels:
+            return 0
+        return (0 if cls in f.schemas else schema_record_bytes(cls)) + channel_record_bytes(key, cls)
+
+    def _size_bound(self, f: _Open, key: str, msg: Message, data: bytes) -> int:
+        """At most how large `f` is once closed if this message goes in now: what is on disk, the open
+        chunk at its compression bound (lz4 and zstd never grow data by more), its message index and
+        chunk index, and the summary, run metadata and footer that closing adds."""
+        new = self._new_records(f, key, type(msg))
+        channels = len(f.channels) + (key not in f.channels)
+        meta = metadata_record_bytes(RUN_METADATA, run_metadata(msg)) if isinstance(msg, RunState) else f.run_meta_bytes
+        chunk = f.chunk_bytes + new + message_bytes(data)
+        return (f.fh.tell() + CHUNK_RECORD_OVERHEAD + compressed_bound(chunk) + MESSAGE_INDEX_HEADER * channels
+                + chunk_index_bytes(channels) + f.summary_bytes + new + STATISTICS_PER_CHANNEL * (key not in f.channels)
+                + meta + CLOSE_OVERHEAD)
+
     def _add(self, f: _Open, key: str, msg: Message, data: bytes, log_time_ns: int, now: float) -> None:
         cls = type(msg)
         ch = f.channels.get(key)
         if ch is None:
+            new = self._new_records(f, key, cls)
             sid = f.schemas.get(cls)
             if sid is None:
-                schema = Schema(id=0, name=schema_name(cls), encoding=SCHEMA_ENCODING, data=json_schema_bytes(cls))
-                sid = f.schemas[cls] = f.writer.register_schema(schema.name, schema.encoding, schema.data)
-                f.chunk_bytes += len(_record_bytes(schema))
-            channel = Channel(id=0, topic=key, message_encoding=MESSAGE_ENCODING, schema_id=sid,
-                              metadata={"kind": cls.KIND, "schema_version": str(SCHEMA_VERSION)})
-            ch = f.channels[key] = f.writer.register_channel(channel.topic, channel.message_encoding, sid, channel.metadata)
-            f.chunk_bytes += len(_record_bytes(channel))
+                sid = f.schemas[cls] = f.writer.register_schema(schema_name(cls), SCHEMA_ENCODING, json_schema_bytes(cls))
+            ch = f.channels[key] = f.writer.register_channel(key, MESSAGE_ENCODING, sid, channel_metadata(cls))
+            f.chunk_bytes += new
+            f.summary_bytes += new + STATISTICS_PER_CHANNEL
         publish_ns = int(msg.stamp * 1e9) if 0 < msg.stamp < 1e11 else log_time_ns
         f.writer.add_message(ch, log_time=log_time_ns, data=data, publish_time=publish_ns, sequence=f.messages)
         f.messages += 1
@@ -365,6 +409,7 @@ class RecordingWriter:
         f.chunk_bytes += message_bytes(data)
         if isinstance(msg, RunState):
             f.last_run_state = msg
+            f.run_meta_bytes = metadata_record_bytes(RUN_METADATA, run_metadata(msg))
         if f.chunk_started is None:
             f.chunk_started = now
 
@@ -449,6 +494,35 @@ class RecordingWriter:
 def message_bytes(data: bytes) -> int:
     """What a message with this record adds to its chunk: its Message record and message index entry."""
     return MESSAGE_RECORD_OVERHEAD + len(data) + MESSAGE_INDEX_ENTRY
+
+
+def compressed_bound(n: int) -> int:
+    """The most n bytes become under lz4 or zstd (both bound their output by n + n/255 + a frame's
+    headers; n/64 + 64 covers that with room to spare); none leaves them as they are."""
+    return n + n // 64 + 64
+
+
+def chunk_index_bytes(channels: int) -> int:
+    """A ChunkIndex record: times, offsets, lengths, sizes, compression name, one entry per channel."""
+    return 1 + 8 + 8 * 4 + 4 + 10 * channels + 8 + 4 + 4 + 8 + 8
+
+
+def channel_metadata(cls: type[Message]) -> dict[str, str]:
+    return {"kind": cls.KIND, "schema_version": str(SCHEMA_VERSION)}
+
+
+@lru_cache(maxsize=None)
+def schema_record_bytes(cls: type[Message]) -> int:
+    return len(_record_bytes(Schema(id=0, name=schema_name(cls), encoding=SCHEMA_ENCODING, data=json_schema_bytes(cls))))
+
+
+def channel_record_bytes(key: str, cls: type[Message]) -> int:
+    return len(_record_bytes(Channel(id=0, topic=key, message_encoding=MESSAGE_ENCODING, schema_id=0,
+                                     metadata=channel_metadata(cls))))
+
+
+def metadata_record_bytes(name: str, data: dict[str, str]) -> int:
+    return len(_record_bytes(Metadata(name=name, metadata=data)))
 
 
 def record_bytes(msg: Message) -> bytes:
