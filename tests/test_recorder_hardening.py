@@ -29,7 +29,7 @@ from bagit.common import wire
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
 from bagit.common.errors import BadMessage
 from bagit.common.messages import SCHEMA_VERSION, ArmState, CameraInfo, PointCloud, RgbdFrame, RunState, SoiState
-from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messages
+from bagit.services.recorder import RecorderConfig, RecordingWriter, list_runs, read_messages
 from bagit.services.recorder.node import RecorderNode, outcome
 from bagit.services.recorder.writer import _RawFile
 
@@ -310,3 +310,60 @@ def test_rotation_keeps_every_file_under_max_bytes_with_a_small_limit(tmp_path, 
     # record come near the limit (most files are over 95 % full; those before a 33 kB cloud less)
     fill = [(sizes[i] + first_record[i + 1]) / max_bytes for i in range(len(files) - 1) if i != alone[0]]
     assert min(fill) > 0.9, sorted(fill)[:3]
+
+
+# ---- 3. a restarted recorder continues the run within a second -------------------------------------
+
+
+def test_a_restarted_recorder_continues_the_run_within_a_second(tmp_path, capsys):
+    """`bagit up` restarts a dead recorder; the new one began 4.4 s late (a scipy import in the CLI
+    and messages filed as idle until a run/state came by). Now from its start to the first message
+    of the current run in its file: under 1 s, and nothing of the run in an idle file."""
+    rig = "restart"
+    keys = Keys(rig)
+    a = open_session(BusConfig(rig=rig, adminspace=True))
+    stop = threading.Event()
+    run_began = time.time() - 5.0
+
+    def coordinator() -> None:  # the planner's 2 Hz run/state and a 30 Hz SOI stream
+        state, soi = Publisher(a, keys.run_state, RunState), Publisher(a, keys.perception_soi, SoiState)
+        i, next_state = 0, 0.0
+        while not stop.is_set():
+            now = time.time()
+            if now >= next_state:
+                state.put(RunState(run_id="r1", stage="bagging", elapsed_s=now - run_began, stamp=now))
+                next_state = now + 0.5
+            soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))
+            i += 1
+            stop.wait(1 / 30)
+
+    th = threading.Thread(target=coordinator, daemon=True)
+    th.start()
+    args = ["--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--json"]
+    try:
+        first = spawn_recorder(args, tmp_path)
+        assert wait_until(lambda: any(tmp_path.glob(f"{rig}_*_run-r1*.mcap")), 20.0)
+        threading.Event().wait(0.5)
+        first.send_signal(signal.SIGKILL)
+        first.wait(5)
+        started_ns = time.time_ns()
+        second = spawn_recorder(args, tmp_path)
+        threading.Event().wait(2.5)
+        second.send_signal(signal.SIGTERM)
+        out, err = second.communicate(timeout=30)
+    finally:
+        stop.set()
+        th.join(5)
+        a.close()
+    assert second.returncode == 0, err
+    res = json.loads(out)
+    assert res["success"] and [Path(f).name for f in res["files"]] == [Path(res["files"][0]).name]
+    got, rec = read_messages(res["files"][0])
+    assert "_run-r1" in res["files"][0] and rec.complete
+    delay_s = (got[0][0].log_time_ns - started_ns) / 1e9
+    with capsys.disabled():
+        print(f"\nrestarted recorder: first message of the run recorded {delay_s:.3f} s after its start")
+    assert 0 < delay_s < 1.0, delay_s
+    assert not list(tmp_path.glob(f"{rig}_*_idle*.mcap"))
+    runs = list_runs(tmp_path)["runs"]
+    assert [(r["run_id"], len(r["files"]), r["complete"]) for r in runs] == [("r1", 2, False)]  # the killed part is truncated

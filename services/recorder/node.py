@@ -8,6 +8,10 @@ disk: when the queue holds more than `max_queue_bytes` the sample is dropped and
 events go to stderr; a write error (disk full) is also published on `run/state` (the last run
 state seen, with the reason), so the dashboard shows it.
 
+At start, messages wait (at most START_HOLD_S) for the first run/state: if it names a run under
+way (a recorder restarted mid-run), those received since the run began go to the run's file
+at once, not to an idle file until the run's state comes by.
+
 If the writer thread dies all the same (a fault of the writer, not of a message), the recorder
 does not linger as a live-looking husk: it counts the message in hand, the queue and everything
 received afterwards as lost, undeclares its liveliness token, publishes the reason on run/state
@@ -34,10 +38,14 @@ from bagit.common import wire
 from bagit.common.bus import DROPS, KEY_TABLE, STATE, BusError, Keys, Publisher, declare_alive
 from bagit.common.errors import BadMessage, BadRecording
 from bagit.common.messages import Message, RunState
+from bagit.common.names import FINAL_STAGES
 from bagit.services.recorder.reading import Recording
 from bagit.services.recorder.writer import RecordingWriter
 
 COMMAND_KEYS = ("controller/cmd", "estop")
+# At start, messages wait this long at most for the first run/state (the coordinator republishes
+# it at 2 Hz), so a recorder restarted in the middle of a run files them under that run.
+START_HOLD_S = 1.0
 _STOP = object()
 
 
@@ -57,6 +65,7 @@ class RecorderNode:
         max_queue_bytes: int = 256 << 20,
         report: Callable[[str, str], None] = stderr_report,
         tick_s: float = 0.05,
+        hold_s: float = START_HOLD_S,
     ) -> None:
         self.keys = keys
         self.writer = writer
@@ -74,6 +83,9 @@ class RecorderNode:
         self.stop_ok = False
         self.stop_reason: str | None = None
         self._queued_bytes = 0
+        # messages decoded before the first run/state, and until when they may wait for it
+        self._held: list[tuple[str, Message, int]] | None = [] if hold_s > 0 else None
+        self._hold_until = time.monotonic() + hold_s
         self._lock = threading.Lock()
         self._q: queue.Queue = queue.Queue()
         writer.on_event = self._on_event
@@ -130,9 +142,13 @@ class RecorderNode:
                 with self._lock:
                     self._queued_bytes -= len(payload)
                 self._record(key, payload, t)
+            if self._held is not None and time.monotonic() >= self._hold_until:
+                self._release(None)  # no run/state in time: what was held goes where it would have
             if time.monotonic() >= next_tick:
                 self.writer.tick()
                 next_tick = time.monotonic() + self.tick_s
+        if self._held is not None:
+            self._release(None)
 
     def _record(self, key: str, payload: bytes, t: int) -> None:
         """Decode and write one payload. Whatever a payload holds, it is recorded or counted as
@@ -142,10 +158,31 @@ class RecorderNode:
         except Exception as e:  # noqa: BLE001 - BadMessage, or anything else a hostile payload provokes
             self._malformed(key, e if isinstance(e, BadMessage) else f"undecodable: {type(e).__name__}: {_first_line(e)}")
             return
+        if self._held is not None:
+            if not isinstance(msg, RunState):
+                self._held.append((key, msg, t))
+                return
+            self._release(msg)
+        self._write(key, msg, t)
+
+    def _write(self, key: str, msg: Message, t: int) -> None:
         try:
             self.writer.write(key, msg, t)
         except BadMessage as e:  # the message has no MCAP record (RecordingWriter.write wrote nothing)
             self._malformed(key, e)
+
+    def _release(self, first: RunState | None) -> None:
+        """End the start hold with the first run/state (or None): the held messages received after
+        the start of the run it names go to that run's file, those before to where they would have."""
+        held, self._held = self._held or [], None
+        start = run_start_ns(first) if first is not None else None
+        split = len(held) if start is None else next((i for i, (_, _, t) in enumerate(held) if t >= start), len(held))
+        for key, msg, t in held[:split]:
+            self._write(key, msg, t)
+        if split < len(held) and first is not None:
+            self.writer.follow(first)
+            for key, msg, t in held[split:]:
+                self._write(key, msg, t)
 
     def _malformed(self, key: str, reason: object) -> None:
         self.bad += 1
@@ -242,6 +279,14 @@ def outcome(status: dict[str, Any]) -> tuple[bool, str | None]:
     if not reasons:
         return True, None
     return False, "; ".join(reasons) + f" ({status.get('lost', 0)} messages lost)"
+
+
+def run_start_ns(st: RunState) -> int | None:
+    """When the run a run state names began (ns since the epoch, the coordinator's clock: its stamp
+    minus the elapsed time), if it is a run under way; None otherwise."""
+    if not st.run_id or st.stage == "idle" or st.stage in FINAL_STAGES or not st.elapsed_s > 0 or not 0 < st.stamp < 1e11:
+        return None
+    return int((st.stamp - st.elapsed_s) * 1e9)
 
 
 def _first_line(e: BaseException) -> str:

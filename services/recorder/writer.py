@@ -268,6 +268,10 @@ class RecordingWriter:
             self.error = None
         return True
 
+    def follow(self, st: RunState) -> None:
+        """Take a run state into account without recording it (the node's start hold)."""
+        self._follow_run(st, self.clock())
+
     def _follow_run(self, st: RunState, now: float) -> None:
         self.last_run_state = st
         rid = st.run_id
