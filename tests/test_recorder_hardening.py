@@ -25,6 +25,7 @@ from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
 from mcap.reader import make_reader
 from test_recorder_files import T0, Clock, FullDisk
 
+from bagit.cli import main
 from bagit.common import wire
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
 from bagit.common.errors import BadMessage
@@ -161,6 +162,49 @@ def test_a_dead_writer_takes_the_token_down_and_reports_the_loss(tmp_path, pair)
     assert not ok and status["lost"] >= 10 and "writer died: ValueError: I/O operation on closed file" in (reason or "")
     assert status["messages"] + status["lost"] == status["received"]  # nothing unaccounted for
     assert any(lvl == "error" and "writer died" in t for lvl, t in reports)
+
+
+def test_bagit_recorder_with_a_dead_writer_exits_1_with_the_loss_in_its_summary(tmp_path, monkeypatch, capsys):
+    """The command, not only the node: a writer fault stops `bagit recorder` at once (not at
+    --duration) with exit status 1, and its JSON summary says success false, what was lost and why."""
+    rig = "deadcli"
+    keys = Keys(rig)
+    room = 20_000
+
+    def broken(self: _RawFile, parts: list[bytes], offset: int) -> None:  # the disk fails as BrokenFile's
+        if offset + sum(len(p) for p in parts) > room:
+            raise ValueError("I/O operation on closed file")
+        os.pwritev(self._fd, parts, offset)
+
+    monkeypatch.setattr(_RawFile, "_pwrite", broken)
+    a = open_session(BusConfig(rig=rig, adminspace=True))
+    stop = threading.Event()
+
+    def traffic() -> None:
+        soi = Publisher(a, keys.perception_soi, SoiState)
+        rng = np.random.default_rng(5)
+        i = 0
+        while not stop.is_set():
+            soi.put(SoiState(seq=i, rim=rng.normal(size=(32, 3))))
+            i += 1
+            stop.wait(0.005)
+
+    th = threading.Thread(target=traffic, daemon=True)
+    th.start()
+    t0 = time.monotonic()
+    try:
+        code = main(["recorder", "--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--chunk-kb", "4",
+                     "--duration", "20", "--json"])
+        took = time.monotonic() - t0
+    finally:
+        stop.set()
+        th.join(5)
+        a.close()
+    res = json.loads(capsys.readouterr().out)
+    assert code == 1 and took < 15, (code, took)  # stopped by the death, not by --duration 20
+    assert not res["success"] and res["lost"] > 0 and res["dead"].startswith("writer died: ValueError")
+    assert "writer died: ValueError: I/O operation on closed file" in res["reason"]
+    assert res["messages"] + res["lost"] + res["malformed"] + res["overflow"] == res["received"]
 
 
 # ---- 2. a file cut by SIGKILL opens in the standard mcap reader ----------------------------------

@@ -17,7 +17,7 @@
   file is a valid MCAP file after every chunk: one cut by SIGKILL opens in the standard reader
   (`mcap.reader.make_reader`, which streams a file without summary) up to its last complete chunk,
   at most `flush_s` of data lost. A closed file ends with the `bagit.run` metadata (the last run
-  state), the summary and the footer, byte for byte what the mcap writer makes.
+  state), then the summary and footer as the mcap writer writes them, over the trailer.
 - A write error (disk full: ENOSPC, or any OSError) abandons the file (ended again at its last
   complete chunk), is reported through `on_event("error", ...)` once, counts the messages that
   did not reach the disk (those of the open chunk too), and is retried with a new part every
@@ -96,16 +96,18 @@ def _record_bytes(*records: Any) -> bytes:
 # What a file being written ends with between chunks: an empty DataEnd, a Footer without a
 # summary, the closing magic. The standard reader (mcap.reader.make_reader) finds the footer, sees
 # no summary and streams the file from its start, so a file cut by SIGKILL opens anywhere.
-OPEN_TRAILER = _record_bytes(DataEnd(data_section_crc=0), Footer(summary_start=0, summary_offset_start=0, summary_crc=0)) + MCAP0_MAGIC
+OPEN_TRAILER = _record_bytes(
+    DataEnd(data_section_crc=0), Footer(summary_start=0, summary_offset_start=0, summary_crc=0)
+) + MCAP0_MAGIC
 
 
 class _RawFile:
     """The file the MCAP writer writes through. Its writes are collected and put on disk by
     `commit()` in one positioned write: the new records over the previous trailer, followed by a
     fresh OPEN_TRAILER (none when `final`, after the writer's own summary and footer). So at any
-    time the file on disk is a valid MCAP file ending at its last complete chunk. Nothing is
-    buffered between commits that a SIGKILL could lose beyond the open chunk, short writes are
-    completed, ENOSPC raises."""
+    time the file on disk is a valid MCAP file ending at its last complete chunk. RecordingWriter
+    commits right after every write of the MCAP writer (start, a chunk, the end), so nothing waits
+    here for a SIGKILL to lose; short writes are completed, ENOSPC raises."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -254,7 +256,7 @@ class RecordingWriter:
             self.lost += 1
             return False
         try:
-            f = self._current(log_time_ns, key, msg, data, now)
+            f = self._current(log_time_ns, key, msg, data)
         except OSError as e:
             self._fail(e, now)
             self.lost += 1
@@ -322,7 +324,7 @@ class RecordingWriter:
     def _wanted(self) -> tuple[str, str | None]:
         return ("run", self.run_id) if self.run_id is not None else ("idle", None)
 
-    def _current(self, log_time_ns: int, key: str, msg: Message, data: bytes, now: float) -> _Open:
+    def _current(self, log_time_ns: int, key: str, msg: Message, data: bytes) -> _Open:
         """The file this message goes to. A file it would take over max_bytes is closed first (the
         open chunk is written first, so its compressed size counts, not a bound), unless the file
         holds nothing yet: a message larger than max_bytes gets a file of its own."""
