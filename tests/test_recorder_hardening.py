@@ -42,7 +42,7 @@ def nested_payload(depth: int, kind: str = "run_state") -> bytes:
     100,000 levels make the ~200 kB header a user found killing the recorder's writer thread."""
     nest = "[" * depth + "]" * depth
     header = (f'{{"kind": "{kind}", "v": {SCHEMA_VERSION}, "fields": {{"run_id": "evil", "stage": "bagging", '
-              f'"result": {{"a": {nest}}}}}, "arrays": {{}}}}').encode()
+              f'"elapsed_s": 5.0, "result": {{"a": {nest}}}}}, "arrays": {{}}}}').encode()
     return wire.MAGIC + struct.pack("<I", len(header)) + header
 
 
@@ -111,6 +111,7 @@ def test_hostile_headers_are_counted_as_malformed_and_the_recorder_keeps_recordi
         assert rec.complete
         sois += [m.seq for _, m in got if isinstance(m, SoiState)]
     assert sorted(sois) == list(range(50))
+    assert not list(tmp_path.glob("*_run-evil*"))  # the hostile run state routed nothing, not even held messages
 
 
 class BrokenFile(_RawFile):

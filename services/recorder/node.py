@@ -40,7 +40,7 @@ from bagit.common.errors import BadMessage, BadRecording
 from bagit.common.messages import Message, RunState
 from bagit.common.names import FINAL_STAGES
 from bagit.services.recorder.reading import Recording
-from bagit.services.recorder.writer import RecordingWriter
+from bagit.services.recorder.writer import RecordingWriter, record_bytes
 
 COMMAND_KEYS = ("controller/cmd", "estop")
 # At start, messages wait this long at most for the first run/state (the coordinator republishes
@@ -161,6 +161,11 @@ class RecorderNode:
         if self._held is not None:
             if not isinstance(msg, RunState):
                 self._held.append((key, msg, t))
+                return
+            try:
+                record_bytes(msg)  # a run state that cannot be recorded must not route anything either
+            except BadMessage as e:
+                self._malformed(key, e)
                 return
             self._release(msg)
         self._write(key, msg, t)
