@@ -59,6 +59,8 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[M] | None = N
         header = json.loads(bytes(buf[8 : 8 + hlen]).decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise BadMessage(f"header is not JSON: {e}") from None
+    except RecursionError:  # e.g. 100,000 nested '[': json's C parser hits the interpreter's recursion limit
+        raise BadMessage("header is nested too deeply to parse") from None
     if not isinstance(header, dict):
         raise BadMessage("header is not a JSON object")
     kind = header.get("kind")
@@ -82,6 +84,8 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[M] | None = N
     except ValidationError as e:
         first = e.errors()[0]
         raise BadMessage(f"{kind}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+    except RecursionError:
+        raise BadMessage(f"{kind}: fields nested too deeply to validate") from None
 
 
 def _array_from(body: memoryview, name: str, spec: object) -> np.ndarray:

@@ -186,29 +186,20 @@ def test_runs_lists_a_truncated_run_from_its_last_recovered_state(tmp_path, caps
     assert main(["runs", str(tmp_path / "nope")]) == 2
 
 
-class FullDisk:
-    """A file that accepts `room` bytes, then fails like a full disk."""
-
-    opened: list = []
+class FullDisk(_RawFile):
+    """A file that takes `room` bytes, then fails like a full disk: what fits is written, then ENOSPC."""
 
     def __init__(self, path: Path, room: int) -> None:
-        self.inner = _RawFile(path)
+        super().__init__(path)
         self.room = room
-        FullDisk.opened.append(self)
 
-    def write(self, data) -> int:
-        if self.inner.tell() + len(data) > self.room:
+    def _pwrite(self, parts: list[bytes], offset: int) -> None:
+        data = b"".join(parts)
+        fits = max(0, min(len(data), self.room - offset))
+        if fits:
+            super()._pwrite([data[:fits]], offset)
+        if fits < len(data):
             raise OSError(errno.ENOSPC, "No space left on device")
-        return self.inner.write(data)
-
-    def tell(self) -> int:
-        return self.inner.tell()
-
-    def flush(self) -> None:
-        pass
-
-    def close(self) -> None:
-        self.inner.close()
 
 
 def test_disk_full_is_reported_counted_and_retried(tmp_path):

@@ -6,16 +6,15 @@ import argparse
 from typing import Any
 
 from bagit.commands import _args
+from bagit.common.names import DEFAULT_PLANNER, PLANNER_NAMES
 
 NAME = "plan"
 HELP = "plan the SOI path g0 -> g† -> g* for a scenario"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from bagit.services.planner.rrt import PLANNERS
-
     p.add_argument("scenario", help="scenario file, or the name of a bundled scenario")
-    p.add_argument("--planner", choices=sorted(PLANNERS), default="cbirrt")
+    p.add_argument("--planner", choices=PLANNER_NAMES, default=DEFAULT_PLANNER)
     p.add_argument("--seed", type=_args.seed, default=0)
     p.add_argument("--time-budget", type=_args.positive_seconds, default=10.0, help="seconds before the search gives up")
 

@@ -2,7 +2,8 @@
 
 Files open in Foxglove (JSON messages with JSON Schemas; arrays as base64 of their wire bytes).
 Stops on Ctrl-C or SIGTERM, finishing the open file; a SIGKILL leaves it readable up to its last
-complete chunk (at most --flush-s of data lost).
+complete chunk (at most --flush-s of data lost). If its writer dies, it stops with failure (exit
+status 1, the loss and the reason in its summary) after taking its liveliness token down.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_bus_arguments(p)
     p.add_argument("--dir", type=Path, default=Path("recordings"), help="folder of the recordings (default ./recordings)")
-    p.add_argument("--max-mb", type=_args.positive_number, default=1024.0, help="rotate a file at this size in MB (default 1024)")
+    p.add_argument("--max-mb", type=_args.positive_number, default=1024.0, help="close a file before it would exceed this size in MB, and continue in the next part (default 1024)")
     p.add_argument("--chunk-kb", type=_args.positive_number, default=1024.0, help="MCAP chunk size in KB (default 1024)")
     p.add_argument("--flush-s", type=_args.positive_seconds, default=1.0, help="close a chunk at most this long after its first message")
     p.add_argument("--linger-s", type=_args.non_negative_seconds, default=2.0, help="keep a finished run's file open this long (its last states)")
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit import __version__
     from bagit.common.bus import Keys, bus_config_from_args, open_session
     from bagit.common.errors import BadRecording
-    from bagit.services.recorder.node import RecorderNode
+    from bagit.services.recorder.node import RecorderNode, outcome
     from bagit.services.recorder.writer import RecorderConfig, RecordingWriter
 
     try:
@@ -80,17 +81,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         try:
             node = RecorderNode(session, keys, writer, exclude=args.exclude)
             print(f"bagit recorder: recording {keys.all} into {cfg.dir}; Ctrl-C to stop", file=sys.stderr, flush=True)
-            stop.wait(args.duration)
+            deadline = None if args.duration is None else time.monotonic() + args.duration
+            while not stop.is_set() and not node.stopped.is_set():  # stopped: the writer died
+                left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+                if left <= 0:
+                    break
+                stop.wait(left)
             status = node.close()
         finally:
             session.close()
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-    ok = status["errors"] == 0 and status["overflow"] == 0
+    ok, reason = outcome(status)
     return {
         "success": ok,
-        "reason": None if ok else (status["error"] or f"{status['overflow']} messages dropped (writer behind)"),
+        "reason": reason,
         "dir": str(cfg.dir),
         "uptime_s": time.monotonic() - t0,
         **status,

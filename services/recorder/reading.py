@@ -1,9 +1,11 @@
 """Reading recordings back: messages (recovering truncated files), run summaries, replay timing.
 
 A file the recorder closed ends with a summary and a footer. A file whose recorder was killed (or
-whose disk filled) has neither: it is read sequentially with mcap's StreamReader, chunk CRCs
-checked, and reading stops at the first record that is incomplete or corrupt, so every message
-of every complete chunk comes back and nothing after. `Recording.truncated` says where it stopped.
+whose disk filled) ends at its last complete chunk with a provisional footer that has no summary
+(the writer keeps one there), or, if the kill cut a write, with a partial record. Either way it
+is read sequentially with mcap's StreamReader, chunk CRCs checked, and reading stops at the
+first record that is incomplete or corrupt, so every message of every complete chunk comes back
+and nothing after. `Recording.truncated` says why it is not complete.
 """
 
 from __future__ import annotations
@@ -68,7 +70,7 @@ class Recording:
             schemas: dict[int, Schema] = {}
             channels: dict[int, tuple[str, type[Message]] | None] = {}
             it = reader.records
-            footer = False
+            footer: Footer | None = None
             while True:
                 try:
                     rec = next(it)
@@ -94,11 +96,15 @@ class Recording:
                 elif isinstance(rec, Metadata):
                     self.metadata[rec.name] = dict(rec.metadata)
                 elif isinstance(rec, Footer):
-                    footer = True
+                    footer = rec
             # a footer followed by a cut closing magic is still a cut file: complete needs both
-            self.complete = footer and self.truncated is None
-            if not footer and self.truncated is None:
+            self.complete = footer is not None and self.truncated is None
+            if footer is None and self.truncated is None:
                 self.truncated = f"stopped after {self.read} messages: no footer (the recorder did not close the file)"
+            elif self.complete and footer is not None and footer.summary_start == 0 and RECORDING_METADATA in self.metadata:
+                # the recorder closes every file with a summary: this is the provisional trailer of a file being written
+                self.complete = False
+                self.truncated = f"stopped after {self.read} messages: the recorder did not close the file (no summary)"
 
 
 def _channel(ch: Channel, schemas: dict[int, Schema]) -> tuple[str, type[Message]] | None:
