@@ -255,3 +255,12 @@ def test_an_estop_aborts_the_run_and_refuses_starts_until_released():
     c.on_estop(True, "pendant", None, T0 + 8.0)
     assert c.state.stage == "idle"
     assert not c.start(RunControl(action="start", scenario="exp02"), T0 + 9.0).accepted
+
+
+def test_a_run_never_goes_back_from_bagging_to_pre_bagging():
+    """A late or a hold status saying pre-bagging once the lift has begun does not flip the run/state back."""
+    c = started()
+    servoing(c)
+    c.on_status(status(c, stage="bagging", progress=0.7), T0 + 3)
+    c.on_status(status(c, stage="pre-bagging", progress=0.7, mode="hold"), T0 + 3.1)
+    assert c.state.stage == "bagging"

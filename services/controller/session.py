@@ -234,4 +234,11 @@ class ServoSession:
         return self.hold(why, now)
 
     def _status(self, **kw: Any) -> ControllerStatus:
+        """A status; a hold's carries where the run is on its path (the tracker's stage and progress),
+        not the message's defaults, so a hold during bagging never reads as pre-bagging."""
+        tracker = getattr(self.controller, "tracker", None)
+        if tracker is not None:
+            kw.setdefault("stage", tracker.stage)
+            kw.setdefault("progress", tracker.progress())
+            kw.setdefault("subgoal_index", tracker.index)
         return ControllerStatus(run_id=self.run_id, seq=self.seq, controller=self.name if self.controller is not None else DEFAULT_CONTROLLER, **kw)

@@ -441,6 +441,8 @@ class Coordinator:
             self._finish(now, "done", None)
             return
         stage = st.stage if st.stage in SERVO_STAGES else self.state.stage
+        if self.state.stage == "bagging":
+            stage = "bagging"  # the lift from g† has begun: a run never goes back to pre-bagging
         if stage != self.state.stage or abs(st.progress - self.state.progress) > 1e-9:
             self._set(now, stage=stage, progress=float(st.progress))
 
