@@ -6,11 +6,12 @@ protocol and the 1440-byte feedback, each arm started holding its bag mount at t
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from bagit.common.rig import ARMS, RigConfig
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
 from bagit.services.sim.rig_sim import natural_ik
+
+if TYPE_CHECKING:
+    from bagit.services.arm_driver.config import DriverConfig
 
 # Where the simulated rig holds the mounts at the start (exp01-04): 0.21 m apart at 0.47 m height.
 HOME_CENTRE = np.array([0.15, 0.0, 0.475])
@@ -282,3 +286,27 @@ class Streamer:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join()
+
+
+@contextlib.contextmanager
+def node_on_bus(rig: str, cfg: "DriverConfig"):
+    """(sims, node, peer session, keys): an ArmDriverNode for two simulated CR5s on one in-process Zenoh
+    peer, the test's publishers on the other; the node's reports kept in `node.events`."""
+    from bus_support import session_pair
+
+    from bagit.common.bus import Keys
+    from bagit.services.arm_driver.driver import ArmDriver
+    from bagit.services.arm_driver.node import ArmDriverNode
+
+    sims = start_sims()
+    gen = session_pair(rig)
+    a, b = next(gen)
+    events: list[str] = []
+    node = ArmDriverNode(a, Keys(rig), ArmDriver(sims.rig, cfg), report=events.append)
+    node.events = events
+    try:
+        yield sims, node, b, Keys(rig)
+    finally:
+        node.close()
+        gen.close()
+        sims.close()

@@ -13,14 +13,13 @@ import time
 
 import numpy as np
 import pytest
-from arm_driver_support import servo_positions, start_sims
-from bus_support import session_pair, wait_until
+from arm_driver_support import node_on_bus, servo_positions
+from bus_support import wait_until
 
-from bagit.common.bus import Keys, LatestCache, Publisher
+from bagit.common.bus import LatestCache, Publisher
 from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.common.names import ESTOP_RELEASE_SOURCES, ESTOP_SOURCE_CLI, ESTOP_SOURCE_DASHBOARD, SERVO_STAGES, STAGES
 from bagit.services.arm_driver.config import DriverConfig
-from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import (
     CLOCK_SKEW,
     ESTOP_RELEASE_SOURCE,
@@ -104,19 +103,8 @@ def test_an_estop_engages_from_anyone_and_is_released_only_by_the_operators_tool
 @pytest.fixture
 def rigbus(request):
     """(sims, node, peer session, keys): the node on one peer, the test's publishers on the other."""
-    rig = "ag" + "".join(c for c in request.node.name if c.isalnum())[-30:]
-    sims = start_sims()
-    gen = session_pair(rig)
-    a, b = next(gen)
-    events: list[str] = []
-    node = ArmDriverNode(a, Keys(rig), ArmDriver(sims.rig, CFG), report=events.append)
-    node.events = events
-    try:
-        yield sims, node, b, Keys(rig)
-    finally:
-        node.close()
-        gen.close()
-        sims.close()
+    with node_on_bus("ag" + "".join(c for c in request.node.name if c.isalnum())[-30:], CFG) as bus:
+        yield bus
 
 
 def _send(pub: Publisher, run_id: str | None, n: int, seq0: int = 0, rate: float = 30.0) -> None:

@@ -9,8 +9,8 @@ import time
 
 import numpy as np
 import pytest
-from arm_driver_support import start_sims
-from bus_support import session_pair, wait_until
+from arm_driver_support import node_on_bus, start_sims
+from bus_support import wait_until
 
 from bagit.cli import main
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Publisher, Subscriber, locators, open_session
@@ -19,7 +19,6 @@ from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.common.names import ESTOP_SOURCE_DASHBOARD
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
-from bagit.services.arm_driver.node import ArmDriverNode
 
 CFG = DriverConfig(feedback_timeout_s=0.5)  # a loaded CI machine can stall the simulated feedback a while
 
@@ -27,19 +26,8 @@ CFG = DriverConfig(feedback_timeout_s=0.5)  # a loaded CI machine can stall the 
 @pytest.fixture
 def rigbus(request):
     """(sims, node, peer session, keys): the node on one peer, the test's publishers on the other."""
-    rig = "ad" + "".join(c for c in request.node.name if c.isalnum())[-30:]
-    sims = start_sims()
-    gen = session_pair(rig)
-    a, b = next(gen)
-    events: list[str] = []
-    node = ArmDriverNode(a, Keys(rig), ArmDriver(sims.rig, CFG), report=events.append)
-    node.events = events
-    try:
-        yield sims, node, b, Keys(rig)
-    finally:
-        node.close()
-        gen.close()
-        sims.close()
+    with node_on_bus("ad" + "".join(c for c in request.node.name if c.isalnum())[-30:], CFG) as bus:
+        yield bus
 
 
 RUN = "r1"
