@@ -14,7 +14,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
-from bagit.common.names import Stage
+from bagit.common.names import ESTOP_RELEASE_SOURCES, Stage
 
 SCHEMA_VERSION = 1
 
@@ -279,6 +279,11 @@ class EStop(Message):
     engage: bool = True
     source: str = "unknown"
     reason: str | None = None
+
+    def may_act(self) -> bool:
+        """Any engage; a release only from ESTOP_RELEASE_SOURCES (the dashboard, the CLI): the one rule
+        every service applies, so no service's view of the latch is released by a stray process."""
+        return self.engage or self.source in ESTOP_RELEASE_SOURCES
 
 
 class SimTruth(Message):

@@ -204,7 +204,8 @@ class Dashboard:
 
     def on_estop(self, msg: EStop) -> None:
         self.health.note("estop")
-        self.panel.note_estop(msg)
+        if msg.may_act():  # a release from anyone but the dashboard or the CLI leaves the latch shown
+            self.panel.note_estop(msg)
 
     def on_camera_info(self, info: CameraInfo) -> None:
         self._slots.put("camera", info)

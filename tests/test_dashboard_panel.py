@@ -138,7 +138,10 @@ def test_estop_from_elsewhere_is_shown_and_its_release_too(dash):
     dash.on_estop(EStop(engage=True, source="arm_driver", reason="watchdog"))
     dash.flush()
     assert "E-STOP ENGAGED** by arm_driver" in dash.panel.status_md.content
-    dash.on_estop(EStop(engage=False, source="arm_driver"))
+    dash.on_estop(EStop(engage=False, source="arm_driver"))  # only the dashboard or the CLI may release it
+    dash.flush()
+    assert "E-STOP ENGAGED** by arm_driver" in dash.panel.status_md.content
+    dash.on_estop(EStop(engage=False, source="cli"))
     dash.flush()
     assert "E-STOP" not in dash.panel.status_md.content
 

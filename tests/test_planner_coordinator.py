@@ -264,3 +264,13 @@ def test_a_run_never_goes_back_from_bagging_to_pre_bagging():
     c.on_status(status(c, stage="bagging", progress=0.7), T0 + 3)
     c.on_status(status(c, stage="pre-bagging", progress=0.7, mode="hold"), T0 + 3.1)
     assert c.state.stage == "bagging"
+
+
+def test_only_the_dashboard_or_the_cli_release_the_coordinators_estop_latch():
+    c = started()
+    c.on_estop(True, "arm_driver", "watchdog", T0 + 1.0)
+    assert c.state.stage == "aborted" and c.estop
+    c.on_estop(False, "some-process", None, T0 + 2.0)
+    assert c.estop and not c.start(RunControl(action="start", scenario="exp01"), T0 + 3.0).accepted
+    c.on_estop(False, "cli", None, T0 + 4.0)
+    assert c.estop is None and c.start(RunControl(action="start", scenario="exp01"), T0 + 5.0).accepted

@@ -90,7 +90,7 @@ def stream_end(streaming_run: str | None, run: RunState) -> str | None:
 
 def estop_refusal(msg: EStop) -> Refusal | None:
     """None if `msg` may act: any engage, or a release from one of ESTOP_RELEASE_SOURCES."""
-    if msg.engage or msg.source in ESTOP_RELEASE_SOURCES:
+    if msg.may_act():
         return None
     return Refusal(ESTOP_RELEASE_SOURCE,
                    f"a release from {msg.source!r}: only {' and '.join(ESTOP_RELEASE_SOURCES)} may release the e-stop")

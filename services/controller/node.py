@@ -118,6 +118,9 @@ class ControllerNode:
             self._goals = {msg.run_id: msg}
 
     def _on_estop(self, msg: EStop) -> None:
+        if not msg.may_act():
+            self.report(f"e-stop release from {msg.source!r} ignored: only the dashboard or the CLI may release it")
+            return
         with self._lock:
             self._estop = bool(msg.engage)
 

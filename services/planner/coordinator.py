@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BagItError, BadScenario
-from bagit.common.messages import ControllerStatus, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.messages import ControllerStatus, EStop, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES, SERVO_STAGES
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, axis_error_cm, points_list
@@ -299,9 +299,11 @@ class Coordinator:
             self._finish(now, "failed", reason)
 
     def on_estop(self, engage: bool, source: str, reason: str | None, now: float) -> None:
-        """An e-stop aborts the running run (the arm driver stops the arms) and latches until released."""
+        """An e-stop aborts the running run (the arm driver stops the arms) and latches until released
+        (by the dashboard or the CLI only: `EStop.may_act`)."""
         if not engage:
-            self.estop = None
+            if EStop(engage=False, source=source).may_act():
+                self.estop = None
             return
         self.estop = f"by {source}" + (f": {reason}" if reason else "")
         if self.active:
