@@ -146,7 +146,7 @@ def test_recorder_killed_mid_run_keeps_every_message_up_to_its_last_chunk(tmp_pa
             assert wire.encode(m) == wire.encode(s), key
     # everything sent well before the kill (flush 0.2 s + margin) is in a complete chunk
     settled = [k for k, _, t in sent if t < killed_t - 1.0]
-    assert len(settled) > 200
+    assert len(settled) > 100  # enough to mean something, however fast this machine sent them
     assert len(got) >= len(settled), (len(got), len(settled), rec.truncated)
     kinds = {type(m).__name__ for _, m in got}
     assert {"RgbdFrame", "PointCloud", "SoiState", "Goal", "Path", "Command", "ControllerStatus", "ArmState", "RunState"} <= kinds
