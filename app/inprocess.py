@@ -26,7 +26,7 @@ import numpy as np
 
 from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
-from bagit.common.messages import Goal, ObjectDetection, Path, RunControl, RunState, SoiState
+from bagit.common.messages import ArmState, Goal, ObjectDetection, Path, RunControl, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, SERVO_STAGES, ArmsMode
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
@@ -186,7 +186,8 @@ class _Run:
             except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection, as in the node
                 det = ObjectDetection(seq=frame.seq, source_stamp=now, run_id=self.coord.state.run_id, ok=False, error=f"{type(e).__name__}: {e}")
             effects += self.coord.on_object(det, now)
-        left = self.arms.states()["left"].tool_pose[:3]
+        states = self.arms.states()  # read once a frame: the hint and the control tick see the same arms
+        left = states["left"].tool_pose[:3]
         try:
             rim, cloud = self.tracker.update(frame, hint=np.asarray(left, dtype=float))
             self.soi = SoiState(seq=frame.seq, stamp=now, source_stamp=now, rim=rim, n_points=len(cloud))
@@ -194,7 +195,7 @@ class _Run:
         except BagItError as e:
             log.debug("frame %d: no SOI: %s", frame.seq, e)  # the controller holds once the last SOI is stale
         self._apply(effects, now)
-        self._control(now)
+        self._control(states, now)
 
     def _emit(self) -> None:
         """Tell `on_state` of a new stage (what the planner node would publish on run/state)."""
@@ -219,15 +220,14 @@ class _Run:
             elif e.kind == "publish_path" and isinstance(e.message, Path):
                 self.path = e.message
 
-    def _control(self, now: float) -> None:
-        """One control tick on the newest SOI, as the controller node makes it."""
+    def _control(self, states: dict[str, ArmState], now: float) -> None:
+        """One control tick on the newest SOI and the arms' `states`, as the controller node makes it."""
         st = self.coord.state
         if st.stage not in SERVO_STAGES or self.path is None or self.path.run_id != st.run_id:
             return
         if self.session is None:
             self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq)
             self._send(out, now)
-        states = self.arms.states()
         grippers, problem = gripper_poses(states)
         fault = arm_fault(states) if problem is None else None
         age = None if self.soi is None else now - self.soi.source_stamp

@@ -16,7 +16,6 @@ Both count what happened on the arm side (`events()`, the result's `arm_events`)
 from __future__ import annotations
 
 import logging
-from collections import Counter
 from typing import Callable
 
 import numpy as np
@@ -111,7 +110,8 @@ class Cr5Arms:
         for a, rec in self._records().items():
             why = controller_fault(rec)
             if why is not None:
-                self.motion.counters["alarms"] += 0 if self.fault is not None else 1
+                if self.fault is None:
+                    self.motion.counters["alarms"] += 1
                 self._set_fault(f"{a}: {why}")
         self.motion.watchdog(now)
         out = self.motion.cycle(now, ARMS, check_reach=self.cfg.servo_command == "servoj" or self.cfg.check_reach)
@@ -154,8 +154,7 @@ class IdealArms:
     def __init__(self, sim: SimRig):
         self.sim = sim
         self.poses = {a: np.array(T, dtype=float) for a, T in sim.world.mount_home_poses().items()}
-        self.counters: Counter[str] = Counter()
-        self.fault: str | None = None
+        self.fault: str | None = None  # floating grippers never fault
 
     def step(self, dt: float) -> None:
         self.sim.world.step(dt)
@@ -177,4 +176,4 @@ class IdealArms:
                             tool_pose=np.concatenate([T[:3, 3], matrix_to_rpy(T[:3, :3])])) for a, T in self.poses.items()}
 
     def events(self) -> dict[str, int]:
-        return {k: int(self.counters.get(k, 0)) for k in ARM_EVENT_KINDS}
+        return dict.fromkeys(ARM_EVENT_KINDS, 0)  # no driver, no arm: nothing to clip, slow or stop
