@@ -577,6 +577,14 @@ class ArmDriver:
         wait = self._last_send + self.period - time.monotonic()
         if wait > 0:  # never two ServoPs less than a period apart, whatever the schedule did
             time.sleep(wait)
+        late = time.monotonic() - now
+        if late > self.limits.watchdog_s:  # paused between making these poses and sending them: they are stale
+            with self._lock:
+                self.pipe.halt()
+                self.counters["stalls"] += 1
+                self._event("stalled", f"this period's poses were {late * 1000:.0f} ms old when they could go out "
+                            "(the process was paused or starved): not sent; a new command starts a new stream")
+            return False
         self._last_send = time.monotonic()
         self.send_times.append(self._last_send)
         for a, text in sends.items():
