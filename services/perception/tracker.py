@@ -4,7 +4,9 @@ The per-frame rule perception applies wherever it runs (the `bagit perception` n
 in-process loop): the rim cloud from the bag's colour, then the SOI by EM started from the last
 one (keeping the point order, so the controller sees the same points move); a warm fit that fails
 or jumps further than `max_jump_m` is redone cold, seeded near `hint` (the left gripper), which
-fixes where the ordering starts.
+fixes where the ordering starts. A frame more than `max_gap_s` after the last SOI's (the camera
+stopped, or a simulator reset its world in between) is fitted cold too: the bag may have moved
+anywhere meanwhile.
 
     tr = RimTracker(n_x=32, kind="red-edged")
     rim, cloud = tr.update(frame, hint=left_gripper_xyz)    # BagItError when the frame shows no rim
@@ -20,6 +22,7 @@ from bagit.services.perception.rgbd import Segmenter, red_rim_mask, rim_cloud, s
 from bagit.services.perception.soi import DEFAULT_PARAMS, SoiParams, extract_soi
 
 MAX_JUMP_M = 0.05  # a warm SOI further than this from the last one: refit cold
+MAX_GAP_S = 0.5  # a frame this much newer than the last SOI's (camera stamps): fitted cold
 
 
 def segmenter_for(kind: str, color: tuple[float, float, float] | None = None) -> Segmenter:
@@ -33,12 +36,14 @@ class RimTracker:
     """One camera's SOI over time (see the module docstring)."""
 
     def __init__(self, n_x: int, kind: str = "red-edged", color: tuple[float, float, float] | None = None,
-                 params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M):
+                 params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M, max_gap_s: float = MAX_GAP_S):
         self.n_x = int(n_x)
         self.segmenter = segmenter_for(kind, color)
         self.params = params if params is not None else DEFAULT_PARAMS
         self.max_jump_m = float(max_jump_m)
+        self.max_gap_s = float(max_gap_s)
         self.prev: np.ndarray | None = None  # (n_x, 3), the last SOI
+        self.prev_stamp = float("-inf")  # its frame's stamp
         self.cold = 0  # cold fits so far
 
     def reset(self) -> None:
@@ -53,7 +58,8 @@ class RimTracker:
         except BagItError:
             self.prev = None
             raise
-        prev = self.prev if self.prev is not None and self.prev.shape == (self.n_x, 3) else None
+        recent = abs(frame.stamp - self.prev_stamp) <= self.max_gap_s
+        prev = self.prev if self.prev is not None and self.prev.shape == (self.n_x, 3) and recent else None
         rim = None
         if prev is not None:
             try:
@@ -69,5 +75,5 @@ class RimTracker:
             except BagItError:
                 self.prev = None
                 raise
-        self.prev = rim
+        self.prev, self.prev_stamp = rim, frame.stamp
         return rim, cloud
