@@ -13,14 +13,14 @@ from typing import Any
 from bagit.commands import _args
 
 NAME = "bench"
-HELP = "run the benchmarks: `stages`, `paper`, or `compare OLD NEW`"
+HELP = "run the benchmarks: `stages`, `paper`, `deployed` (bagit up against bagit run), or `compare OLD NEW`"
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "cr5", "sim", "zenoh", "recorder", "latency"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("what", choices=["stages", "paper", "compare"], help="which benchmark")
+    p.add_argument("what", choices=["stages", "paper", "deployed", "compare"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner")
@@ -40,6 +40,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if len(args.files) != 2:
             raise ValueError("bench compare needs two result files: OLD.json NEW.json")
         return compare(Path(args.files[0]), Path(args.files[1]))
+    if args.what == "deployed":
+        from bagit.bench import deployed
+
+        argv = ["--only", ",".join(args.only)] if args.only else []
+        argv += ["--seeds", str(args.seeds or (1 if args.quick else 2))]
+        if args.out is not None:
+            argv += ["--jsonl", str(Path(args.out) / "deployed-vs-run.jsonl")]
+        code = deployed.main(argv)
+        return {"success": code == 0}
     if args.what == "paper":
         from bagit.bench import paper
 

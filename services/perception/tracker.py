@@ -4,9 +4,8 @@ The per-frame rule perception applies wherever it runs (the `bagit perception` n
 in-process loop): the rim cloud from the bag's colour, then the SOI by EM started from the last
 one (keeping the point order, so the controller sees the same points move); a warm fit that fails
 or jumps further than `max_jump_m` is redone cold, seeded near `hint` (the left gripper), which
-fixes where the ordering starts. A frame more than `max_gap_s` after the last SOI's (the camera
-stopped, or a simulator reset its world in between) is fitted cold too: the bag may have moved
-anywhere meanwhile.
+fixes where the ordering starts. A frame numbered below the last SOI's is of a new stream (a
+simulator numbers its frames per world) and is fitted cold too: the bag may be anywhere in it.
 
     tr = RimTracker(n_x=32, kind="red-edged")
     rim, cloud = tr.update(frame, hint=left_gripper_xyz)    # BagItError when the frame shows no rim
@@ -22,7 +21,6 @@ from bagit.services.perception.rgbd import Segmenter, red_rim_mask, rim_cloud, s
 from bagit.services.perception.soi import DEFAULT_PARAMS, SoiParams, extract_soi
 
 MAX_JUMP_M = 0.05  # a warm SOI further than this from the last one: refit cold
-MAX_GAP_S = 0.5  # a frame this much newer than the last SOI's (camera stamps): fitted cold
 
 
 def segmenter_for(kind: str, color: tuple[float, float, float] | None = None) -> Segmenter:
@@ -36,19 +34,18 @@ class RimTracker:
     """One camera's SOI over time (see the module docstring)."""
 
     def __init__(self, n_x: int, kind: str = "red-edged", color: tuple[float, float, float] | None = None,
-                 params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M, max_gap_s: float = MAX_GAP_S):
+                 params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M):
         self.n_x = int(n_x)
         self.segmenter = segmenter_for(kind, color)
         self.params = params if params is not None else DEFAULT_PARAMS
         self.max_jump_m = float(max_jump_m)
-        self.max_gap_s = float(max_gap_s)
         self.prev: np.ndarray | None = None  # (n_x, 3), the last SOI
-        self.prev_stamp = float("-inf")  # its frame's stamp
+        self.prev_seq = -1  # its frame's number
         self.cold = 0  # cold fits so far
 
     def reset(self) -> None:
         """Forget the last SOI (a new run, a new world): the next frame is fitted cold."""
-        self.prev = None
+        self.prev, self.prev_seq = None, -1
 
     def update(self, frame: RgbdFrame, hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The SOI `(n_x, 3)` and the rim cloud `(m, 3)` it came from; BagItError (and the next frame
@@ -58,8 +55,8 @@ class RimTracker:
         except BagItError:
             self.prev = None
             raise
-        recent = abs(frame.stamp - self.prev_stamp) <= self.max_gap_s
-        prev = self.prev if self.prev is not None and self.prev.shape == (self.n_x, 3) and recent else None
+        same_stream = frame.seq >= self.prev_seq
+        prev = self.prev if self.prev is not None and self.prev.shape == (self.n_x, 3) and same_stream else None
         rim = None
         if prev is not None:
             try:
@@ -75,5 +72,5 @@ class RimTracker:
             except BagItError:
                 self.prev = None
                 raise
-        self.prev, self.prev_stamp = rim, frame.stamp
+        self.prev, self.prev_seq = rim, frame.seq
         return rim, cloud
