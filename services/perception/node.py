@@ -230,10 +230,7 @@ class PerceptionNode:
             return
         self.counters["object_failures"] += 1
         self.last_object_error = f"frame {frame.seq}: {det.error}"
-        now = time.monotonic()
-        if now - self._last_report["object"] >= REPORT_EVERY_S:
-            self._last_report["object"] = now
-            self.report(f"no object ({self.counters['object_failures']} so far): {self.last_object_error}")
+        self._report_every("object", f"no object ({self.counters['object_failures']} so far): {self.last_object_error}")
 
     def _add_run_object(self, scen: Scenario) -> None:
         """The run's own object joins the library when its marker id is new; one id for two different
@@ -403,10 +400,14 @@ class PerceptionNode:
     def _bad(self, frame: RgbdFrame, reason: str) -> None:
         self.counters["bad"] += 1
         self.last_bad = f"frame {frame.seq}: {reason}"
+        self._report_every("bad", f"bad frame ({self.counters['bad']} so far): {self.last_bad}")
+
+    def _report_every(self, kind: str, text: str) -> None:
+        """Report `text`, at most once per REPORT_EVERY_S for each `kind` (a flood of bad frames is one line)."""
         now = time.monotonic()
-        if now - self._last_report["bad"] >= REPORT_EVERY_S:
-            self._last_report["bad"] = now
-            self.report(f"bad frame ({self.counters['bad']} so far): {self.last_bad}")
+        if now - self._last_report[kind] >= REPORT_EVERY_S:
+            self._last_report[kind] = now
+            self.report(text)
 
     # -- out ---------------------------------------------------------------------------------------
 

@@ -167,6 +167,20 @@ class SimNode:
             max_penetration_m=float(gt.max_penetration_m), clearance_m=float(min(gt.clearance_m, 1e3)), final=final,
         ))
 
+    def _truths(self, wall: float, next_truth: float) -> float:
+        """The final truth of a run that just ended, and the periodic one when due; the next one's time."""
+        with self._cond:
+            due, self._truth_due = self._truth_due, False
+        if due:
+            self._final_truth()
+        if wall < next_truth:
+            return next_truth
+        try:
+            self._publish_truth()
+        except Exception as e:  # noqa: BLE001 - truth is for tests; never stop the rig for it
+            self.say(f"ground truth not published: {type(e).__name__}: {e}")
+        return wall + 1.0 / self.cfg.truth_hz
+
     def _final_truth(self) -> None:
         """The world as the run ended, once: what the run is judged on."""
         try:
@@ -206,17 +220,8 @@ class SimNode:
                 next_frame += 1.0 / cfg.fps
                 if next_frame < self.rig.time:  # behind: skip frames rather than bunch them up
                     next_frame = self.rig.time + 1.0 / cfg.fps
-            with self._cond:
-                due, self._truth_due = self._truth_due, False
-            if due:
-                self._final_truth()
             now = time.monotonic()
-            if now >= next_truth:
-                next_truth = now + 1.0 / cfg.truth_hz
-                try:
-                    self._publish_truth()
-                except Exception as e:  # noqa: BLE001 - truth is for tests; never stop the rig for it
-                    self.say(f"ground truth not published: {type(e).__name__}: {e}")
+            next_truth = self._truths(now, next_truth)
             if now >= next_report:
                 if now - win_wall > 0.5:
                     self._rtf_window = (self.rig.time - win_sim) / (now - win_wall)
@@ -280,17 +285,8 @@ class SimNode:
                     self._frame_pub.put(frame)
                     self.stats.frames += 1
                     self._wait(stop, frame)
-            with self._cond:
-                due, self._truth_due = self._truth_due, False
-            if due:
-                self._final_truth()
             wall = time.monotonic()
-            if wall >= next_truth:
-                next_truth = wall + 1.0 / cfg.truth_hz
-                try:
-                    self._publish_truth()
-                except Exception as e:  # noqa: BLE001 - truth is for tests; never stop the rig for it
-                    self.say(f"ground truth not published: {type(e).__name__}: {e}")
+            next_truth = self._truths(wall, next_truth)
             if wall >= next_report:
                 next_report = wall + cfg.report_every_s
                 self._rtf_window = (rig.clock_s - start) / max(wall - wall_start, 1e-9)
