@@ -284,6 +284,20 @@ class Up:
 
     # -- status ----------------------------------------------------------------------------------
 
+    def cpu_s(self) -> dict[str, float]:
+        """CPU seconds (user + system) each running child has used so far, from /proc (Linux)."""
+        tick = os.sysconf("SC_CLK_TCK")
+        out: dict[str, float] = {}
+        for n, c in self.children.items():
+            if c.proc is None or c.proc.poll() is not None:
+                continue
+            try:
+                fields = Path(f"/proc/{c.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            out[n] = round((int(fields[11]) + int(fields[12])) / tick, 2)  # utime, stime
+        return out
+
     def status(self) -> dict[str, Any]:
         return {
             "pid": os.getpid(),
@@ -294,6 +308,7 @@ class Up:
             "dashboard_url": self.dashboard_url,
             "children": {n: (c.proc.pid if c.proc is not None and c.proc.poll() is None else None) for n, c in self.children.items()},
             "restarts": {n: c.restarts for n, c in self.children.items()},
+            "cpu_s": self.cpu_s(),
         }
 
     def _write_status(self) -> None:

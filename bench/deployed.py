@@ -42,8 +42,19 @@ def _last_json(text: str) -> dict[str, Any]:
     return json.loads(lines[-1])
 
 
-def deployed(scenario: str, seed: int, controller: str, speed: float) -> tuple[RunResult, float]:
-    """`bagit up SCENARIO --exit-when-done --json` (lockstep, no dashboard) and its wall time."""
+def cpu_per_service(stderr: str) -> dict[str, float]:
+    """The CPU seconds `bagit up` said each service used ('[up] cpu s: sim 12.3, perception 4.5, ...')."""
+    line = next((ln for ln in reversed(stderr.splitlines()) if ln.startswith("[up] cpu s: ")), "")
+    out = {}
+    for item in line.removeprefix("[up] cpu s: ").split(", "):
+        name, _, v = item.rpartition(" ")
+        if name:
+            out[name] = float(v)
+    return out
+
+
+def deployed(scenario: str, seed: int, controller: str, speed: float) -> tuple[RunResult, float, dict[str, float]]:
+    """`bagit up SCENARIO --exit-when-done --json` (lockstep, no dashboard), its wall time and CPU per service."""
     t0 = time.perf_counter()
     argv = [sys.executable, "-m", "bagit.cli", "up", scenario, "--exit-when-done", "--json", "--no-dashboard",
             "--seed", str(seed), "--controller", controller, "--speed", f"{speed:g}", "--timeout", f"{UP_TIMEOUT_S:g}"]
@@ -53,7 +64,7 @@ def deployed(scenario: str, seed: int, controller: str, speed: float) -> tuple[R
         res = RunResult.model_validate(_last_json(r.stdout))
     except ValueError as e:
         res = RunResult(scenario=scenario, controller=controller, seed=seed, reason=f"bagit up gave no result ({e}): {r.stderr[-300:]}")
-    return res, time.perf_counter() - t0
+    return res, time.perf_counter() - t0, cpu_per_service(r.stderr)
 
 
 def alone(scenario: str, seed: int, controller: str) -> tuple[RunResult, float]:
@@ -76,11 +87,11 @@ def compare(run: RunResult, up: RunResult) -> dict[str, Any]:
 
 
 def pair(scenario: str, seed: int, controller: str, speed: float) -> dict[str, Any]:
-    up, up_wall = deployed(scenario, seed, controller, speed)
+    up, up_wall, cpu = deployed(scenario, seed, controller, speed)
     run, run_wall = alone(scenario, seed, controller)
     return {"scenario": scenario, "seed": seed, "controller": controller, **compare(run, up),
             "run": run.model_dump(mode="json"), "up": up.model_dump(mode="json"),
-            "wall_s": {"run": round(run_wall, 2), "up": round(up_wall, 2)}, "load_avg": [round(v, 2) for v in os.getloadavg()],
+            "wall_s": {"run": round(run_wall, 2), "up": round(up_wall, 2)}, "cpu_s_per_service": cpu, "load_avg": [round(v, 2) for v in os.getloadavg()],
             "effective": {"speed": speed, "clock": "lockstep"}, "provenance": provenance(up.provenance.params if up.provenance else {}).model_dump(mode="json")}
 
 

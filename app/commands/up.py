@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if args.exit_when_done:
             state = up.wait_run(run_id, stop, timeout=args.timeout)
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
+            up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
             return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
         up.say("up; Ctrl-C to stop everything")
         stop.wait()
