@@ -34,6 +34,10 @@ log = logging.getLogger("bagit.bench.sweep")
 
 Key = tuple[str, str, str, int, str]  # scenario, controller, planner, seed, arms
 STDERR_TAIL = 300  # characters of a crashed run's stderr kept in its reason
+# A run is one busy core (a worker runs one at a time, one worker per core): numpy's BLAS and OpenMP
+# on one thread, as Dask's nanny sets for its workers, whether or not a nanny started this one.
+# Two runs on two cores then do not fight over threads, and a run's numbers do not depend on how many cores its machine has.
+ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 
 # The children of the runs this worker process has going, by sweep, so that a stopped sweep can stop them.
 _RUNNING: dict[str, set[subprocess.Popen]] = {}
@@ -75,7 +79,8 @@ def run_isolated(key: Key, time_limit_s: float, params: dict[str, Any] | None, t
         args = json.dumps([sc, ctrl, planner, seed, time_limit_s, params, arms])
         with open(err_path, "wb") as err:
             proc = subprocess.Popen([sys.executable, "-m", "bagit.bench.isolated", args, str(out), str(os.getpid())],
-                                    stdin=subprocess.DEVNULL, stdout=err, stderr=err, start_new_session=True)
+                                    stdin=subprocess.DEVNULL, stdout=err, stderr=err, start_new_session=True,
+                                    env={**os.environ, **ONE_THREAD_ENV})
         _track(sweep_id, proc, add=True)
         try:
             try:

@@ -6,7 +6,9 @@ bench/results/sweep-engine.jsonl with the commit, host and the machine's load.
 
 The runs are the cheapest real ones: 1 s of simulated time with floating grippers (`--arms ideal`),
 so the harness's own costs (a process per run, imports, the scheduler) weigh as much as they can.
-Sweeps alternate (baseline, engine, baseline, ...) so both see the same load.
+Sweeps alternate (baseline, engine, baseline, ...) so both see the same load. The engine's runs use one
+BLAS/OpenMP thread each (bench/isolated.py); set OMP_NUM_THREADS=MKL_NUM_THREADS=OPENBLAS_NUM_THREADS=1
+around this command to give the baseline's runs the same and compare the schedulers alone.
 
     python -m bagit.bench.sweep_engine [--runs 30] [--workers 2] [--repeats 1] [--baseline old.py] [--no-record]
 """
@@ -26,7 +28,9 @@ from typing import Any
 
 import numpy as np
 
+from bagit.bench.closed_loop import engine
 from bagit.bench.common import RESULTS_DIR, machine, stats_ms
+from bagit.bench.isolated import ONE_THREAD_ENV
 from bagit.common.results import provenance
 
 log = logging.getLogger("bagit.bench.sweep_engine")
@@ -41,11 +45,10 @@ def noop(_: Any = None) -> None:
 
 def engine_overhead(workers: int = 2, n: int = 200) -> dict[str, Any]:
     """A no-op task's submit-to-result round trip one at a time, and the wall time per task of `n` at once,
-    on a local cluster like the sweep's (processes on loopback, one thread each)."""
-    from distributed import Client, LocalCluster
-
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0") as lc, \
-            Client(lc) as client:
+    on the sweep's own local cluster (closed_loop.engine), whose start and close are timed too."""
+    t0 = time.perf_counter()
+    with engine(None, workers) as client:
+        start_s = time.perf_counter() - t0
         client.submit(noop, pure=False).result()  # warm: the function reaches the workers
         rtt = []
         for _ in range(n):
@@ -55,7 +58,10 @@ def engine_overhead(workers: int = 2, n: int = 200) -> dict[str, Any]:
         t0 = time.perf_counter()
         client.gather(client.map(noop, range(n), pure=False))
         batch_ms = (time.perf_counter() - t0) * 1e3 / n
-    return {"workers": workers, "round_trip": stats_ms(rtt), "batch_ms_per_task": batch_ms}
+        t0 = time.perf_counter()
+    close_s = time.perf_counter() - t0
+    return {"workers": workers, "round_trip": stats_ms(rtt), "batch_ms_per_task": batch_ms, "local_cluster_start_s": start_s,
+            "local_cluster_close_s": close_s}
 
 
 def timed_sweep(cmd: list[str], runs: int, workers: int) -> dict[str, Any]:
@@ -91,6 +97,7 @@ def run(runs: int = 30, workers: int = 2, repeats: int = 1, baseline: Path | Non
     overhead = engine_overhead(workers)
     result = {
         "what": "sweep-engine", "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": where, "provenance": prov,
+        "threads_env": {k: os.environ.get(k) for k in ONE_THREAD_ENV},  # the baseline's runs inherit it; the engine's set it
         "sweep": {"runs": runs, "workers": workers, "flags": ["--only", SCENARIOS, *SWEEP_FLAGS], "engine": sweeps["engine"],
                   "baseline": sweeps["baseline"], "baseline_script": str(baseline) if baseline else None},
         "engine_overhead": overhead,
@@ -121,7 +128,8 @@ def main() -> None:
                                           for s in ss))
     o = r["engine_overhead"]
     print(f"no-op round trip: median {o['round_trip']['median_ms']:.2f} ms, p95 {o['round_trip']['p95_ms']:.2f} ms; "
-          f"{o['batch_ms_per_task']:.2f} ms per task in a batch")
+          f"{o['batch_ms_per_task']:.2f} ms per task in a batch; local cluster start {o['local_cluster_start_s']:.1f} s, "
+          f"close {o['local_cluster_close_s']:.1f} s")
 
 
 if __name__ == "__main__":
