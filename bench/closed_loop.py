@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
-from bagit.bench.isolated import Key, failed_record, run_isolated, stop_runs, worker_commit
+from bagit.bench.isolated import Key, WrongCommit, failed_record, run_isolated, stop_runs, worker_commit
 from bagit.common.errors import BagItError
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
 from bagit.common.results import provenance
@@ -151,7 +151,8 @@ def _drive(
 
     sweep_id = uuid.uuid4().hex[:8]
     futures: dict[Future, Key] = {
-        client.submit(run_isolated, k, time_limit_s, params, timeout_s, sweep_id, key=f"run-{'-'.join(map(str, k))}-{sweep_id}", pure=False): k
+        client.submit(run_isolated, k, time_limit_s, params, timeout_s, sweep_id, provenance().commit, key=f"run-{'-'.join(map(str, k))}-{sweep_id}",
+                      pure=False): k
         for k in todo
     }
     progress = _Progress(len(todo), len(client.nthreads()))
@@ -173,7 +174,7 @@ def _drive(
             _stop(client, list(futures), sweep_id)
         missing = len(todo) - progress.done
         if missing:
-            why = "sweep stopped" if stopped else "lost by the engine"
+            why = "sweep stopped" if stopped else "lost by the engine or refused by a worker, see above"
             log.warning("%d of %d runs not recorded (%s); the same command resumes the sweep", missing, len(todo), why)
         progress.summary()
 
@@ -195,6 +196,9 @@ def _record_of(fut: Future, key: Key, params: dict[str, Any] | None) -> dict[str
         from distributed import KilledWorker
 
         e = fut.exception()
+        if isinstance(e, WrongCommit):
+            log.warning("%s: not run: %s", _label(key), e)
+            return None
         if isinstance(e, KilledWorker):
             reason = f"crashed: every worker that ran it died ({e})"
         else:

@@ -68,10 +68,19 @@ def failed_record(key: Key, reason: str, wall_s: float, params: dict[str, Any] |
                      reason=reason, wall_s=wall_s, provenance=prov).model_dump(mode="json")
 
 
-def run_isolated(key: Key, time_limit_s: float, params: dict[str, Any] | None, timeout_s: float, sweep_id: str = "") -> dict[str, Any]:
+class WrongCommit(RuntimeError):
+    """This worker's code is at another commit than the sweep's: its record would not be the sweep's code's."""
+
+
+def run_isolated(
+    key: Key, time_limit_s: float, params: dict[str, Any] | None, timeout_s: float, sweep_id: str = "", commit: str | None = None,
+) -> dict[str, Any]:
     """The sweep's task: run `key` in a child process, kill it after `timeout_s` of wall time; always a record,
-    whose provenance names the worker that ran it (`worker`: its address; `host`: its machine)."""
+    whose provenance names the worker that ran it (`worker`: its address; `host`: its machine). A worker at
+    another commit than `commit` (one that joined after the sweep checked them) runs nothing: WrongCommit."""
     worker = _worker_address()
+    if commit and worker_commit() != commit:
+        raise WrongCommit(f"worker {worker} is at commit {(worker_commit() or 'none')[:10]}, the sweep at {commit[:10]}")
     sc, ctrl, planner, seed, arms = key
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="bagit-run-") as tmp:

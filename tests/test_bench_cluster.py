@@ -149,3 +149,8 @@ def test_records_from_before_the_worker_field_still_read():
     for f in sorted(Path(closed_loop.__file__).parent.glob("results/closed-loop*.jsonl")):
         for r in closed_loop.read_jsonl(f):
             assert RunResult.model_validate(r).provenance.worker is None
+
+
+def test_a_worker_at_another_commit_runs_nothing():
+    with pytest.raises(isolated.WrongCommit, match="the sweep at 0000000000"):
+        isolated.run_isolated(KEYS[0], TIME_LIMIT_S, None, 60.0, commit="0" * 40)
