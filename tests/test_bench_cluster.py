@@ -73,8 +73,7 @@ def test_a_run_past_its_time_out_is_killed_and_recorded_failed(cluster, tmp_path
     assert rec["wall_s"] < 2.0 and time.monotonic() - t0 < 10.0
     assert RunResult.model_validate(rec).provenance.worker
     # the killed run left nothing behind on the workers, which are still both there
-    assert client.run(lambda: [p.pid for p in psutil.Process().children(recursive=True)]) == dict.fromkeys(
-        client.nthreads(), [])
+    assert client.run(lambda: [p.pid for p in psutil.Process().children(recursive=True)]) == {w: [] for w in client.nthreads()}
 
 
 def test_a_run_whose_process_dies_is_a_failed_record_with_the_signal():
@@ -121,7 +120,7 @@ def test_an_interrupted_sweep_resumes_where_it_stopped(reference, tmp_path):
     before = out.read_text()
     n_before = before.count("\n")
     assert 1 <= n_before < 3 and "(sweep stopped); the same command resumes the sweep" in err
-    again = subprocess.run(_sweep_cmd(out), capture_output=True, text=True, timeout=120)
+    again = subprocess.run(_sweep_cmd(out), check=False, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stderr
     assert f"{n_before} of 3 runs already in" in again.stderr and f"{3 - n_before} runs on 2 workers" in again.stderr
     after = out.read_text()
