@@ -735,7 +735,7 @@ class ArmDriver:
             if not c.connected:
                 self._link_lost(a, c.last_error or "disconnected")
                 continue
-            silent = c.silent_for()  # a socket's silence, on this host's clock whatever the motion's
+            silent = self._silence(c)
             if silent > self.cfg.feedback_timeout_s:
                 c.drop(f"no feedback for {silent * 1000:.0f} ms")
                 self._link_lost(a, "feedback lost")
@@ -755,6 +755,17 @@ class ArmDriver:
             elif not int(rec["EnableStatus"]):
                 self._set_fault(f"{a}: disabled (robot mode {int(rec['RobotMode'])})")
         self.motion.watchdog(now)
+
+    def _silence(self, c: DobotClient) -> float:
+        """How long an arm's feedback has been quiet. On the wall clock, the socket's silence. On the
+        simulator's, how far the rig's clock has gone past the newest packet's stamp: a simulator the
+        machine starves sends nothing because nothing happens, which is no lost link."""
+        if not self.clock.simulated:
+            return c.silent_for()
+        rec, _ = c.latest()
+        if rec is None:
+            return c.silent_for()
+        return max(0.0, self.clock.now() - self._stamp(rec))
 
     def _link_lost(self, arm: str, why: str) -> None:
         self._stale.add(arm)
