@@ -16,7 +16,7 @@ NAME = "bench"
 HELP = "run the benchmarks: `stages`, `paper`, or `compare OLD NEW`"
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
-STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "cr5", "sim", "zenoh", "recorder", "latency"]
+STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
