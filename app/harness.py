@@ -22,6 +22,11 @@ from typing import Callable, Iterator
 from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, locators, open_session
 from bagit.common.messages import Command, RunState
 
+DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
+SECURE_ROUTER_CFG = DEPLOY / "secure" / "zenoh-router-secure.json5"
+SECURE_CLIENT_CFG = DEPLOY / "secure" / "client.json5"
+SECURE_IDENTITIES = ("router", "controller", "arm-driver", "perception", "planner", "dashboard", "cli", "intruder")
+
 ENV = dict(os.environ, MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa", PYTHONUNBUFFERED="1")
 ALL = ("sim", "perception", "planner", "controller", "arm-driver")
 
@@ -50,6 +55,42 @@ def session_pair(rig: str) -> Iterator[tuple]:
         if b is not None:
             b.close()
         a.close()
+
+
+@contextmanager
+def secure_rig(pki_dir: Path, rig: str, identities: tuple[str, ...] = SECURE_IDENTITIES) -> Iterator[SimpleNamespace]:
+    """The committed secure deployment in process: the router from deploy/secure/ (mutual TLS, access
+    control) on loopback with throwaway certificates, and a client session per identity (common name;
+    "intruder" is CA-signed but in no rule). Yields `router`, `clients` by name, `pki`, `endpoint`, `port`."""
+    from bagit.deploy.certs import write_lab_pki
+
+    pki = write_lab_pki(pki_dir, list(identities), ["localhost", "127.0.0.1"])
+    router = open_session(BusConfig(mode="router", config_file=SECURE_ROUTER_CFG, listen=["tls/127.0.0.1:0"], adminspace=True,
+                                    tls_ca=pki["ca"], tls_cert=pki["router"], tls_key=pki["router.key"]))
+    port = locators(router)[0].rsplit(":", 1)[1]
+    endpoint = f"tls/localhost:{port}"
+    clients = {}
+    try:
+        for name in identities:
+            if name != "router":
+                clients[name] = open_session(BusConfig(rig=rig, config_file=SECURE_CLIENT_CFG, connect=[endpoint],
+                                                       tls_ca=pki["ca"], tls_cert=pki[name], tls_key=pki[f"{name}.key"]))
+        yield SimpleNamespace(router=router, clients=clients, pki=pki, endpoint=endpoint, port=port)
+    finally:
+        for c in clients.values():
+            c.close()
+        router.close()
+
+
+def stop_process(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 20.0) -> int:
+    """Send `sig` and wait; SIGKILL if it does not exit within `timeout` s. Its exit status."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait(5)
 
 
 def alive(pid: int) -> bool:

@@ -40,7 +40,7 @@ from bagit.bench.common import RESULTS_DIR
 from bagit.common.messages import Command
 from bagit.common.results import provenance
 from bagit.common.rig import ARMS
-from bagit.harness import ENV, wait_until
+from bagit.harness import ENV, stop_process, wait_until
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.sim.harness import FeedbackRecorder, RecordingServer, servo_parameter, servo_positions, start_sims
 
@@ -203,12 +203,7 @@ def sigkill_trials(trials: int, workdir: Path) -> list[dict[str, float]]:
             wait_until(lambda: _speed(rec) < STILL_MM_S, 3.0, 0.02)
     finally:
         stop.set()
-        driver.send_signal(signal.SIGTERM)
-        try:
-            driver.wait(20)
-        except subprocess.TimeoutExpired:
-            driver.kill()
-            driver.wait(5)
+        stop_process(driver)
         err.close()
         for r in rec.values():
             r.close()

@@ -13,17 +13,18 @@ from typing import Any
 from bagit.commands import _args
 
 NAME = "bench"
-HELP = "run the benchmarks: `stages`, `paper`, or `compare OLD NEW`"
+HELP = "run the benchmarks: `stages`, `paper`, `probes` (issue 25's findings re-run), or `compare OLD NEW`"
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("what", choices=["stages", "paper", "compare"], help="which benchmark")
+    p.add_argument("what", choices=["stages", "paper", "probes", "compare"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
-    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner")
+    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `probes`: group(s), v4 cli recorder arm")
+    p.add_argument("--no-readme", action="store_true", help="for `probes`: leave the README's probe section as it is")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
     p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3)")
     p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
@@ -40,6 +41,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if len(args.files) != 2:
             raise ValueError("bench compare needs two result files: OLD.json NEW.json")
         return compare(Path(args.files[0]), Path(args.files[1]))
+    if args.what == "probes":
+        from bagit.bench import probes
+
+        unknown = sorted(set(args.only or []) - set(probes.RUNNERS))
+        if unknown:
+            raise ValueError(f"unknown probe group(s) {unknown}; choose from {list(probes.RUNNERS)}")
+        return probes.run(args.only, readme=not args.no_readme)
     if args.what == "paper":
         from bagit.bench import paper
 
@@ -97,6 +105,10 @@ def compare(old: Path, new: Path) -> dict[str, Any]:
 
 
 def human(result: dict[str, Any]) -> str:
+    if result.get("kind") == "probes":
+        from bagit.bench.probes import summary
+
+        return summary(result)
     if "rows" in result:
         out = [f"{'metric':60s} {'old':>12s} {'new':>12s} {'new/old':>8s}"]
         for r in result["rows"]:

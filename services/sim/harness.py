@@ -218,6 +218,54 @@ def servo_positions(server: RecordingServer, t0: float = -np.inf, t1: float = np
     return np.array([r[0] for r in rows]), xyz
 
 
+class DashboardText:
+    """A minimal V4 dashboard client, as a vendor's or a user's script talks: raw text out, replies in."""
+
+    def __init__(self, port: int, host: str = "127.0.0.1"):
+        self.sock = socket.create_connection((host, port), timeout=3.0)
+        self.buf = ""
+
+    def send(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def raw(self, text: str) -> str:
+        """Send one command; its one reply (an error if several come)."""
+        self.sock.sendall(text.encode())
+        while ";" not in self.buf:
+            chunk = self.sock.recv(4096)
+            if not chunk:
+                raise ConnectionError("the controller closed the connection")
+            self.buf += chunk.decode(errors="replace")
+        replies, self.buf = dobot.split_replies(self.buf)
+        if len(replies) != 1:
+            raise ValueError(f"{len(replies)} replies to one command: {replies}")
+        return replies[0]
+
+    def ask(self, text: str) -> dobot.Reply:
+        return dobot.parse_reply(self.raw(text))
+
+    def collect(self, seconds: float, until: int | None = None) -> list[dobot.Reply]:
+        """The replies that arrive within `seconds` (or as soon as `until` have)."""
+        self.sock.settimeout(0.05)
+        end = time.monotonic() + seconds
+        try:
+            while time.monotonic() < end and (until is None or self.buf.count(";") < until):
+                try:
+                    chunk = self.sock.recv(65536)
+                except (socket.timeout, TimeoutError):
+                    continue
+                if not chunk:
+                    raise ConnectionError("the controller closed the connection")
+                self.buf += chunk.decode(errors="replace")
+        finally:
+            self.sock.settimeout(3.0)
+        replies, self.buf = dobot.split_replies(self.buf)
+        return [dobot.parse_reply(r) for r in replies]
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 def servo_parameter(text: str, name: str) -> float | None:
     """A named parameter of a logged ServoP/ServoJ (`aheadtime`, `gain`, `t`), None if not given."""
     for part in text.rstrip(")").split(","):
