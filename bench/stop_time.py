@@ -258,7 +258,7 @@ def params() -> dict[str, Any]:
     return {"v0_mps": V0, "rate_hz": RATE, "stream_s": STREAM_S, "still_mm_s": STILL_MM_S, "target_s": TARGET_S,
             "watchdog_s": lim.watchdog_s, "servo_period_s": lim.servo_period_s, "max_tcp_accel_mps2": lim.max_tcp_accel_mps2,
             "max_tcp_jerk_mps3": lim.max_tcp_jerk_mps3, "aheadtime": CFG.aheadtime, "halt_aheadtime": CFG.halt_aheadtime,
-            "gain": CFG.gain}
+            "gain": CFG.gain, "niceness": os.nice(0)}
 
 
 def record(result: dict[str, Any], path: Path = JSONL) -> Path:
