@@ -736,7 +736,7 @@ def _restarted(rig: Any, service: str, n: int, timeout: float = 90.0) -> bool:
 
     workdir = rig.status_path.parent
     return wait_until(lambda: json.loads(rig.status_path.read_text())["restarts"].get(service, 0) >= n
-                      and up_log(workdir).count(f"service {service} up") >= n + 1, timeout, 0.2)
+                      and up_log(workdir).count(f"[up] service {service} up") >= n + 1, timeout, 0.2)
 
 
 def arm_probes(rows: Rows, tmp: Path) -> None:
@@ -831,6 +831,8 @@ def _killed(rows: Rows, rig: Any, watch: ArmWatch, clock: ControllerClock, servi
         else:
             holds = [h.reason for t, h in list(watch.cmds) if t > t_kill and h.mode == "hold"]
             c.check(any("SOI" in (h or "") for h in holds), f"the controller holds: `{(holds or ['no hold'])[0][:40]}`")
+            from_kill = clock.still_after(t_kill)
+            c.check(True, f"from the kill: still {_ms_s(from_kill, 1)} on the controllers' clock ({_ms_s(from_kill, 0)} wall)")
             _stop_run(rig, watch, run_id)  # perception comes back within the coordinator's 5 s: end the run here
         c.check(_restarted(rig, service, 1), f"{service} restarted by bagit up")
 
