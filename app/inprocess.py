@@ -35,9 +35,10 @@ from bagit.common.scenario import Scenario
 from bagit.services.controller.session import SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, gripper_poses
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.tracker import RimTracker
-from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, compute_plan
+from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S, Coordinator, CoordinatorConfig, Effect, compute_plan
 from bagit.services.planner.goal import bottom_frame
 from bagit.services.sim.judge import truth_of
+from bagit.services.sim.lockstep import Schedule
 from bagit.services.sim.rig_sim import SETTLE_S, SimRig
 from bagit.sim_arms import Cr5Arms, IdealArms
 
@@ -60,7 +61,7 @@ class RunOptions:
     seed: int = 0
     arms: ArmsMode = "cr5"
     overrides: dict[str, Any] = field(default_factory=dict)  # method parameters over the scenario's
-    time_limit_s: float = 40.0  # servoing longer than this (simulated) fails the run
+    time_limit_s: float = SIM_TIME_LIMIT_S  # servoing longer than this (simulated) fails the run
     wall_limit_s: float | None = WALL_LIMIT_S
     fps: float | None = None  # camera frames per simulated second; None: the control rate
     rig: RigConfig | None = None
@@ -105,7 +106,7 @@ class _Run:
         self.frame_dt = 1.0 / fps
         sc = opts.scenario
         self.arms: Cr5Arms | IdealArms = Cr5Arms.of(sim) if opts.arms == "cr5" else IdealArms(sim)
-        self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.time,
+        self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.clock_s,
                                  rig=sim.rig)
         self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, tuple(sc.bag.color))
         library = ObjectLibrary.from_scenarios()
@@ -133,7 +134,7 @@ class _Run:
     def run(self) -> RunResult:
         sim, coord, opts = self.sim, self.coord, self.opts
         sc = opts.scenario
-        now = sim.time
+        now = sim.clock_s
         for service in SERVICES:
             coord.on_liveliness(service, True, now)
         req = RunControl(action="start", scenario=opts.name or sc.name, scenario_doc=sc.model_dump(mode="json", exclude_none=True),
@@ -149,17 +150,14 @@ class _Run:
             self.arms.step(SETTLE_S)  # the bag hangs still before the first frame, as `bagit sim` does after a reset
             self.arms.start()
         except SimulationFailed as e:
-            coord.fail(f"simulator: {e}", sim.time)
-        next_frame = next_servo = sim.time
-        period = self.arms.period
+            coord.fail(f"simulator: {e}", sim.clock_s)
+        sched = Schedule.starting(sim.time, self.frame_dt, self.arms.period)  # the events `bagit sim` steps by too
         while coord.state.stage not in FINAL_STAGES:
-            now = sim.time
-            if period is not None and now >= next_servo - 1e-9:
+            now = sim.clock_s  # the rig's clock (as `bagit sim` publishes it); the events fall on the world's time
+            if sched.servo_due(sim.time) is not None:
                 self.arms.servo(now)
-                next_servo += period
-            if now >= next_frame - 1e-9:
+            if sched.frame_due(sim.time):
                 self._frame(now)
-                next_frame += self.frame_dt
             elif (keep := self._keepalive_due()) is not None and now >= keep - 1e-9:
                 self._control(self.arms.states(), now)  # frames sparser than the keep-alive pace: a tick on the last SOI
             self._apply(coord.tick(now), now)
@@ -170,13 +168,13 @@ class _Run:
                 coord.fail(f"simulator: too slow, {wall:.0f} s of wall time for {now - SETTLE_S:.1f} s simulated "
                            f"(limit {opts.wall_limit_s:.0f} s; the contact solver crawls?)", now)
                 break
-            due = min(next_frame, next_servo) if period is not None else next_frame
+            step = sched.until_next(sim.time)
             if (keep := self._keepalive_due()) is not None:
-                due = min(due, keep)
+                step = max(min(step, keep - now), 1e-9)
             try:
-                self.arms.step(max(due - now, 1e-9))
+                self.arms.step(step)
             except SimulationFailed as e:
-                coord.fail(f"simulator: {e}", sim.time)
+                coord.fail(f"simulator: {e}", sim.clock_s)
         return self._result()
 
     def _keepalive_due(self) -> float | None:

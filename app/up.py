@@ -30,13 +30,15 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from typing import Any, Callable, Literal, TextIO
 
-from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, open_session, request_run_control
+from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
 from bagit.common.names import FINAL_STAGES
+from bagit.common.params import MethodParams
 from bagit.common.rig import RigConfig
+from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
 
 SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboard")
 # A service that needs another one up before it can start (the arm driver connects to the CR5s the
@@ -48,6 +50,8 @@ AFTER = {"arm-driver": "sim"}
 # every other service and maybe a browser: a loaded machine keeps them off the CPU for that long
 # (seen on 2 cores), and the driver would then restart the stream or fault a run over a scheduler
 # pause. The watchdog on the controller's commands and every motion limit stay as they are.
+WALL_FPS = 10.0  # --clock wall: camera frames per second a 2-core machine keeps up with beside every service
+WALL_TIME_LIMIT_S = 360.0  # --clock wall: a run's servoing limit, wide for a simulator slower than real time
 SIM_DRIVER_TIMEOUTS = {"feedback_timeout_s": 1.0, "reply_timeout_s": 2.0}
 
 
@@ -101,10 +105,21 @@ class UpOptions:
     rig: str = "sim"
     services: tuple[str, ...] = SERVICES
     record: Path | None = None
-    fps: float = 10.0
-    # A run's wall-clock limit: the simulator runs at a fraction of real time when the machine is
-    # busy (x0.4 with the dashboard, a browser and every service on 2 cores), and the run with it.
-    run_time_limit_s: float = 360.0
+    # lockstep: every service on the simulator's clock, which steps on only when they have answered
+    # (a slow machine makes a run slower, never different); wall: the simulator paced to the wall clock
+    clock: Literal["lockstep", "wall"] = "lockstep"
+    speed: float = 1.0  # simulated seconds per wall second, at most
+    fps: float | None = None  # None: the control rate in lockstep (as `bagit run`), WALL_FPS on the wall clock
+    # A run's servoing limit: in lockstep on the simulator's clock, as `bagit run`'s; on the wall
+    # clock the simulator runs at a fraction of real time when the machine is busy (x0.4 with the
+    # dashboard, a browser and every service on 2 cores), and the run with it.
+    run_time_limit_s: float | None = None
+
+    def camera_fps(self) -> float:
+        return self.fps or (MethodParams().control_rate_hz if self.clock == "lockstep" else WALL_FPS)
+
+    def time_limit_s(self) -> float:
+        return self.run_time_limit_s or (SIM_TIME_LIMIT_S if self.clock == "lockstep" else WALL_TIME_LIMIT_S)
     dashboard_port: int = 0
     workdir: Path | None = None
     status_file: Path | None = None
@@ -143,6 +158,8 @@ class Up:
         self.watcher: LivelinessWatcher | None = None
         self.run_state: LatestCache | None = None
         self.truth: LatestCache | None = None  # the simulator's ground truth, to judge a run (never given to a service)
+        self.final_truths: dict[str, SimTruth] = {}  # run id -> the world as that run ended
+        self._final_truth_sub: Subscriber | None = None
         self.arm_states: LatestCache | None = None  # the arm side's event counts, for the run's result
         self.hub = ""
         self.dashboard_url: str | None = None
@@ -174,9 +191,10 @@ class Up:
 
     def _argv(self, name: str, zpath: Path, rpath: Path) -> list[str]:
         o = self.opts
-        bus = ["--rig", o.rig, "--zenoh-config", str(zpath)]
+        bus = ["--rig", o.rig, "--zenoh-config", str(zpath), "--clock", "sim" if o.clock == "lockstep" else "wall"]
         if name == "sim":
-            args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--fps", f"{o.fps:g}", "--seed", str(o.seed)]
+            args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--fps", f"{o.camera_fps():g}", "--seed", str(o.seed),
+                    "--speed", f"{o.speed:g}"]
         elif name == "dashboard":
             port = o.dashboard_port or free_port()
             self.dashboard_url = f"http://127.0.0.1:{port}"
@@ -188,7 +206,7 @@ class Up:
         elif name == "perception":
             args = [name, "--rig-config", str(rpath)]
         elif name == "planner":
-            args = [name, "--run-time-limit", f"{o.run_time_limit_s:g}"]
+            args = [name, "--run-time-limit", f"{o.time_limit_s():g}"]
         else:
             args = [name]
         return args + bus + o.extra_args.get(name, [])
@@ -209,6 +227,7 @@ class Up:
         self.arm_states = LatestCache(self.session, self.keys.arm_state_any, ArmState)
         if "sim" in names:
             self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth)
+            self._final_truth_sub = Subscriber(self.session, self.keys.sim_truth, SimTruth, self._on_truth)
         for n in names:
             self.children[n] = Child(n, self._argv(n, zpath, rpath), waiting_for=AFTER.get(n) if AFTER.get(n) in names else None)
         for c in self.children.values():
@@ -259,7 +278,25 @@ class Up:
                 c.restarts += 1
                 self._spawn(c)
 
+    def _on_truth(self, t: SimTruth) -> None:
+        if t.final and t.run_id is not None:
+            self.final_truths[t.run_id] = t
+
     # -- status ----------------------------------------------------------------------------------
+
+    def cpu_s(self) -> dict[str, float]:
+        """CPU seconds (user + system) each running child has used so far, from /proc (Linux)."""
+        tick = os.sysconf("SC_CLK_TCK")
+        out: dict[str, float] = {}
+        for n, c in self.children.items():
+            if c.proc is None or c.proc.poll() is not None:
+                continue
+            try:
+                fields = Path(f"/proc/{c.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            out[n] = round((int(fields[11]) + int(fields[12])) / tick, 2)  # utime, stime
+        return out
 
     def status(self) -> dict[str, Any]:
         return {
@@ -271,6 +308,7 @@ class Up:
             "dashboard_url": self.dashboard_url,
             "children": {n: (c.proc.pid if c.proc is not None and c.proc.poll() is None else None) for n, c in self.children.items()},
             "restarts": {n: c.restarts for n, c in self.children.items()},
+            "cpu_s": self.cpu_s(),
         }
 
     def _write_status(self) -> None:
@@ -340,7 +378,7 @@ class Up:
                 _signal_group(p, signal.SIGKILL)
                 codes[n] = p.wait(timeout=5)
             _signal_group(p, signal.SIGKILL)  # anything the service started and left behind
-        for x in (self.run_state, self.truth, self.arm_states, self.watcher):
+        for x in (self.run_state, self.truth, self._final_truth_sub, self.arm_states, self.watcher):
             if x is not None:
                 x.close()
         if self.session is not None:

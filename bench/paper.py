@@ -23,6 +23,8 @@ import numpy as np
 
 from bagit.bench import paper_data as P
 from bagit.bench.common import RESULTS_DIR, machine, write_results
+from bagit.bench.deployed import load as load_deployed
+from bagit.bench.deployed import summary as deployed_summary
 from bagit.common.errors import BagItError
 from bagit.common.geometry import rpy_to_matrix
 from bagit.common.scenario import Scenario
@@ -273,6 +275,9 @@ def find_closed_loop(out_dir: Path) -> list[Path]:
 # ---------------------------------------------------------------- the whole benchmark
 
 
+DEPLOYED_FILE = "deployed-vs-run.jsonl"  # bagit.bench.deployed's records
+
+
 def run(
     quick: bool = False,
     seeds: int | None = None,
@@ -320,6 +325,7 @@ def run(
         "placements": placement_summary(place_runs),
         "manipulation": manipulation_summary(cl_runs, cl_rows),
         "manipulation_same_as_mpc": same_runs_as_mpc(cl_runs),
+        "deployed": deployed_summary(load_deployed(out / DEPLOYED_FILE)),  # `bagit up` against `bagit run`, per scenario
         "closed_loop_files": [str(f) for f in cl_files],
         "paper": {"planning": P.PLANNING, "manipulation": P.MANIPULATION, "table1": P.TABLE1, "soi": P.SOI_STATS},
         "planning_runs": plan_runs,

@@ -83,14 +83,22 @@ def _wall_ratio(cr5: dict[str, Any] | None, ideal: dict[str, Any] | None) -> str
     return f"{cr5['wall_s_mean'] / ideal['wall_s_mean']:.2f}"
 
 
+def _deployed(d: dict[str, Any] | None) -> str:
+    """`bagit up` (lockstep) against `bagit run` on the same seeds: bit for bit, and within the 0.2 cm bar."""
+    if not d:
+        return "not run"
+    return f"{d['identical']}/{d['pairs']} bit for bit, {d['within']}/{d['pairs']} within 0.2 cm"
+
+
 def manipulation_table(r: dict[str, Any]) -> list[str]:
     """Per experiment and method: the paper's success, then ours with the two CR5s (`cr5`, as the rig runs)
     and with floating grippers (`ideal`, the ablation) side by side."""
     lines = [
         "| scenario | method | success (paper) | cr5: success | cr5: error cm | cr5: time s | ideal: success | ideal: error cm | "
-        "ideal: time s | wall cr5/ideal | cr5 arm events |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "ideal: time s | wall cr5/ideal | cr5 arm events | deployed stack |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    deployed = r.get("deployed") or {}
     stems = list(r["planning"]) or sorted(r["manipulation"])
     for stem in dict.fromkeys(stems + sorted(r["manipulation"])):
         row = r["manipulation"].get(stem, {})
@@ -100,7 +108,8 @@ def manipulation_table(r: dict[str, Any]) -> list[str]:
             if cr5 is None and ideal is None and paper is None and method != "mpc":
                 continue
             ptxt = f"{paper[0]}/{paper[1]}" if paper else "—"
-            lines.append(f"| {stem} | {method} | {ptxt} | {_cells(cr5)} | {_cells(ideal)} | {_wall_ratio(cr5, ideal)} | {_events(cr5)} |")
+            dep = _deployed(deployed.get(stem)) if method == "mpc" else "—"
+            lines.append(f"| {stem} | {method} | {ptxt} | {_cells(cr5)} | {_cells(ideal)} | {_wall_ratio(cr5, ideal)} | {_events(cr5)} | {dep} |")
     return lines
 
 

@@ -742,7 +742,8 @@ def _restarted(rig: Any, service: str, n: int, timeout: float = 90.0) -> bool:
 def arm_probes(rows: Rows, tmp: Path) -> None:
     from bagit.harness import rig_up
 
-    with rig_up(tmp, "--no-dashboard") as rig:
+    # on the wall clock, as on a real rig (and as the issue met it): lockstep would time the arms on the world's clock
+    with rig_up(tmp, "--no-dashboard", "--clock", "wall") as rig:
         watch = ArmWatch(rig.session, rig.keys)
         if not wait_until(lambda: {m.arm for m in watch.since(time.time() - 1.0)} == {"left", "right"}, 30.0, 0.05):
             raise RuntimeError("no arm states from bagit up")

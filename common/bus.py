@@ -38,8 +38,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from bagit.common import wire
 from bagit.common.errors import BadMessage, BagItError, BusError
+from bagit.common.clock import CLOCK_KINDS, ClockKind, SimClock, WallClock, make_clock
 from bagit.common.messages import (
     ArmState,
+    ClockTick,
     Command,
     ControllerStatus,
     EStop,
@@ -54,6 +56,7 @@ from bagit.common.messages import (
     RunState,
     SimTruth,
     SoiState,
+    StepAck,
 )
 
 log = logging.getLogger("bagit.bus")
@@ -102,6 +105,7 @@ class BusConfig(BaseModel):
     scouting_delay_ms: int | None = Field(
         None, ge=0, le=10_000, description="how long a peer's open waits for scouting; None = 0 without multicast, 500 with"
     )
+    clock: ClockKind = Field("wall", description="wall: this host's clock (a real rig); sim: the simulator's, from sim/clock (lockstep)")
 
     @field_validator("rig")
     @classmethod
@@ -235,6 +239,7 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tls-ca", metavar="PEM", help="CA certificate of the rig (TLS endpoints)")
     g.add_argument("--tls-cert", metavar="PEM", help="this service's certificate (mutual TLS identity)")
     g.add_argument("--tls-key", metavar="PEM", help="this service's private key")
+    g.add_argument("--clock", choices=list(CLOCK_KINDS), help="the rig's clock: wall (real rig) or sim (the simulator's sim/clock, lockstep)")
 
 
 def bus_config_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> BusConfig:
@@ -242,7 +247,7 @@ def bus_config_from_args(args: argparse.Namespace, base: BusConfig | None = None
     data = base.model_dump(exclude_unset=True) if base is not None else {}
     for flag, field in (("rig", "rig"), ("mode", "mode"), ("connect", "connect"), ("listen", "listen"),
                         ("zenoh_config", "config_file"), ("multicast_scouting", "multicast_scouting"),
-                        ("tls_ca", "tls_ca"), ("tls_cert", "tls_cert"), ("tls_key", "tls_key")):
+                        ("tls_ca", "tls_ca"), ("tls_cert", "tls_cert"), ("tls_key", "tls_key"), ("clock", "clock")):
         v = getattr(args, flag, None)
         if v is not None:
             data[field] = v
@@ -332,6 +337,10 @@ KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("run/control", RunControl, CONTROL, "query", "queryable: start, stop or reset; answered by a RunControlReply"),
     KeySpec("estop", EStop, ESTOP, "pub", "emergency stop: highest priority, express, reliable; released only by `source` dashboard or cli"),
     KeySpec("alive/*", None, None, "liveliness", "liveliness token per service; gone within ~1 s of its death"),
+    KeySpec("sim/clock", ClockTick, CONTROL, "pub",
+            "the simulated rig's time and servo ticks: every service's clock when the bus config says `clock: sim`"),
+    KeySpec("sim/ack", StepAck, CONTROL, "pub",
+            "lockstep: each service's answer to a frame or servo tick; the simulator steps on when all are in"),
     KeySpec("sim/truth", SimTruth, DISPLAY, "pub",
             "simulator ground truth (true rim, pass-through, real-time factor) for tests and benchmarks only: no service may subscribe"),
 )
@@ -360,6 +369,8 @@ class Keys:
         self.run_control = f"{p}/run/control"
         self.estop = f"{p}/estop"
         self.alive_any = f"{p}/alive/*"
+        self.sim_clock = f"{p}/sim/clock"
+        self.sim_ack = f"{p}/sim/ack"
         self.sim_truth = f"{p}/sim/truth"  # tests and benchmarks only
         self.all = f"{p}/**"
 
@@ -805,6 +816,16 @@ def request_run_control(session: zenoh.Session, keys: Keys, req: RunControl, tim
 # ---------------------------------------------------------------------------------------------
 # Liveliness
 # ---------------------------------------------------------------------------------------------
+
+
+def rig_clock(session: zenoh.Session, keys: Keys, kind: ClockKind) -> tuple[WallClock | SimClock, Subscriber | None]:
+    """The clock a service on this bus reads: the wall clock, or a SimClock following sim/clock
+    (close the returned subscriber with the service)."""
+    clock = make_clock(kind)
+    if not isinstance(clock, SimClock):
+        return clock, None
+    sim = clock
+    return clock, Subscriber(session, keys.sim_clock, ClockTick, lambda m: sim.advance(m.t, m.servo_tick))
 
 
 def declare_alive(session: zenoh.Session, keys: Keys, service: str) -> zenoh.LivelinessToken:

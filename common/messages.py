@@ -286,6 +286,42 @@ class EStop(Message):
         return self.engage or self.source in ESTOP_RELEASE_SOURCES
 
 
+class ClockTick(Message):
+    """The simulated rig's time, from `bagit sim` on sim/clock (`BusConfig.clock == "sim"`).
+
+    t: seconds on the rig's clock (the simulated controllers' time: it never goes back, resets
+    included). `servo_tick` n: the arm driver runs servo cycle n now, at `t`, and answers it."""
+
+    KIND: ClassVar[str] = "clock"
+    t: float = Field(ge=0.0, allow_inf_nan=False)
+    servo_tick: int | None = Field(None, ge=0)
+    run_id: str | None = None
+
+
+class StepAck(Message):
+    """A service's answer to one step of a lockstep simulator (sim/ack): it is done with it.
+
+    The simulator steps on once every answer it needs is in (see bagit.services.sim.lockstep):
+    perception for a frame (`frame` = its stamp, `soi_seq` the SOI it made, None if none), the
+    coordinator for that frame (`stage` after it, planning included), the controller for it
+    (`cmd_seq` the command it sent, `status_seq` its status, None if none), the coordinator again once
+    it has handled that status (`status_seq`, `stage` after it: the run may be over), the arm driver for
+    a command it received (`cmd_seq`) and for a servo tick (`tick`, `servo_sent`: the ServoP/ServoJ it
+    sent each arm)."""
+
+    KIND: ClassVar[str] = "ack"
+    service: str = Field(min_length=1, max_length=64)
+    run_id: str | None = None
+    frame: float | None = Field(None, allow_inf_nan=False)
+    soi_seq: int | None = None
+    object_stamp: float | None = Field(None, allow_inf_nan=False)  # perception: the frame also gave an ObjectDetection
+    stage: str | None = None
+    cmd_seq: int | None = None
+    status_seq: int | None = None  # controller: the status it sent for the frame; planner: that status handled
+    tick: int | None = Field(None, ge=0)
+    servo_sent: dict[str, int] | None = None
+
+
 class SimTruth(Message):
     """The simulator's ground truth, for tests and benchmarks only (no service may read it).
     rim: (n, 3) the true rim vertices in order, world frame."""
@@ -300,6 +336,7 @@ class SimTruth(Message):
     passed_through: bool = False
     max_penetration_m: float = 0.0
     clearance_m: float = 0.0
+    final: bool = False  # the world as run `run_id` ended (published once, at that step), not a periodic sample
 
     @field_validator("rim")
     @classmethod
@@ -362,5 +399,5 @@ class ObjectDetection(Message):
 MESSAGE_TYPES: dict[str, type[Message]] = {
     m.KIND: m
     for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ControllerStatus, ArmState, RunState, RunControl, RunControlReply, EStop, SimTruth,
-              ObjectDetection)
+              ObjectDetection, ClockTick, StepAck)
 }

@@ -38,3 +38,9 @@ ARMS_MODES: tuple[str, ...] = get_args(ArmsMode)
 # outline a rim, at most 512 (the paper uses 32; every stage's cost grows with it).
 MIN_N_X = 4
 MAX_N_X = 512
+
+# The services of a rig (each one's liveliness token is alive/<name>), and those a lockstep
+# simulator waits for: it steps on only when each has answered the last frame or servo tick.
+ServiceName = Literal["sim", "perception", "planner", "controller", "arm-driver", "dashboard", "recorder"]
+SERVICE_NAMES: tuple[str, ...] = get_args(ServiceName)
+LOCKSTEP_SERVICES: tuple[ServiceName, ...] = ("perception", "planner", "controller", "arm-driver")

@@ -58,7 +58,8 @@ class Provenance(BaseModel):
 
     commit: str | None = None
     dirty: bool | None = None
-    host: str = ""
+    host: str = Field("", description="the machine that ran it (in a sweep: the worker's)")
+    worker: str | None = Field(None, description="the sweep's Dask worker that ran it, by address (None: not run by a sweep's worker)")
     cpu: str = ""
     cores: int = 0
     python: str = ""

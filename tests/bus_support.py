@@ -48,6 +48,8 @@ def example_message(kind: str, rng: np.random.Generator | None = None) -> Messag
                        T_world_object=np.eye(4), T_world_marker=np.eye(4), height=0.15, reprojection_px=0.1, depth_pixels=300,
                        others=[7], detect_ms=18.0),
         "sim_truth": dict(run_id="r1", scenario="exp01", sim_time=3.5, realtime_factor=0.8, frames=35, rim=rim, clearance_m=0.02),
+        "clock": dict(t=1073741825.5, servo_tick=3, run_id="r1"),
+        "ack": dict(service="arm-driver", tick=3, servo_sent={"left": 1, "right": 1}),
     }
     if kind not in ex:
         raise KeyError(f"no bus test example for message kind {kind!r}; add one to tests/bus_support.py")

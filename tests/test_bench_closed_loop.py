@@ -1,4 +1,5 @@
-"""The closed-loop sweep's machinery: a run per worker process, failures as records, JSONL resume."""
+"""The closed-loop sweep's machinery: a process per run on the sweep's Dask workers, failures as records, JSONL resume
+(the engine itself, a running cluster, time-outs and interrupted sweeps: test_bench_cluster.py)."""
 
 from __future__ import annotations
 

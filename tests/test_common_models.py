@@ -142,6 +142,8 @@ def _example(kind):
         "estop": dict(source="test"),
         "object": dict(marker_id=3, name="bin", vertices=arr[:4], T_world_object=np.eye(4), height=0.2),
         "sim_truth": dict(rim=arr, sim_time=1.0),
+        "clock": dict(t=1073741825.5, servo_tick=3, run_id="r1"),
+        "ack": dict(service="controller", run_id="r1", frame=1073741825.5, cmd_seq=7, status_seq=7),
     }
     return MESSAGE_TYPES[kind](**ex[kind])
 

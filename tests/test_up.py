@@ -84,22 +84,19 @@ def _why(log: str) -> str:
             + " | ".join(ln for v in kept.values() for ln in v))
 
 
-def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
-    # exp02's goal brings the right CR5 near a wrist singularity: the arm driver slows the step to the
-    # joints' speed there (bagit.services.arm_driver.reach) instead of stopping the run with a fault.
-    # One retry, said on stderr: five processes and a real-time simulation share two cores here, and
-    # a run the machine slows (the simulation behind real time from its first frames, the driver's
-    # watchdog stopping the arms between late commands) can bunch the bag up and fail; the failure's
-    # own lines (alarms, faults, stale or implausible SOIs) are kept in the assertion message.
-    for attempt in (1, 2):
-        r = subprocess.run(
-            [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "380"],
-            capture_output=True, text=True, env=ENV, timeout=420,
-        )
-        out = json.loads(r.stdout.strip().splitlines()[-1])
-        if r.returncode == 0 or attempt == 2:
-            break
-        print(f"bagit up run failed on attempt 1 ({out.get('reason')}; {_why(r.stderr)}); retrying", file=sys.stderr)
+def test_a_full_simulated_run_through_bagit_up_is_bagit_runs_run_bit_for_bit(tmp_path):
+    # Lockstep (the default): every service on the simulator's clock, which waits for their answers,
+    # so however the two cores are shared the run is the one `bagit run` computes in one process:
+    # the same ticks, the same time and the same true rim, to the last bit. No retry.
+    r = subprocess.run(
+        [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--speed", "50", "--timeout", "380"],
+        capture_output=True, text=True, env=ENV, timeout=420,
+    )
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert "watchdog" not in r.stderr and "no longer waiting" not in r.stderr, _why(r.stderr)
+    ref = subprocess.run([sys.executable, "-m", "bagit.cli", "run", "exp02", "--json"], capture_output=True, text=True, env=ENV, timeout=300)
+    assert ref.returncode == 0, ref.stderr[-2000:]
+    alone = RunResult.model_validate_json(ref.stdout.strip().splitlines()[-1])
     assert r.returncode == 0 and out["success"] and out["stage_reached"] == "done", (out.get("reason"), _why(r.stderr), out, r.stderr[-3000:])
     assert set(out) == set(RunResult.model_fields)  # the same top-level keys as `bagit run --json`
     res = RunResult.model_validate(out)
@@ -109,13 +106,37 @@ def test_a_full_simulated_run_through_bagit_up_succeeds(tmp_path):
     assert res.object_from == "scenario" and res.object_reason or res.object_from == "marker" and res.marker["marker_v_error_m"] < 0.005, out
     truth = res.truth  # judged on the simulator's true rim, which no service saw
     assert truth.success and not truth.passed_through and truth.error_cm < 2.0 and res.error_cm == truth.error_cm, truth
+    assert (res.ticks, res.duration_s, res.error_cm, res.final_rim) == (alone.ticks, alone.duration_s, alone.error_cm, alone.final_rim)
+    assert res.arm_events == alone.arm_events and res.arms == alone.arms == "cr5"
+
+
+def test_a_service_killed_in_lockstep_fails_the_run_with_the_reason_in_bounded_wall_time(tmp_path):
+    # The simulator waits for the controller's answer to each frame; a dead controller's liveliness
+    # token goes within ~1 s, the simulator stops waiting for it (and says so), the world steps on and
+    # the coordinator fails the run on that liveliness; no wait is left hanging.
+    from bagit.common.bus import request_run_control
+    from bagit.common.messages import RunControl
+
+    with rig_up(tmp_path, "--no-dashboard", "--speed", "50") as rig:
+        d, session, keys, state, cmds = rig.status, rig.session, rig.keys, rig.state, rig.cmds
+        rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
+        assert rep.accepted, rep.reason
+        assert wait_until(lambda: (s := state.get()) is not None and s.run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), 120, 0.1)
+        assert wait_until(lambda: sum(c.mode == "servo" for _, c in cmds) > 10, 60, 0.05)
+        os.kill(d["children"]["controller"], signal.SIGKILL)
+        t_kill = time.monotonic()
+        assert wait_until(lambda: state.get().stage == "failed", 15, 0.05), (state.get(), _log(tmp_path)[-2000:])
+        assert time.monotonic() - t_kill < 15 and "controller" in (state.get().reason or ""), state.get()
+        assert wait_until(lambda: "no longer waiting for controller" in _log(tmp_path), 10, 0.1), _log(tmp_path)[-2000:]
 
 
 def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_restart_runs_again(tmp_path):
     from bagit.common.bus import LatestCache, request_run_control
     from bagit.common.messages import ArmState, RunControl
 
-    with rig_up(tmp_path, "--no-dashboard") as rig:
+    # On the wall clock, as on a real rig: the arms stop within 250 ms of wall time (a lockstep world
+    # does not move at all while it waits for the dead controller: the test above).
+    with rig_up(tmp_path, "--no-dashboard", "--clock", "wall") as rig:
         d, status, session, keys, state, cmds = rig.status, rig.status_path, rig.session, rig.keys, rig.state, rig.cmds
         arms = LatestCache(session, keys.arm_state_any, ArmState)
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
@@ -164,7 +185,8 @@ def test_killing_perception_makes_the_controller_hold_on_stale_soi(tmp_path):
     from bagit.common.bus import request_run_control
     from bagit.common.messages import RunControl
 
-    with rig_up(tmp_path, "--no-dashboard") as rig:
+    # On the wall clock the controller ticks on its own timer, so it sees the SOI go stale.
+    with rig_up(tmp_path, "--no-dashboard", "--clock", "wall") as rig:
         d, session, keys, state, cmds = rig.status, rig.session, rig.keys, rig.state, rig.cmds
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
         assert rep.accepted, rep.reason

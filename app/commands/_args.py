@@ -18,6 +18,7 @@ from bagit.common.names import MAX_N_X, MIN_N_X
 MAX_SEED = 2**32 - 1  # numpy's legacy seed range; also exact in every JSON reader (the dashboard's included)
 MAX_SECONDS = 366 * 24 * 3600.0  # a year: far under threading.TIMEOUT_MAX; longer: run without --duration
 MAX_PORT = 65535
+MAX_COUNT = 2**31 - 1  # a count (a width, frames, points, workers) fits the C int it may be handed to
 
 
 def _float(text: str) -> float:
@@ -80,8 +81,8 @@ def int_in(lo: int, hi: int | None = None, what: str = "") -> Callable[[str], in
     return parse
 
 
-non_negative_int = int_in(0, what="count")
-positive_int = int_in(1, what="count")
+non_negative_int = int_in(0, MAX_COUNT, "count")
+positive_int = int_in(1, MAX_COUNT, "count")
 seed = int_in(0, MAX_SEED, "seed")
 port = int_in(0, MAX_PORT, "port")
 soi_points = int_in(MIN_N_X, MAX_N_X, "SOI points")

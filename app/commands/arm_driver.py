@@ -50,7 +50,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rig = rigs[0]
 
     def start(session, keys):
-        return ArmDriverNode(session, keys, ArmDriver(rig, cfg.driver), state_rate_hz=cfg.state_rate_hz, notice_s=cfg.notice_s)
+        return ArmDriverNode(session, keys, ArmDriver(rig, cfg.driver), state_rate_hz=cfg.state_rate_hz, notice_s=cfg.notice_s,
+                             clock=bus.clock)
 
     def banner(node) -> str:
         ports = ", ".join(f"{a} {c.host}:{c.dashboard_port}/{c.feedback_port}" for a, c in rig.arms.items())

@@ -1,4 +1,5 @@
-"""`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), compare runs (`compare`)."""
+"""`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
+(`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings (`probes`), compare runs (`compare`)."""
 
 from __future__ import annotations
 
@@ -13,25 +14,28 @@ from typing import Any
 from bagit.commands import _args
 
 NAME = "bench"
-HELP = "run the benchmarks: `stages`, `paper`, `probes` (issue 25's findings re-run), or `compare OLD NEW`"
+HELP = "run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), `probes` (issue 25's findings re-run), or `compare OLD NEW`"
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("what", choices=["stages", "paper", "probes", "compare"], help="which benchmark")
+    from bagit.bench.closed_loop import add_sweep_arguments
+
+    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "compare"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
-    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `probes`: group(s), v4 cli recorder arm")
+    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; for `probes`: group(s), v4 cli recorder arm")
     p.add_argument("--no-readme", action="store_true", help="for `probes`: leave the README's probe section as it is")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
-    p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3)")
+    p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); for `sweep`: seeds per scenario, controller, planner and arms (default 8; --quick 1)")
     p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
     p.add_argument(
         "--closed-loop", type=Path, action="append", default=None,
         help="for `paper`: closed-loop results (.jsonl runs or .json); default: closed-loop*.json[l] in the results folder",
     )
+    add_sweep_arguments(p)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -41,6 +45,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if len(args.files) != 2:
             raise ValueError("bench compare needs two result files: OLD.json NEW.json")
         return compare(Path(args.files[0]), Path(args.files[1]))
+    if args.what == "deployed":
+        from bagit.bench import deployed
+
+        argv = ["--only", ",".join(args.only)] if args.only else []
+        argv += ["--seeds", str(args.seeds or (1 if args.quick else 2))]
+        if args.out is not None:
+            argv += ["--jsonl", str(Path(args.out) / "deployed-vs-run.jsonl")]
+        code = deployed.main(argv)
+        return {"success": code == 0}
     if args.what == "probes":
         from bagit.bench import probes
 
@@ -52,6 +65,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from bagit.bench import paper
 
         return paper.run(quick=args.quick, seeds=args.seeds, reuse=args.reuse, closed_loop=args.closed_loop, out_dir=args.out)
+    if args.what == "sweep":
+        from bagit.bench import closed_loop
+
+        return closed_loop.run_from_args(args)
     stages = args.only or STAGES
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:
@@ -109,6 +126,10 @@ def human(result: dict[str, Any]) -> str:
         from bagit.bench.probes import summary
 
         return summary(result)
+    if "runs" in result and "rows" in result:
+        from bagit.bench.closed_loop import table
+
+        return table(result)
     if "rows" in result:
         out = [f"{'metric':60s} {'old':>12s} {'new':>12s} {'new/old':>8s}"]
         for r in result["rows"]:

@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     overrides = {"controller": args.controller, "control_rate_hz": args.rate, "soi_max_age_s": args.soi_max_age,
                  "arm_max_age_s": args.arm_max_age}
     cfg, bus = load_service_config(ControllerServiceConfig, args.config, overrides, args)
-    return run_service("controller", bus, lambda session, keys: ControllerNode(session, keys, cfg), duration=args.duration,
+    return run_service("controller", bus, lambda session, keys: ControllerNode(session, keys, cfg, clock=bus.clock), duration=args.duration,
                        banner=lambda node: f"following {node.keys.run_state}, commanding on {node.keys.controller_cmd}")
 
 

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         what = {"zenoh": node.keys.camera_rgbd, "realsense": "a live RealSense", "realsense-file": str(cfg.source.path)}[cfg.source.kind]
         return f"frames from {what} -> {node.keys.perception_soi}"
 
-    return run_service("perception", bus, lambda session, keys: PerceptionNode(session, keys, cfg, rig.camera.T_world_camera()),
+    return run_service("perception", bus, lambda session, keys: PerceptionNode(session, keys, cfg, rig.camera.T_world_camera(), clock=bus.clock),
                        duration=args.duration, banner=banner)
 
 

@@ -86,7 +86,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
         session = open_session(bus)
         try:
-            node = PlannerNode(session, Keys(bus.rig), cfg, on_state=lambda s: runs.__setitem__(s.run_id, s.stage) if s.run_id else None)
+            node = PlannerNode(session, Keys(bus.rig), cfg, on_state=lambda s: runs.__setitem__(s.run_id, s.stage) if s.run_id else None,
+                               clock=bus.clock)
             print(f"bagit planner: coordinating rig {bus.rig} (run/control, run/state); Ctrl-C to stop", file=sys.stderr, flush=True)
             stop.wait(args.duration)
             last = node.state

@@ -121,7 +121,7 @@ def _run_on_bus(args: argparse.Namespace, rig: Any, scenario_name: str, fps: flo
     cfg = SimNodeConfig(speed=args.speed, fps=fps, camera=not args.no_camera, truth_hz=args.truth_hz)
     session = open_session(bus)
     try:
-        node = SimNode(session, Keys(bus.rig), rig, cfg, scenario_name, say=say)
+        node = SimNode(session, Keys(bus.rig), rig, cfg, scenario_name, say=say, clock=bus.clock)
         say(f"on the bus as rig {bus.rig}: camera/rgbd, sim/truth; following run/state")
         try:
             st = node.run(stop, args.duration)

@@ -30,7 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-dashboard", action="store_true", help="do not start the dashboard")
     p.add_argument("--record", type=Path, metavar="DIR", help="also run the recorder into DIR")
     p.add_argument("--rig", default="sim", help="rig name (key prefix bagit/<rig>/; default sim)")
-    p.add_argument("--fps", type=_args.positive_number, default=10.0, help="simulated camera frames per second (default 10)")
+    p.add_argument("--clock", choices=["lockstep", "wall"], default="lockstep",
+                   help="lockstep (default): every service on the simulator's clock, which waits for them, so a slow machine "
+                        "makes a run slower, never different; wall: every service on the wall clock, the simulator paced to it")
+    p.add_argument("--speed", type=_args.positive_number, default=1.0,
+                   help="simulated seconds per wall second at most (default 1; lockstep goes slower when the rig needs longer)")
+    p.add_argument("--fps", type=_args.positive_number, default=None,
+                   help="simulated camera frames per second (default: the control rate in lockstep, as `bagit run`; 10 with --clock wall)")
     p.add_argument("--dashboard-port", type=_args.port, default=0, help="dashboard port (default: a free one)")
     p.add_argument("--timeout", type=_args.positive_seconds, default=600.0, help="with --exit-when-done: give up after S seconds (default 600)")
     p.add_argument("--status-file", type=Path, help="write the rig's status (child PIDs, hub endpoint, URL) here as JSON")
@@ -63,8 +69,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         RigConfig(name=args.rig)
     except ValidationError as e:
         raise BadScenario(f"--rig {args.rig!r}: {e.errors()[0]['msg']}") from None
-    if not 0 < args.fps <= 30:
+    if args.fps is not None and not 0 < args.fps <= 30:
         raise BadScenario(f"--fps must be in (0, 30], got {args.fps}")
+    if not 0 < args.speed <= 1000:
+        raise BadScenario(f"--speed must be in (0, 1000], got {args.speed}")
     services = tuple(x.strip() for x in args.services.split(",") if x.strip()) if args.services else SERVICES
     services = tuple(s for s in services if not (args.no_dashboard and s == "dashboard"))
     unknown = [s for s in services if s not in SERVICES + ("recorder",)]
@@ -72,7 +80,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadScenario(f"--services: unknown service {unknown[0]!r}; choose from {', '.join(SERVICES)}, recorder")
     opts = UpOptions(scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed, rig=args.rig,
                      services=services, record=args.record, fps=args.fps, dashboard_port=args.dashboard_port, workdir=args.workdir,
-                     status_file=args.status_file)
+                     status_file=args.status_file, clock=args.clock, speed=args.speed)
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
@@ -98,6 +106,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if args.exit_when_done:
             state = up.wait_run(run_id, stop, timeout=args.timeout)
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
+            up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
             return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
         up.say("up; Ctrl-C to stop everything")
         stop.wait()
@@ -152,8 +161,12 @@ def _truth(up: Any, state: Any, stop: Any) -> tuple[Any, np.ndarray | None]:
     if up.truth is None or state.scenario_doc is None:
         return None, None
     deadline = time.monotonic() + 3.0
-    while (t := up.truth.get()) is None or t.run_id != state.run_id:
+    # the world as the run ended (the simulator's final truth); a periodic sample of the run only if none comes
+    while (t := up.final_truths.get(state.run_id)) is None:
         if time.monotonic() > deadline or stop.wait(0.05):
+            t = up.truth.get()
+            if t is not None and t.run_id == state.run_id:
+                break
             return RunTruth(success=False, reason="no ground truth from the simulator for this run"), None
     scenario = Scenario.model_validate(state.scenario_doc)
     V = scenario.object.bottom_vertices()

@@ -41,6 +41,11 @@ What stops the arms, and how:
   client reconnects with back-off; after it is back the pipeline restarts from the poses the
   controllers command (the measured ones once the arms settle; see `_restart_from_measured`) and
   waits for a new command (increments sent meanwhile are refused, never replayed).
+- on the simulated rig's clock (`set_clock(SimClock)`, `bagit up`'s lockstep) the loop runs one
+  cycle per servo tick of the simulator (sim/clock) instead of every period of this host's clock,
+  on the feedback of that very step, and says when it is done (`on_tick`): the watchdog, the
+  stale-command rule and every motion limit then run on that clock too. The links' time-outs
+  (feedback, replies) stay on the wall clock: they guard a real socket.
 - e-stop (`estop()` or an `EStop` message): the latch is set first (nothing more is streamed), then
   EmergencyStop(1) goes to both controllers back to back without waiting for either reply. A
   controller that could not be reached gets it as soon as it reconnects. `reset_estop()` releases
@@ -57,6 +62,7 @@ from typing import Callable
 import numpy as np
 
 from bagit.common import cr5
+from bagit.common.clock import Clock, SimClock, WallClock
 from bagit.common.dobot import RobotMode, describe_alarm
 from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
 from bagit.common.messages import ArmState, Command, EStop
@@ -89,6 +95,10 @@ class ArmDriver:
         self.period = float(self.limits.servo_period_s)
         self.servo_t = self.period * self.cfg.servo_t_factor
         self.frames = {a: ArmFrames.from_config(self.rig.arms[a]) for a in ARMS}
+        self.clock: Clock = WallClock()
+        self._now: Callable[[], float] = time.monotonic  # the motion's clock: monotonic wall, or the rig's
+        self.on_tick: Callable[[int, dict[str, int]], None] | None = None  # lockstep: (tick, ServoPs sent per arm)
+        self.servo_sent = {a: 0 for a in ARMS}
         self.on_state = on_state
         self.on_event = on_event  # (kind, detail) for estop, fault, watchdog, link_lost, ...; must not block
         self.counters: Counter[str] = Counter()
@@ -140,6 +150,13 @@ class ArmDriver:
 
     # -- life cycle ------------------------------------------------------------------------------
 
+    def set_clock(self, clock: Clock, on_tick: Callable[[int, dict[str, int]], None] | None = None) -> None:
+        """Run on `clock` (before `start`): a SimClock makes the loop cycle on the simulator's servo ticks."""
+        if self.started:
+            raise BagItError("set_clock() before start()")
+        self.clock, self.on_tick = clock, on_tick
+        self._now = clock.now if clock.simulated else time.monotonic
+
     def start(self) -> "ArmDriver":
         """Connect to both controllers, bring them up as on the real rig, and start streaming.
 
@@ -179,7 +196,7 @@ class ArmDriver:
             raise
         with self._lock:
             self._restart_from_measured()
-            self._last_cycle = time.monotonic()
+            self._last_cycle = self._now()
             self._event("started", "both arms enabled")
         self.started = True
         self._stop.clear()
@@ -264,7 +281,7 @@ class ArmDriver:
     def hold(self, reason: str) -> None:
         """Brake both arms to rest (a hold command, or the node when the run it streamed for ends)."""
         with self._lock:
-            self.motion.hold(reason, time.monotonic())
+            self.motion.hold(reason, self._now())
 
     def refuse(self, refusal: Refusal) -> None:
         """Count a command refused before it reached the driver (the node's run gate) with the driver's own."""
@@ -281,14 +298,18 @@ class ArmDriver:
         """Increment `u (12,)` (world, m and rad; left then right) over `dt` seconds, made at `stamp`
         (wall clock; None: now, by an in-process caller)."""
         with self._lock:
-            now = time.monotonic()  # under the lock: a submit that waited for it is timed when it applies
+            now = self._now()  # under the lock: a submit that waited for it is timed when it applies
+            if self.clock.simulated and stamp is not None and 0.0 < stamp - now <= self.limits.watchdog_s:
+                # the simulator's time may reach this host after the command made at it (another sender,
+                # another route): a lockstep run times the command at its own stamp, never at arrival
+                now = stamp
             self.counters["commands"] += 1
             why = self._refusal()
             if why is not None:
                 self._count_refusal(Refusal(why, f"command {seq}: the driver is {why.replace('_', ' ')}"))
                 return False
             if stamp is not None:
-                stale = stale_refusal(stamp, time.time(), self.limits.watchdog_s)
+                stale = stale_refusal(stamp, self.clock.now(), self.limits.watchdog_s)
                 if stale is not None:
                     self._count_refusal(Refusal(stale.reason, f"command {seq}: {stale.detail}"))
                     return False
@@ -426,9 +447,13 @@ class ArmDriver:
         def on_packet(rec: np.ndarray, t: float) -> None:
             cb = self.on_state
             if cb is not None:
-                cb(feedback_state(arm, rec, self.frames[arm], estopped=self._estop, stamp=time.time()))
+                cb(feedback_state(arm, rec, self.frames[arm], estopped=self._estop, stamp=self._stamp(rec)))
 
         return on_packet
+
+    def _stamp(self, rec: np.ndarray) -> float:
+        """When a feedback packet was true, on the rig's clock (a simulated controller stamps its own time)."""
+        return float(rec["TimeStamp"]) / 1000.0 if self.clock.simulated else time.time()
 
     def states(self) -> dict[str, ArmState]:
         """The latest state of each arm that has reported since (re)connecting."""
@@ -527,6 +552,9 @@ class ArmDriver:
     # -- the loop --------------------------------------------------------------------------------
 
     def _loop(self) -> None:
+        if isinstance(self.clock, SimClock):
+            self._lockstep_loop(self.clock)
+            return
         next_t = time.monotonic()
         offsets: deque[float] = deque([0.0], maxlen=50)  # when in its cycle the commands go out
         while not self._stop.is_set():
@@ -552,12 +580,49 @@ class ArmDriver:
             if delay > 0:
                 self._stop.wait(delay)
 
+    def _lockstep_loop(self, clock: SimClock) -> None:
+        """One cycle per servo tick of the simulator, on the feedback of that step, then `on_tick`."""
+        last = -1
+        while not self._stop.is_set():
+            tick = clock.next_tick(last, self._stop, timeout=0.2)
+            if tick is None:
+                continue
+            last, t = tick
+            self._await_feedback(t)
+            t0 = time.monotonic()
+            self.cycle_starts.append(t0)
+            before = dict(self.servo_sent)
+            try:
+                self._cycle(t0)
+            except Exception as e:  # never let the loop die: whatever went wrong becomes a fault
+                with self._lock:
+                    self._set_fault(f"servo loop: {e if isinstance(e, BagItError) else repr(e)}")
+            self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
+            cb = self.on_tick
+            if cb is not None:
+                try:
+                    cb(last, {a: self.servo_sent[a] - before[a] for a in ARMS})
+                except Exception as e:  # noqa: BLE001 - a closing bus must not stop the arms' loop
+                    self._event("tick_callback", repr(e))
+
+    def _await_feedback(self, t: float) -> None:
+        """Until both arms' feedback shows the step at `t` (a simulated controller stamps it), at most
+        the feedback time-out: a link that went quiet is the supervisor's business, not this wait's."""
+        due_ms = round(t * 1000.0)
+        deadline = time.monotonic() + self.cfg.feedback_timeout_s
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            recs = [self.clients[a].latest()[0] for a in ARMS]
+            if all(r is not None and int(r["TimeStamp"]) >= due_ms for r in recs):
+                return
+            time.sleep(0.0005)
+
     def _cycle(self, t0: float) -> bool:
         """One servo period; True if motion commands went out."""
-        self._check_replies(t0)
+        self._check_replies(time.monotonic())
         sends: dict[str, str] = {}
         with self._lock:
-            now = time.monotonic()  # under the lock: a cycle that waited for it must not act on an old clock
+            now = self._now()  # under the lock: a cycle that waited for it must not act on an old clock
+            wall_now = time.monotonic()
             self.counters["cycles"] += 1
             self._check_stall(now)
             self._last_cycle = now
@@ -578,10 +643,14 @@ class ArmDriver:
                 return False
             for a in active:
                 sends[a] = self._servo_text(a, command[a], None if joints is None else joints[a], out.halting)
-        wait = self._last_send + self.period - time.monotonic()
-        if wait > 0:  # never two ServoPs less than a period apart, whatever the schedule did
-            time.sleep(wait)
-        late = time.monotonic() - now
+        # On the wall clock: never two ServoPs less than a period apart, whatever the schedule did, and
+        # none made before a pause; on the simulator's the ticks are a period apart and the world waits.
+        late = 0.0
+        if not self.clock.simulated:
+            wait = self._last_send + self.period - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            late = time.monotonic() - wall_now
         if late > self.limits.watchdog_s:  # paused between making these poses and sending them: they are stale
             with self._lock:
                 self.pipe.halt()
@@ -595,6 +664,7 @@ class ArmDriver:
             try:
                 self._in_flight[a].append(self.clients[a].send(text))
                 self.counters["servo_sent"] += 1
+                self.servo_sent[a] += 1
             except ProtocolError as e:
                 with self._lock:
                     self._link_lost(a, str(e))
@@ -668,8 +738,9 @@ class ArmDriver:
             if not c.connected:
                 self._link_lost(a, c.last_error or "disconnected")
                 continue
-            if c.silent_for(now) > self.cfg.feedback_timeout_s:
-                c.drop(f"no feedback for {c.silent_for(now) * 1000:.0f} ms")
+            silent = c.silent_for()  # a socket's silence, on this host's clock whatever the motion's
+            if silent > self.cfg.feedback_timeout_s:
+                c.drop(f"no feedback for {silent * 1000:.0f} ms")
                 self._link_lost(a, "feedback lost")
                 continue
             if c.epoch != self._seen_epoch[a]:

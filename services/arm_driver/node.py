@@ -21,6 +21,9 @@ fault (or a lost link) stops the arms, and for `notice_s` after a watchdog stop,
 target or a refused command, that event as `error_reason` (with `error` False). Every driver
 event is also written to stderr (repeats of the same event at most every 5 s).
 
+With `clock="sim"` (a lockstep simulator) the driver cycles on sim/clock's servo ticks and the node
+answers the simulator on sim/ack: each tick once cycled (with the ServoPs it sent), and each
+command once taken or refused, so the world never steps past a command the arms have not seen.
 The bring-up happens before anything is subscribed: commands that arrive before the arms are
 enabled are never queued. When commands stop arriving the driver's watchdog holds the arms.
 """
@@ -34,16 +37,18 @@ from typing import Any, Callable
 
 import zenoh  # noqa: F401 - the node is where the service meets the bus
 
-from bagit.common.bus import Keys, Publisher, Subscriber
+from bagit.common.bus import Keys, Publisher, Subscriber, rig_clock
+from bagit.common.clock import ClockKind
 from bagit.common.errors import BagItError
-from bagit.common.messages import ArmState, Command, EStop, RunState
-from bagit.common.names import FINAL_STAGES
+from bagit.common.messages import ArmState, Command, EStop, RunState, StepAck
+from bagit.common.names import ACTIVE_STAGES, FINAL_STAGES
 from bagit.common.results import ARM_EVENT_KINDS
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.driver import ArmDriver
-from bagit.services.arm_driver.gate import command_refusal, stream_end
+from bagit.services.arm_driver.gate import NO_ACTIVE_RUN, Refusal, command_refusal, stream_end
 
 REPEAT_S = 5.0  # the same event is printed again at most this often
+LOCKSTEP_PARK_S = 1.0  # lockstep: a run's first command waits this long (wall) for the run/state that lets it through
 
 
 def stderr_report(text: str) -> None:
@@ -61,6 +66,7 @@ class ArmDriverNode:
         state_rate_hz: float | None = None,
         notice_s: float = 1.0,
         report: Callable[[str], None] = stderr_report,
+        clock: ClockKind = "wall",
     ) -> None:
         self.keys = keys
         self.driver = driver
@@ -83,8 +89,14 @@ class ArmDriverNode:
         self._gate = threading.Lock()
         self._run_state: RunState | None = None
         self._streaming_run: str | None = None
+        self._parked: tuple[Command, threading.Timer] | None = None  # lockstep: a command waiting for its run/state
+        self._park_lock = threading.Lock()
         driver.on_state = self._on_state
         driver.on_event = self._on_event
+        self._clock, self._clock_sub = rig_clock(session, keys, clock)
+        self._ack = Publisher(session, keys.sim_ack, StepAck) if self._clock.simulated else None
+        if self._clock.simulated:
+            driver.set_clock(self._clock, on_tick=self._on_tick)
         driver.start()  # ProtocolError: a controller is unreachable or refuses; nothing declared yet
         self._estop_sub = Subscriber(session, keys.estop, EStop, self._on_estop)
         self._cmd_sub = Subscriber(session, keys.controller_cmd, Command, self._on_command)
@@ -102,6 +114,9 @@ class ArmDriverNode:
     def _on_command(self, cmd: Command) -> None:
         with self._gate:
             refusal = command_refusal(cmd, self._run_state)
+            if refusal is not None and self._may_park(cmd, refusal):
+                return
+            self._parked = None
             if refusal is None:
                 ok = self.driver.submit(cmd)
                 refusal = None if ok else self.driver.last_refusal
@@ -110,6 +125,8 @@ class ArmDriverNode:
                 self.driver.refuse(refusal)
             if ok and cmd.mode == "servo":
                 self._streaming_run = cmd.run_id
+        if self._ack is not None:
+            self._answer(StepAck(service="arm-driver", run_id=cmd.run_id, cmd_seq=cmd.seq))
         with self._lock:
             self.commands += 1
             if not ok:
@@ -122,6 +139,43 @@ class ArmDriverNode:
         if clipped != self._clipped_seen:
             self._clipped_seen = clipped
             self._on_event("clipped", "; ".join(self.driver.last_violations) or "target clipped")
+
+    def _may_park(self, cmd: Command, refusal: Refusal) -> bool:
+        """Lockstep: the first command of a run that run/state still shows planning waits (unanswered, so
+        the simulator waits too) for the run/state that lets it through: the two come on their own keys
+        and either may arrive first. Judged again on that run/state, or refused after LOCKSTEP_PARK_S."""
+        st = self._run_state
+        if self._ack is None or refusal.reason != NO_ACTIVE_RUN or st is None or st.run_id != cmd.run_id or st.stage not in ACTIVE_STAGES:
+            return False
+        if self._parked is not None and self._parked[0] is cmd:
+            return False  # its time is up: it stays refused
+        timer = threading.Timer(LOCKSTEP_PARK_S, self._unpark, kwargs={"expired": True})
+        timer.daemon = True
+        self._parked = (cmd, timer)
+        timer.start()
+        return True
+
+    def _unpark(self, expired: bool = False) -> None:
+        """Judge the parked command again: on a new run/state (parked again if still refused), or
+        refused for good when its time is up."""
+        with self._park_lock:
+            parked = self._parked
+            if parked is None or (expired and threading.current_thread() is not parked[1]):
+                return  # judged already, or a timer of an earlier wait
+            parked[1].cancel()
+            if not expired:
+                self._parked = None
+        self._on_command(parked[0])
+
+    def _on_tick(self, tick: int, sent: dict[str, int]) -> None:
+        self._answer(StepAck(service="arm-driver", tick=tick, servo_sent=sent))
+
+    def _answer(self, ack: StepAck) -> None:
+        try:
+            assert self._ack is not None
+            self._ack.put(ack.model_copy(update={"stamp": self._clock.now()}))
+        except Exception as e:  # noqa: BLE001 - a closing session; the simulator's wait says who is missing
+            self._on_event("publish", f"sim/ack: {type(e).__name__}: {e}")
 
     def _on_estop(self, msg: EStop) -> None:
         with self._lock:
@@ -141,6 +195,8 @@ class ArmDriverNode:
             if why is not None:
                 self._streaming_run = None
                 self.driver.hold(why)
+        if self._parked is not None:
+            self._unpark()
         if msg.run_id is None or msg.run_id == self._run_id or msg.stage in FINAL_STAGES + ("idle",):
             return
         self._run_id = msg.run_id
@@ -238,6 +294,8 @@ class ArmDriverNode:
             self.report(f"shutdown: {type(e).__name__}: {e}")
         out = self.status()
         self.driver.on_state = None
-        for p in self._pubs.values():
-            p.close()
+        self.driver.on_tick = None
+        for p in (*self._pubs.values(), self._ack, self._clock_sub):
+            if p is not None:
+                p.close()
         return out

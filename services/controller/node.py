@@ -19,6 +19,12 @@ stale arm states -> a hold command (u = 0) with the reason, every tick while it 
 stops, is aborted, fails or is done, a new run, or an e-stop -> one hold, and servoing stops. Any
 exception in the controller (e.g. numpy's LinAlgError) -> hold with the reason in the status;
 the loop thread never dies.
+
+With `clock="sim"` (a lockstep simulator) there is no timer: the controller ticks once per camera
+frame, when the coordinator has answered it on sim/ack (so on the stage that frame led to), on that
+frame's SOI (if it made one) and the arms' states of that step, with ages on the simulator's clock;
+then it answers the frame on sim/ack with the command it sent. A tick per frame is the control
+rate when the camera runs at it, as in `bagit run`.
 """
 
 from __future__ import annotations
@@ -32,9 +38,12 @@ import numpy as np
 import zenoh  # noqa: F401 - the node is where the service meets the bus
 from pydantic import BaseModel, ConfigDict, Field
 
+from collections import deque
+
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
-from bagit.common.messages import ArmState, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState
-from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER
+from bagit.common.clock import ClockKind
+from bagit.common.messages import ArmState, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
+from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS
 from bagit.services.controller.controller import CONTROLLERS
@@ -42,6 +51,7 @@ from bagit.services.controller.session import (ARM_MAX_AGE_S, DRIVER_WATCHDOG_S,
                                                     gripper_poses)
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
+LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
 
 
 class ControllerServiceConfig(BaseModel):
@@ -72,8 +82,10 @@ class ControllerNode:
         keys: Keys,
         cfg: ControllerServiceConfig | None = None,
         report: Callable[[str], None] = stderr_report,
+        clock: ClockKind = "wall",
     ) -> None:
         self.cfg = cfg or ControllerServiceConfig()
+        self.lockstep = clock == "sim"
         if self.cfg.controller is not None and self.cfg.controller not in CONTROLLERS:
             from bagit.common.errors import BadControlInput
 
@@ -102,7 +114,15 @@ class ControllerNode:
             Subscriber(session, keys.estop, EStop, self._on_estop),
         ]
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name="controller-loop", daemon=True)
+        self._frames: deque[StepAck] = deque()  # lockstep: the coordinator's answers to frames, to tick on
+        self._frames_cond = threading.Condition()
+        self._ack: Publisher[StepAck] | None = None
+        self._sent: int | None = None  # the seq of the last command a tick sent
+        self._status_sent: int | None = None  # ... and of its status
+        if self.lockstep:
+            self._ack = Publisher(session, keys.sim_ack, StepAck)
+            self._subs.append(Subscriber(session, keys.sim_ack, StepAck, self._on_ack))
+        self._thread = threading.Thread(target=self._lockstep_loop if self.lockstep else self._loop, name="controller-loop", daemon=True)
         self._thread.start()
 
     # -- in ----------------------------------------------------------------------------------------
@@ -126,7 +146,55 @@ class ControllerNode:
         with self._lock:
             self._estop = bool(msg.engage)
 
+    def _on_ack(self, ack: StepAck) -> None:
+        if ack.service == "planner" and ack.frame is not None and ack.status_seq is None:  # not its answer to our status
+            with self._frames_cond:
+                self._frames.append(ack)
+                self._frames_cond.notify()
+
     # -- the loop ----------------------------------------------------------------------------------
+
+    def _lockstep_loop(self) -> None:
+        """One tick per frame the coordinator answered (see the module doc), then the answer."""
+        while not self._stop.is_set():
+            with self._frames_cond:
+                while not self._frames and not self._stop.is_set():
+                    self._frames_cond.wait(0.1)
+                if self._stop.is_set():
+                    return
+                ack = self._frames.popleft()
+            assert ack.frame is not None
+            self._sent = self._status_sent = None
+            try:
+                self._await_frame(ack)
+                self._tick(ack.frame)
+            except Exception as e:  # noqa: BLE001 - a bug here must hold the arms, never kill the loop
+                self.counters["errors"] += 1
+                self._hold(f"controller node error: {type(e).__name__}: {e}", self._run, ack.frame)
+            assert self._ack is not None
+            self._ack.put(StepAck(service="controller", run_id=ack.run_id, frame=ack.frame, cmd_seq=self._sent,
+                                  status_seq=self._status_sent, stamp=ack.frame))
+
+    def _await_frame(self, ack: StepAck) -> None:
+        """In a servo stage: until run/state shows that run servoing, the frame's SOI is in and both arms
+        report the step (bounded: what is still missing then is the tick's to judge: a hold). Outside
+        one the tick only ends a finished run's servoing: nothing to wait for."""
+        if ack.stage not in SERVO_STAGES:
+            return
+        t = float(ack.frame or 0.0)
+        deadline = time.monotonic() + LOCKSTEP_WAIT_S
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            with self._lock:
+                st = self._run_state
+                has_path = ack.run_id in self._paths
+            state_ok = st is not None and st.run_id == ack.run_id and st.stage in SERVO_STAGES and has_path
+            soi = self.soi.get()
+            soi_ok = ack.soi_seq is None or (soi is not None and soi.seq == ack.soi_seq and abs(soi.source_stamp - t) < 1e-6)
+            arms = [self.arms.get(self.keys.arm_state(a)) for a in ARMS]
+            arms_ok = all(m is not None and m.stamp >= t - 1e-6 for m in arms)
+            if state_ok and soi_ok and arms_ok:
+                return
+            time.sleep(0.0005)
 
     def _loop(self) -> None:
         next_t = time.monotonic()
@@ -149,7 +217,9 @@ class ControllerNode:
             return run.tick_s  # the control period, or the keep-alive pace of a slower control rate
         return 1.0 / (self.cfg.control_rate_hz or MethodParams().control_rate_hz)
 
-    def _tick(self) -> None:
+    def _tick(self, now: float | None = None) -> None:
+        """One control tick at `now` (the rig's clock; None: this host's)."""
+        now = time.time() if now is None else now
         with self._lock:
             state, estop = self._run_state, self._estop
             path = None if state is None else (self._paths.get(state.run_id) or self._paths.get(None))
@@ -165,7 +235,7 @@ class ControllerNode:
             elif state.stage not in ACTIVE_STAGES:
                 why = f"run {state.stage}" + (f": {state.reason}" if state.reason else "")
             if why is not None:
-                self._end(run, why)
+                self._end(run, why, now)
         if run is not None and (state is None or state.run_id != run.run_id):
             self._run = run = None
         if estop or state is None or state.stage not in ACTIVE_STAGES or path is None:
@@ -175,7 +245,7 @@ class ControllerNode:
             if run is None:
                 return
         if run.finished is None:
-            self._servo(run, path, goal)
+            self._servo(run, path, goal, now)
 
     def _build(self, state: RunState, path: Path, goal: Goal | None) -> ServoSession:
         """The run's session (a finished one, with a status saying why, if it cannot be built)."""
@@ -190,39 +260,42 @@ class ControllerNode:
         self._seq += 1
         return self._seq
 
-    def _states(self) -> tuple[dict[str, ArmState], str | None]:
-        """Both arms' newest states, or why there are none fresh enough."""
+    def _states(self, now: float) -> tuple[dict[str, ArmState], str | None]:
+        """Both arms' newest states, or why there are none fresh enough (lockstep: by their stamps at `now`)."""
         out = {}
         for a in ARMS:
             item = self.arms.get_with_time(self.keys.arm_state(a))
             if item is None:
                 return out, f"no state from the {a} arm"
             msg, t = item
-            age = time.monotonic() - t
+            age = now - msg.stamp if self.lockstep else time.monotonic() - t
             if age > self.cfg.arm_max_age_s:
                 return out, f"the {a} arm's state is stale ({age:.2f} s old)"
             out[a] = msg
         return out, None
 
-    def soi_age(self, soi: SoiState, received: float) -> float:
-        """Seconds since the SOI's camera frame was taken (by arrival when stamped on another clock)."""
+    def soi_age(self, soi: SoiState, received: float, now: float | None = None) -> float:
+        """Seconds since the SOI's camera frame was taken (by arrival when stamped on another clock;
+        lockstep: on the simulator's clock at `now`, the frame's time)."""
+        if self.lockstep and now is not None:
+            return now - soi.source_stamp
         by_arrival = time.monotonic() - received
         by_stamp = time.time() - soi.source_stamp
         if abs(by_stamp) < CLOCK_SKEW_S:
             return max(by_stamp, by_arrival)
         return by_arrival
 
-    def _servo(self, run: ServoSession, path: Path, goal: Goal | None) -> None:
+    def _servo(self, run: ServoSession, path: Path, goal: Goal | None, now: float) -> None:
         self.counters["ticks"] += 1
         item = self.soi.get_with_time()
-        states, arm_problem = self._states()
+        states, arm_problem = self._states(now)
         grippers, arm_problem = (None, arm_problem) if arm_problem else gripper_poses(states)
-        soi, age = (None, None) if item is None else (item[0], self.soi_age(*item))
+        soi, age = (None, None) if item is None else (item[0], self.soi_age(*item, now=now))
         fault = arm_fault(states) if soi is not None and arm_problem is None else None
-        out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, time.time())
+        out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, now)
         if out.keepalive:
             self.counters["keepalive"] += 1
-            self._cmd.put(out.command)  # not a control tick: no status, no count as servo
+            self._put(out.command)  # not a control tick: no status, no count as servo
             return
         self._send(out)
         if run.finished == "done" and out.status is not None and out.status.done:
@@ -231,7 +304,7 @@ class ControllerNode:
     def _send(self, out: Outbox) -> None:
         """Publish what the session asks for (command, status) and log its line."""
         if out.command is not None:
-            self._cmd.put(out.command)
+            self._put(out.command)
             self.counters["servo" if out.command.mode == "servo" else "hold"] += 1
             self.last_reason = out.command.reason
         if out.status is not None:
@@ -241,20 +314,26 @@ class ControllerNode:
 
     # -- out ---------------------------------------------------------------------------------------
 
-    def _hold(self, reason: str, run: ServoSession | None) -> None:
+    def _put(self, cmd: Command | None) -> None:
+        if cmd is not None:
+            self._cmd.put(cmd)
+            self._sent = cmd.seq
+
+    def _hold(self, reason: str, run: ServoSession | None, now: float | None = None) -> None:
         """A hold command (u = 0) with the reason, outside any run's session (a node error)."""
+        now = time.time() if now is None else now
         if run is not None:
-            self._send(run.hold(reason, time.time()))
+            self._send(run.hold(reason, now))
             return
-        self._cmd.put(Command(u=np.zeros(12), dt=1 / 30, seq=self._next_seq(), mode="hold", reason=reason))
+        self._put(Command(u=np.zeros(12), dt=1 / 30, seq=self._next_seq(), mode="hold", reason=reason, stamp=now))
         self.counters["hold"] += 1
         if reason != self.last_reason:
             self.report(f"hold: {reason}")
         self.last_reason = reason
         self._publish_status(None, controller=DEFAULT_CONTROLLER, mode="hold", reason=reason)
 
-    def _end(self, run: ServoSession, why: str) -> None:
-        self._send(run.end(why, time.time()))
+    def _end(self, run: ServoSession, why: str, now: float | None = None) -> None:
+        self._send(run.end(why, time.time() if now is None else now))
 
     def _publish_status(self, run_id: str | None, **kw: Any) -> None:
         self._publish_status_msg(ControllerStatus(run_id=run_id, seq=self._seq, **kw))
@@ -262,6 +341,7 @@ class ControllerNode:
     def _publish_status_msg(self, st: ControllerStatus) -> None:
         try:
             self._status.put(st)
+            self._status_sent = st.seq
         except Exception as e:  # noqa: BLE001
             self.report(f"cannot publish the status: {type(e).__name__}: {e}")
 
@@ -281,4 +361,6 @@ class ControllerNode:
         self.arms.close()
         self._cmd.close()
         self._status.close()
+        if self._ack is not None:
+            self._ack.close()
         return self.status()

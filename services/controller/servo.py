@@ -9,6 +9,8 @@ tracker picks g_next on the path; the law (MPC, IBVS, SSVS) gives u (12,), which
 
 from __future__ import annotations
 
+import time
+
 from dataclasses import dataclass
 from typing import Any
 
@@ -55,12 +57,15 @@ class ControlOutput:
     done: bool
     progress: float = 0.0  # subgoal_index / (n_nodes - 1)
 
-    def to_command(self, dt: float, seq: int = 0, run_id: str | None = None, source_stamp: float = 0.0) -> Command:
+    def to_command(self, dt: float, seq: int = 0, run_id: str | None = None, source_stamp: float = 0.0,
+                   stamp: float | None = None) -> Command:
         """The wire command: exploration, servoing and settling (u = 0) are 'servo', holding and done are 'hold'.
-        `source_stamp`: the camera stamp of the SOI this step was computed from."""
+        `source_stamp`: the camera stamp of the SOI this step was computed from; `stamp`: when it was made
+        (the rig's clock; None: this host's)."""
         servo = self.mode in ("explore", "servo", "settle")
         return Command(u=self.u if servo else np.zeros(12), dt=dt, seq=seq, run_id=run_id,
-                       mode="servo" if servo else "hold", reason=self.reason, source_stamp=source_stamp)
+                       mode="servo" if servo else "hold", reason=self.reason, source_stamp=source_stamp,
+                       stamp=time.time() if stamp is None else stamp)
 
 
 def c7_limits(params: MethodParams) -> np.ndarray:

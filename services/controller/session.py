@@ -173,7 +173,8 @@ class ServoSession:
             if not self.servoing:
                 return Outbox()
             self.seq = self.next_seq()
-            cmd = Command(u=np.zeros(12), dt=self.dt, seq=self.seq, run_id=self.run_id, reason=KEEPALIVE, source_stamp=soi.source_stamp)
+            cmd = Command(u=np.zeros(12), dt=self.dt, seq=self.seq, run_id=self.run_id, reason=KEEPALIVE, source_stamp=soi.source_stamp,
+                          stamp=now)
             return Outbox(cmd, keepalive=True)
         self.last_soi = key
         c = self.controller
@@ -197,7 +198,7 @@ class ServoSession:
         self.final_soi = x
         self.error_to_goal = _finite_or_none(out.error_to_goal)
         self.seq = self.next_seq()
-        cmd = out.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp)
+        cmd = out.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp, stamp=now)
         self.servoing = cmd.mode == "servo" and not out.done
         self.last_reason = out.reason
         status = self._status(mode=out.mode, stage=out.stage, reason=out.reason, subgoal_index=out.subgoal_index,
@@ -243,7 +244,7 @@ class ServoSession:
                 pass
         self.servoing = False
         self.seq = self.next_seq()
-        cmd = Command(u=np.zeros(12), dt=self.dt, seq=self.seq, run_id=self.run_id, mode="hold", reason=reason)
+        cmd = Command(u=np.zeros(12), dt=self.dt, seq=self.seq, run_id=self.run_id, mode="hold", reason=reason, stamp=now)
         report = f"hold: {reason}" if reason != self.last_reason else None
         self.last_reason = reason
         return Outbox(cmd, self._status(mode="hold", reason=reason), report)

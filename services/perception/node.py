@@ -25,6 +25,12 @@ finds the ArUco marker, looks its id up in the object library (the bundled scena
 perception/object: the object's V in the world, or ok=False with the reason (no marker, an unknown
 id), counted and reported on stderr. Its own thread and its own newest-wins slot: the SOI path
 never waits for it.
+
+With `clock="sim"` (a lockstep simulator) every frame is answered on sim/ack once its SOI is out
+(`soi_seq`; None when the frame gave none), and the marker detection due on that frame runs in
+the SOI's thread before the answer, so the coordinator has heard both before the world steps on.
+A frame sent twice (the simulator resends one it heard no answer to) is answered again, not redone.
+The marker's rate is counted on the frames' stamps, i.e. the camera's clock, in both modes.
 """
 
 from __future__ import annotations
@@ -39,9 +45,10 @@ import zenoh  # noqa: F401 - the node is where the service meets the bus
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
+from bagit.common.clock import ClockKind
 from bagit.common.errors import BagItError
 from bagit.common.geometry import points_to_polyline_distance, transform_points
-from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState
+from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState, StepAck
 from bagit.common.names import MAX_N_X, MIN_N_X
 from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
@@ -51,6 +58,7 @@ from bagit.services.perception.tracker import RimTracker
 from bagit.services.perception.sources import SourceConfig, open_source
 
 REPORT_EVERY_S = 5.0
+LOCKSTEP_HINT_WAIT_S = 0.5  # lockstep: how long (wall) a frame waits for the left arm's state of its step
 
 
 class PerceptionServiceConfig(BaseModel):
@@ -104,8 +112,11 @@ class PerceptionNode:
         cfg: PerceptionServiceConfig | None = None,
         T_world_camera: np.ndarray | None = None,
         report: Callable[[str], None] = stderr_report,
+        clock: ClockKind = "wall",
     ) -> None:
         self.cfg = cfg or PerceptionServiceConfig()
+        self.lockstep = clock == "sim"
+        self._answered: tuple[float, int | None, bool] | None = None  # lockstep: the last frame's stamp, SOI, detection
         self.keys = keys
         self.report = report
         self._cond = threading.Condition()
@@ -135,12 +146,13 @@ class PerceptionNode:
         self._soi_pub = Publisher(session, keys.perception_soi, SoiState)
         self._cloud_pub = Publisher(session, keys.perception_cloud, PointCloud)
         self._object_pub = Publisher(session, keys.perception_object, ObjectDetection) if self._library is not None else None
+        self._ack = Publisher(session, keys.sim_ack, StepAck) if self.lockstep else None
         self._arm = LatestCache(session, keys.arm_state("left"), ArmState)
         self._subs = [Subscriber(session, keys.run_state, RunState, self._on_run_state)]
         if self._source is None:
             self._subs.append(Subscriber(session, keys.camera_rgbd, RgbdFrame, self._offer))
         self._threads = [threading.Thread(target=self._work, name="perception-worker", daemon=True)]
-        if self._library is not None:
+        if self._library is not None and not self.lockstep:
             self._threads.append(threading.Thread(target=self._marker_work, name="perception-marker", daemon=True))
         if self._source is not None:
             self._threads.append(threading.Thread(target=self._read, name="perception-reader", daemon=True))
@@ -157,7 +169,8 @@ class PerceptionNode:
                 self.counters["dropped"] += 1
             self._pending = frame
             self._cond.notify()
-        self._offer_marker(frame)
+        if not self.lockstep:
+            self._offer_marker(frame)
 
     def _open_library(self) -> ObjectLibrary | None:
         """The object library, or None when detection is off (by config, or no object has a marker)."""
@@ -170,18 +183,23 @@ class PerceptionNode:
             return None
         return lib
 
-    def _offer_marker(self, frame: RgbdFrame) -> None:
-        """Newest wins here too: at most marker_rate_hz, and on a new run's first settled frame."""
+    def _marker_due(self, frame: RgbdFrame) -> bool:
+        """At most marker_rate_hz (on the frames' stamps), and on a new run's first settled frame (under _mcond)."""
         if self._library is None:
-            return
-        now = time.monotonic()
+            return False
+        new_run = self._marker_after is not None and frame.stamp >= self._marker_after
+        if not new_run and frame.stamp - self._marker_last < 1.0 / self.cfg.marker_rate_hz:
+            return False
+        if new_run:
+            self._marker_after = None
+        self._marker_last = frame.stamp
+        return True
+
+    def _offer_marker(self, frame: RgbdFrame) -> None:
+        """Newest wins here too (see `_marker_due`)."""
         with self._mcond:
-            new_run = self._marker_after is not None and frame.stamp >= self._marker_after
-            if not new_run and now - self._marker_last < 1.0 / self.cfg.marker_rate_hz:
+            if not self._marker_due(frame):
                 return
-            if new_run:
-                self._marker_after = None
-            self._marker_last = now
             self._mpending = frame
             self._mcond.notify()
 
@@ -193,24 +211,26 @@ class PerceptionNode:
                 if self._stop.is_set():
                     return
                 frame, self._mpending = self._mpending, None
-            try:
-                det = detect_object(frame, self._library, self._run_id)
-            except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection, never a dead thread
-                det = ObjectDetection(seq=frame.seq, source_stamp=frame.stamp, run_id=self._run_id, ok=False,
-                                      error=f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
-            try:
-                self._object_pub.put(det)
-            except Exception as e:  # noqa: BLE001 - a closing session
-                self.report(f"could not publish perception/object: {e}")
-            if det.ok:
-                self.counters["objects"] += 1
-                continue
-            self.counters["object_failures"] += 1
-            self.last_object_error = f"frame {frame.seq}: {det.error}"
-            now = time.monotonic()
-            if now - self._last_report["object"] >= REPORT_EVERY_S:
-                self._last_report["object"] = now
-                self.report(f"no object ({self.counters['object_failures']} so far): {self.last_object_error}")
+            self._detect(frame)
+
+    def _detect(self, frame: RgbdFrame) -> None:
+        """Find the object's marker in `frame` and publish what was found (or why not)."""
+        assert self._library is not None and self._object_pub is not None
+        try:
+            det = detect_object(frame, self._library, self._run_id)
+        except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection, never a dead thread
+            det = ObjectDetection(seq=frame.seq, source_stamp=frame.stamp, run_id=self._run_id, ok=False,
+                                  error=f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+        try:
+            self._object_pub.put(det)
+        except Exception as e:  # noqa: BLE001 - a closing session
+            self.report(f"could not publish perception/object: {e}")
+        if det.ok:
+            self.counters["objects"] += 1
+            return
+        self.counters["object_failures"] += 1
+        self.last_object_error = f"frame {frame.seq}: {det.error}"
+        self._report_every("object", f"no object ({self.counters['object_failures']} so far): {self.last_object_error}")
 
     def _add_run_object(self, scen: Scenario) -> None:
         """The run's own object joins the library when its marker id is new; one id for two different
@@ -293,7 +313,14 @@ class PerceptionNode:
                 with self._cond:
                     self._busy = False
 
-    def _hint(self) -> np.ndarray | None:
+    def _hint(self, frame: RgbdFrame) -> np.ndarray | None:
+        if self.lockstep:  # the left arm's state of this very step, as the simulator has it (bounded wait)
+            deadline = time.monotonic() + LOCKSTEP_HINT_WAIT_S
+            while time.monotonic() < deadline and not self._stop.is_set():
+                msg = self._arm.get()
+                if msg is not None and msg.stamp >= frame.stamp - 1e-6:
+                    break
+                time.sleep(0.0005)
         item = self._arm.get_with_time()
         if item is None or time.monotonic() - item[1] > self.cfg.hint_max_age_s:
             return None
@@ -309,25 +336,53 @@ class PerceptionNode:
         return self._rim
 
     def _process(self, frame: RgbdFrame) -> None:
+        if not self.lockstep:
+            self._soi(frame)
+            return
+        done = self._answered
+        if done is not None and done[0] == frame.stamp:  # sent again: the answer was lost, not the work
+            self._answer(frame, done[1], done[2])
+            return
+        seq = None
+        detected = False
+        try:
+            seq = self._soi(frame)
+        finally:
+            with self._mcond:
+                detected = self._marker_due(frame)
+            if detected:
+                self._detect(frame)
+            self._answered = (frame.stamp, seq, detected)
+            self._answer(frame, seq, detected)
+
+    def _answer(self, frame: RgbdFrame, soi_seq: int | None, detected: bool = False) -> None:
+        """Perception is done with `frame`: its SOI (seq) and whether it gave an object detection too."""
+        assert self._ack is not None
+        self._ack.put(StepAck(service="perception", run_id=self._run_id, frame=frame.stamp, soi_seq=soi_seq,
+                              object_stamp=frame.stamp if detected else None, stamp=frame.stamp))
+
+    def _soi(self, frame: RgbdFrame) -> int | None:
+        """The frame's SOI, published; its seq, or None (the frame counted bad with the reason)."""
         t0 = time.perf_counter()
         tracker = self._tracker()
         self.counters["processed"] += 1
         self._maybe_cloud(frame)
         cold = tracker.cold
         try:
-            rim, cloud = tracker.update(frame, hint=self._hint())
+            rim, cloud = tracker.update(frame, hint=self._hint(frame))
         except BagItError as e:
             self.counters["cold"] += tracker.cold - cold
             self._bad(frame, f"no SOI: {e}")
-            return
+            return None
         self.counters["cold"] += tracker.cold - cold
         inl = float(np.mean(points_to_polyline_distance(cloud, rim) <= self.cfg.inlier_m)) if len(cloud) else 0.0
         ms = (time.perf_counter() - t0) * 1000.0
         self.solve_ms.append(ms)
         del self.solve_ms[:-1000]
         self._soi_pub.put(SoiState(seq=frame.seq, source_stamp=frame.stamp, rim=rim, n_points=len(cloud),
-                                   inlier_fraction=inl, solve_ms=ms))
+                                   inlier_fraction=inl, solve_ms=ms, stamp=frame.stamp if self.lockstep else time.time()))
         self.counters["published"] += 1
+        return frame.seq
 
     def _maybe_cloud(self, frame: RgbdFrame) -> None:
         rate = self.cfg.cloud_rate_hz
@@ -345,10 +400,14 @@ class PerceptionNode:
     def _bad(self, frame: RgbdFrame, reason: str) -> None:
         self.counters["bad"] += 1
         self.last_bad = f"frame {frame.seq}: {reason}"
+        self._report_every("bad", f"bad frame ({self.counters['bad']} so far): {self.last_bad}")
+
+    def _report_every(self, kind: str, text: str) -> None:
+        """Report `text`, at most once per REPORT_EVERY_S for each `kind` (a flood of bad frames is one line)."""
         now = time.monotonic()
-        if now - self._last_report["bad"] >= REPORT_EVERY_S:
-            self._last_report["bad"] = now
-            self.report(f"bad frame ({self.counters['bad']} so far): {self.last_bad}")
+        if now - self._last_report[kind] >= REPORT_EVERY_S:
+            self._last_report[kind] = now
+            self.report(text)
 
     # -- out ---------------------------------------------------------------------------------------
 
@@ -374,6 +433,7 @@ class PerceptionNode:
         self._arm.close()
         self._soi_pub.close()
         self._cloud_pub.close()
-        if self._object_pub is not None:
-            self._object_pub.close()
+        for p in (self._object_pub, self._ack):
+            if p is not None:
+                p.close()
         return self.status()

@@ -4,7 +4,8 @@ The per-frame rule perception applies wherever it runs (the `bagit perception` n
 in-process loop): the rim cloud from the bag's colour, then the SOI by EM started from the last
 one (keeping the point order, so the controller sees the same points move); a warm fit that fails
 or jumps further than `max_jump_m` is redone cold, seeded near `hint` (the left gripper), which
-fixes where the ordering starts.
+fixes where the ordering starts. A frame numbered below the last SOI's is of a new stream (a
+simulator numbers its frames per world) and is fitted cold too: the bag may be anywhere in it.
 
     tr = RimTracker(n_x=32, kind="red-edged")
     rim, cloud = tr.update(frame, hint=left_gripper_xyz)    # BagItError when the frame shows no rim
@@ -39,11 +40,12 @@ class RimTracker:
         self.params = params if params is not None else DEFAULT_PARAMS
         self.max_jump_m = float(max_jump_m)
         self.prev: np.ndarray | None = None  # (n_x, 3), the last SOI
+        self.prev_seq = -1  # its frame's number
         self.cold = 0  # cold fits so far
 
     def reset(self) -> None:
         """Forget the last SOI (a new run, a new world): the next frame is fitted cold."""
-        self.prev = None
+        self.prev, self.prev_seq = None, -1
 
     def update(self, frame: RgbdFrame, hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The SOI `(n_x, 3)` and the rim cloud `(m, 3)` it came from; BagItError (and the next frame
@@ -53,7 +55,8 @@ class RimTracker:
         except BagItError:
             self.prev = None
             raise
-        prev = self.prev if self.prev is not None and self.prev.shape == (self.n_x, 3) else None
+        same_stream = frame.seq >= self.prev_seq
+        prev = self.prev if self.prev is not None and self.prev.shape == (self.n_x, 3) and same_stream else None
         rim = None
         if prev is not None:
             try:
@@ -69,5 +72,5 @@ class RimTracker:
             except BagItError:
                 self.prev = None
                 raise
-        self.prev = rim
+        self.prev, self.prev_seq = rim, frame.seq
         return rim, cloud

@@ -4,6 +4,11 @@ It answers run/control, takes g0 from perception/soi and the object from percept
 search never holds up run/control or run/state), publishes planner/goal and planner/path, follows
 controller/status, the e-stop (which aborts the run and refuses starts until released) and the
 services' liveliness, and publishes run/state on every change and at `publish_hz`. All coordinator calls are serialised by one lock; publishing happens outside it.
+
+With `clock="sim"` (a lockstep simulator) the coordinator's time is the simulator's: it ticks on each
+sim/clock message (limits, the marker wait), and answers each frame on sim/ack once perception has
+answered it and the SOI it made has been handled, with the stage that follows. A frame that starts
+a plan is answered when the plan is in, so planning takes no simulated time, as in `bagit run`.
 """
 
 from __future__ import annotations
@@ -24,12 +29,26 @@ from bagit.common.bus import (
     declare_alive,
     serve_run_control,
 )
-from bagit.common.messages import ControllerStatus, EStop, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.clock import ClockKind
+from bagit.common.messages import (
+    ClockTick,
+    ControllerStatus,
+    EStop,
+    Goal,
+    ObjectDetection,
+    Path,
+    RunControl,
+    RunControlReply,
+    RunState,
+    SoiState,
+    StepAck,
+)
 from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, PlanJob, compute_plan
 
 log = logging.getLogger("bagit.planner")
 
 SERVICE_NAME = "planner"
+LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a frame's answer waits for its SOI and object detection
 
 
 class PlannerServiceConfig(BaseModel):
@@ -51,13 +70,21 @@ class PlannerNode:
         keys: Keys,
         config: PlannerServiceConfig | None = None,
         on_state: Callable[[RunState], None] | None = None,
-        clock: Callable[[], float] = time.time,
+        clock: ClockKind = "wall",
     ) -> None:
         self.cfg = config or PlannerServiceConfig()
         self.keys = keys
-        self.clock = clock
+        self.lockstep = clock == "sim"
+        self._sim_t = 0.0
+        self.clock: Callable[[], float] = (lambda: self._sim_t) if self.lockstep else time.time
+        self._planning = 0  # plan threads running
+        self._frames: list[tuple[StepAck, float]] = []  # lockstep: perception's answers (and when they came) not yet answered
+        self._soi_handled: int | None = None
+        self._statuses: list[StepAck] = []  # lockstep: the controller's answers whose status is not handled yet
+        self._status_handled: int | None = None
+        self._object_handled: float | None = None  # lockstep: the stamp of the last ObjectDetection handled
         self.on_state = on_state
-        self.coord = Coordinator(self.cfg.coordinator, now=clock())
+        self.coord = Coordinator(self.cfg.coordinator, now=self.clock())
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._state_pub = Publisher(session, keys.run_state, RunState)
@@ -73,6 +100,10 @@ class PlannerNode:
             Subscriber(session, keys.controller_status, ControllerStatus, self._on_status),
             Subscriber(session, keys.estop, EStop, self._on_estop),
         ]
+        if self.lockstep:
+            self._ack_pub = Publisher(session, keys.sim_ack, StepAck)
+            self._subs += [Subscriber(session, keys.sim_clock, ClockTick, self._on_clock),
+                           Subscriber(session, keys.sim_ack, StepAck, self._on_ack)]
         self._server = serve_run_control(session, keys, self._on_control)
         self._token = declare_alive(session, keys, SERVICE_NAME)
         self._ticker = threading.Thread(target=self._tick_loop, name="planner-tick", daemon=True)
@@ -92,12 +123,75 @@ class PlannerNode:
 
     def _on_soi(self, soi: SoiState) -> None:
         self._apply(lambda: self.coord.on_soi(soi, self.clock()))
+        if self.lockstep:
+            with self._pub_lock:
+                self._soi_handled = soi.seq
+                self._answer_frames()
+
+    # -- lockstep ------------------------------------------------------------------------------
+
+    def _on_clock(self, tick: ClockTick) -> None:
+        """The simulator's time: the coordinator's limits run on it."""
+        with self._pub_lock:
+            self._sim_t = max(self._sim_t, tick.t)
+        self._apply(lambda: self.coord.tick(self.clock()))
+
+    def _on_ack(self, ack: StepAck) -> None:
+        if ack.frame is None:
+            return
+        if ack.service == "controller" and ack.status_seq is not None:
+            with self._pub_lock:
+                self._statuses.append(ack)
+                self._answer_statuses()
+            return
+        if ack.service != "perception":
+            return
+        with self._pub_lock:
+            self._frames.append((ack, time.monotonic()))
+            self._answer_frames()
+
+    def _answer_statuses(self) -> None:
+        """Answer the controller's ticks whose status is handled, with the stage after it (with _pub_lock held)."""
+        while self._statuses and self._status_handled is not None and (self._statuses[0].status_seq or 0) <= self._status_handled:
+            ack = self._statuses.pop(0)
+            with self._lock:
+                st = self.coord.state
+            if self._closed:
+                return
+            self._ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, status_seq=ack.status_seq,
+                                      stage=st.stage, stamp=self.clock()))
+
+    def _answer_frames(self) -> None:
+        """Answer the frames whose SOI is handled, unless a plan is under way (with _pub_lock held)."""
+        while self._frames and not self._planning:
+            ack, came = self._frames[0]
+            missing = ("its SOI" if ack.soi_seq is not None and ack.soi_seq != self._soi_handled else
+                       "its object detection" if ack.object_stamp is not None and ack.object_stamp != self._object_handled else None)
+            if missing is not None:  # they come on their own keys (best effort): after the answer, or never
+                if time.monotonic() - came < LOCKSTEP_WAIT_S:
+                    return
+                log.warning("lockstep: frame %.3f answered without %s (lost on the way?)", ack.frame or 0.0, missing)
+            self._frames.pop(0)
+            with self._lock:
+                st = self.coord.state
+            if self._closed:
+                return
+            self._ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, soi_seq=ack.soi_seq, stage=st.stage,
+                                          stamp=self.clock()))
 
     def _on_object(self, det: ObjectDetection) -> None:
         self._apply(lambda: self.coord.on_object(det, self.clock()))
+        if self.lockstep:
+            with self._pub_lock:
+                self._object_handled = det.source_stamp
+                self._answer_frames()
 
     def _on_status(self, st: ControllerStatus) -> None:
         self._apply(lambda: self.coord.on_status(st, self.clock()))
+        if self.lockstep:
+            with self._pub_lock:
+                self._status_handled = st.seq
+                self._answer_statuses()
 
     def _on_estop(self, msg: EStop) -> None:
         log.warning("e-stop %s by %s%s", "engaged" if msg.engage else "released", msg.source, f": {msg.reason}" if msg.reason else "")
@@ -110,7 +204,11 @@ class PlannerNode:
     def _tick_loop(self) -> None:
         period = 1.0 / self.cfg.publish_hz
         while not self._stop.wait(min(period, 0.1)):
-            self._apply(lambda: self.coord.tick(self.clock()))
+            if not self.lockstep:  # lockstep: the coordinator ticks on sim/clock
+                self._apply(lambda: self.coord.tick(self.clock()))
+            else:
+                with self._pub_lock:
+                    self._answer_frames()  # one whose SOI or detection never came is answered after LOCKSTEP_WAIT_S
             now = time.monotonic()
             if now >= getattr(self, "_next_periodic", 0.0):
                 self._next_periodic = now + period
@@ -135,6 +233,7 @@ class PlannerNode:
             return
         for e in effects:
             if e.kind == "plan" and e.job is not None:
+                self._planning += 1
                 threading.Thread(target=self._plan, args=(e.job,), name=f"plan-{e.job.run_id}", daemon=True).start()
             elif e.kind == "publish_goal" and isinstance(e.message, Goal):
                 self._goal_pub.put(e.message)
@@ -155,6 +254,10 @@ class PlannerNode:
 
             out = PlanOutcome(job.run_id, failed_stage="planning", reason=f"planning: internal error: {type(e).__name__}: {e}")
         self._apply(lambda: self.coord.on_plan(out, self.clock()))
+        with self._pub_lock:
+            self._planning -= 1
+            if self.lockstep:
+                self._answer_frames()
 
     def _publish_if_changed(self) -> None:
         with self._lock:
@@ -192,7 +295,7 @@ class PlannerNode:
             x.close()
         with self._pub_lock:  # never undeclare a publisher in the middle of a put
             self._closed = True
-            for p in (self._state_pub, self._goal_pub, self._path_pub):
+            for p in (self._state_pub, self._goal_pub, self._path_pub, *([self._ack_pub] if self.lockstep else [])):
                 p.close()
         try:
             self._token.undeclare()

@@ -105,6 +105,10 @@ class SimulatedCR5:
         self._tool_offset = np.asarray(self.arm.mount_offset, dtype=float)
         self.time = 0.0
         self._boot_wall = _time.time()
+        # On the rig's simulated clock (`bagit up`'s lockstep) the feedback's TimeStamp is the rig's
+        # clock, this controller's time + `clock_offset`: the driver then knows which step a packet shows.
+        self.clock_offset: float | None = None
+        self.servo_commands = 0  # ServoP/ServoJ received: the simulator's lockstep waits for a tick's to land
         self._enabled = False
         self._estop = False
         self._alarms: list[int] = []
@@ -322,6 +326,7 @@ class SimulatedCR5:
         command from then on, as a controller answers `0,{ResultID},ServoP(..)` like MovJ.
         """
         with self._lock:
+            self.servo_commands += 1
             if (code := self._motion_gate()) != 0:
                 return code, 0
             if kind == "joint":
@@ -532,7 +537,8 @@ class SimulatedCR5:
         lin = (T_next[:3, 3] - T[:3, 3]) / eps * 1000.0
         ang = so3_log(T_next[:3, :3] @ T[:3, :3].T) / eps
         rec["RobotMode"] = mode
-        rec["TimeStamp"] = int(_time.time() * 1000)
+        offset = self.clock_offset
+        rec["TimeStamp"] = int(round((sim_t + offset) * 1000)) if offset is not None else int(_time.time() * 1000)
         rec["RunTime"] = int(sim_t * 1000)
         rec["SpeedScaling"] = sf / 100.0
         rec["VRobot"] = 48.0

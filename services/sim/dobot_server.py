@@ -165,6 +165,7 @@ class DobotControllerServer:
         self._clients: list[socket.socket] = []
         self._feedback_clients: list[socket.socket] = []
         self._clients_lock = threading.Lock()
+        self._push_lock = threading.Lock()
         self._dash_sock: socket.socket | None = None
         self._fb_sock: socket.socket | None = None
         self.packets_sent = 0
@@ -317,10 +318,16 @@ class DobotControllerServer:
                 self._stop.wait(delay)
             elif delay < -self.feedback_period:
                 next_t = time.monotonic()  # fell behind (a loaded machine): do not burst to catch up
+            self.push_feedback()
+
+    def push_feedback(self) -> None:
+        """One feedback packet of the current state to every feedback client now. The 8 ms loop
+        calls it; so does a lockstep simulator after each step, so its driver sees that step at once."""
+        with self._push_lock:  # one packet at a time on each socket, whoever pushes
             with self._clients_lock:
                 clients = list(self._feedback_clients)
             if not clients:
-                continue
+                return
             packet = self.robot.fill_feedback().tobytes()
             for c in clients:
                 try:

@@ -13,6 +13,13 @@ TCP servers and clients stay), lets the bag settle, and only then publishes fram
 frame of the old world is stamped after the reset.
 
 Ground truth goes on sim/truth (tests and benchmarks only; no service subscribes to it).
+
+With `clock="sim"` (the bus config's `clock: sim`, `bagit up`'s default) the node runs lockstep
+instead (`run` -> `_run_lockstep`): the rig's clock is the simulated controllers' time, published
+on sim/clock at every event of the `Schedule` (a servo tick, then a frame, stamped with that time),
+and while a run is active the world steps on only when the rig has answered (`Lockstep`, from the
+services' sim/ack and the controllers' servo counts). A loaded machine then makes a run slower,
+never different. Between runs, and in any case no faster than `speed`, it is paced to the wall clock.
 """
 
 from __future__ import annotations
@@ -25,12 +32,17 @@ from typing import Any, Callable
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
-from bagit.common.bus import Keys, Publisher, Subscriber, declare_alive
+from bagit.common.bus import Keys, LivelinessWatcher, Publisher, Subscriber, declare_alive
+from bagit.common.clock import ClockKind
 from bagit.common.dobot import describe_alarm
 from bagit.common.errors import BagItError
-from bagit.common.messages import RgbdFrame, RunState, SimTruth
+from bagit.common.messages import ClockTick, RgbdFrame, RunState, SimTruth, StepAck
+from bagit.common.names import FINAL_STAGES
 from bagit.common.scenario import Scenario
+from bagit.services.sim.lockstep import Lockstep, Schedule
 from bagit.services.sim.rig_sim import SETTLE_S, SimRig
+
+FRAME_RESEND_S = 1.0  # a frame perception has not answered in this long (wall) is sent again: camera/rgbd may drop
 
 SERVICE_NAME = "sim"
 
@@ -47,6 +59,7 @@ class SimNodeConfig(BaseModel):
     settle_s: float = Field(SETTLE_S, ge=0, le=10, description="simulated seconds the bag hangs still after a reset, no frames")
     truth_hz: float = Field(2.0, gt=0, le=50)
     report_every_s: float = Field(5.0, gt=0, description="how often the real-time factor is printed (wall seconds)")
+    lockstep_timeout_s: float = Field(30.0, gt=0, le=3600, description="lockstep: a service silent this long (wall s) is no longer waited for")
 
 
 @dataclass
@@ -69,8 +82,10 @@ class SimNode:
         config: SimNodeConfig | None = None,
         scenario_name: str | None = None,
         say: Callable[[str], None] = print,
+        clock: ClockKind = "wall",
     ) -> None:
         self.cfg = config or SimNodeConfig()
+        self.clock = clock
         self.rig = rig
         self.keys = keys
         self.say = say
@@ -81,16 +96,46 @@ class SimNode:
         self._lock = threading.Lock()
         self._pending: tuple[str, dict[str, Any], int, str | None] | None = None
         self._seen_runs: set[str] = set()
+        self._world_frames = 0  # frames of the current world (lockstep numbers frames per world)
+        self._ended: str | None = None  # the last run whose final truth went out (or is due)
+        self._truth_due = False
         self._camera_paused: str | None = None
         self._frame_pub = Publisher(session, keys.camera_rgbd, RgbdFrame)
         self._truth_pub = Publisher(session, keys.sim_truth, SimTruth)
         self._state_sub = Subscriber(session, keys.run_state, RunState, self._on_state)
+        self._cond = threading.Condition(self._lock)
+        self.lockstep = Lockstep(timeout_s=self.cfg.lockstep_timeout_s)
+        self._lockstep_parts: list[Any] = []
+        if clock == "sim":
+            rig.stamp_feedback()  # the controllers' feedback stamped on the rig's clock
+            self._clock_pub = Publisher(session, keys.sim_clock, ClockTick)
+            self._lockstep_parts = [self._clock_pub, Subscriber(session, keys.sim_ack, StepAck, self._on_ack),
+                                    LivelinessWatcher(session, keys, self._on_alive)]
         self._token = declare_alive(session, keys, SERVICE_NAME)
 
+    def _on_ack(self, ack: StepAck) -> None:
+        with self._cond:
+            self.lockstep.on_ack(ack, time.monotonic())
+            self._cond.notify_all()
+
+    def _on_alive(self, service: str, alive: bool) -> None:
+        with self._cond:
+            self.lockstep.on_alive(service, alive)
+            self._cond.notify_all()
+
     def _on_state(self, s: RunState) -> None:
+        if s.run_id is not None and s.run_id == self.run_id and s.stage in FINAL_STAGES:
+            with self._cond:
+                if self.lockstep.run_id == s.run_id:
+                    self.lockstep.start_run(None)  # the run is over: nothing more to wait for
+                if self._ended != s.run_id:
+                    self._ended, self._truth_due = s.run_id, True  # the loop publishes it next
+                self._cond.notify_all()
+            return
         if s.stage != "perceiving" or not s.run_id or s.scenario_doc is None:
             return
-        with self._lock:
+        with self._cond:
+            self._cond.notify_all()
             if s.run_id in self._seen_runs:
                 return
             self._seen_runs.add(s.run_id)
@@ -108,21 +153,45 @@ class SimNode:
             return
         self.rig.step(self.cfg.settle_s) if self.cfg.settle_s > 0 else None
         self._camera_paused = None
+        self._world_frames = 0
         self.run_id = run_id
         self.scenario_name = name or scenario.name
         self.stats.resets += 1
         self.say(f"run {run_id}: world reset to {self.scenario_name} (seed {seed}) in {time.monotonic() - t0:.2f} s")
 
-    def _publish_truth(self) -> None:
+    def _publish_truth(self, final: bool = False) -> None:
         gt = self.rig.ground_truth()
         self._truth_pub.put(SimTruth(
             run_id=self.run_id, scenario=self.scenario_name, sim_time=self.rig.time, realtime_factor=self._rtf_window,
             frames=self.stats.frames, rim=gt.rim, passed_through=bool(gt.passed_through),
-            max_penetration_m=float(gt.max_penetration_m), clearance_m=float(min(gt.clearance_m, 1e3)),
+            max_penetration_m=float(gt.max_penetration_m), clearance_m=float(min(gt.clearance_m, 1e3)), final=final,
         ))
+
+    def _truths(self, wall: float, next_truth: float) -> float:
+        """The final truth of a run that just ended, and the periodic one when due; the next one's time."""
+        with self._cond:
+            due, self._truth_due = self._truth_due, False
+        if due:
+            self._final_truth()
+        if wall < next_truth:
+            return next_truth
+        try:
+            self._publish_truth()
+        except Exception as e:  # noqa: BLE001 - truth is for tests; never stop the rig for it
+            self.say(f"ground truth not published: {type(e).__name__}: {e}")
+        return wall + 1.0 / self.cfg.truth_hz
+
+    def _final_truth(self) -> None:
+        """The world as the run ended, once: what the run is judged on."""
+        try:
+            self._publish_truth(final=True)
+        except Exception as e:  # noqa: BLE001 - truth is for tests; never stop the rig for it
+            self.say(f"final ground truth not published: {type(e).__name__}: {e}")
 
     def run(self, stop: threading.Event, duration: float | None = None) -> SimStats:
         """Step, render, publish and follow resets until `stop` (or `duration` simulated seconds)."""
+        if self.clock == "sim":
+            return self._run_lockstep(stop, duration)
         cfg = self.cfg
         t_sim0, t_wall0 = self.rig.time, time.monotonic()  # pacing origin, moved at each reset
         sim_total, wall_start = 0.0, time.monotonic()
@@ -152,12 +221,7 @@ class SimNode:
                 if next_frame < self.rig.time:  # behind: skip frames rather than bunch them up
                     next_frame = self.rig.time + 1.0 / cfg.fps
             now = time.monotonic()
-            if now >= next_truth:
-                next_truth = now + 1.0 / cfg.truth_hz
-                try:
-                    self._publish_truth()
-                except Exception as e:  # noqa: BLE001 - truth is for tests; never stop the rig for it
-                    self.say(f"ground truth not published: {type(e).__name__}: {e}")
+            next_truth = self._truths(now, next_truth)
             if now >= next_report:
                 if now - win_wall > 0.5:
                     self._rtf_window = (self.rig.time - win_sim) / (now - win_wall)
@@ -175,6 +239,96 @@ class SimNode:
         self.stats.realtime_factor = sim_total / wall if wall > 0 else 0.0
         return self.stats
 
+    # -- lockstep -----------------------------------------------------------------------------------
+
+    def _run_lockstep(self, stop: threading.Event, duration: float | None) -> SimStats:
+        """The lockstep loop (see the module docstring): events by `Schedule`, waits by `Lockstep`."""
+        cfg, rig = self.cfg, self.rig
+        period = float(rig.rig.safety.servo_period_s)
+        # The events fall on the world's time (as `bagit run` steps by it, so both round the steps
+        # alike); what goes out is stamped on the rig's clock, which never goes back.
+        sched = Schedule.starting(rig.time, 1.0 / cfg.fps, period)
+        t_sim0, t_wall0 = rig.clock_s, time.monotonic()
+        start, wall_start = rig.clock_s, time.monotonic()
+        next_truth = next_report = time.monotonic()
+        self._publish_clock(rig.clock_s, None)
+        while not stop.is_set() and (duration is None or rig.clock_s - start < duration - 1e-9):
+            with self._lock:
+                pending, self._pending = self._pending, None
+            if pending is not None:
+                with self._cond:
+                    self.lockstep.start_run(None)
+                self._reset(*pending)
+                if self.run_id == pending[0]:
+                    with self._cond:
+                        self.lockstep.start_run(self.run_id)
+                rig.push_feedback()
+                sched = Schedule.starting(rig.time, 1.0 / cfg.fps, period, sched.ticks)
+                t_sim0, t_wall0 = rig.clock_s, time.monotonic()
+                continue
+            now, world_t = rig.clock_s, rig.time
+            n = sched.servo_due(world_t)
+            if n is not None:
+                with self._cond:
+                    self.lockstep.servo_tick(n, rig.servo_counts(), time.monotonic())
+                self._publish_clock(now, n)
+                self._wait(stop, None)
+            if sched.frame_due(world_t):
+                if n is None:
+                    self._publish_clock(now, None)
+                if cfg.camera and self._camera_paused is None:
+                    frame = rig.render_rgbd(self._world_frames)  # numbered (and its noise seeded) per world, as in `bagit run`
+                    self._world_frames += 1
+                    frame.stamp = now  # the rig's clock
+                    with self._cond:
+                        self.lockstep.frame_published(now, time.monotonic())
+                    self._frame_pub.put(frame)
+                    self.stats.frames += 1
+                    self._wait(stop, frame)
+            wall = time.monotonic()
+            next_truth = self._truths(wall, next_truth)
+            if wall >= next_report:
+                next_report = wall + cfg.report_every_s
+                self._rtf_window = (rig.clock_s - start) / max(wall - wall_start, 1e-9)
+            rig.step(sched.until_next(world_t))
+            rig.push_feedback()
+            self._say_alarms()
+            ahead = (rig.clock_s - t_sim0) / cfg.speed - (time.monotonic() - t_wall0)
+            if ahead > 0:
+                stop.wait(ahead)
+            elif ahead < -1.0:
+                t_sim0, t_wall0 = rig.clock_s, time.monotonic()  # never race to catch up a backlog
+        wall = time.monotonic() - wall_start
+        self.stats.sim_s, self.stats.wall_s = rig.clock_s - start, wall
+        self.stats.realtime_factor = self.stats.sim_s / wall if wall > 0 else 0.0
+        return self.stats
+
+    def _publish_clock(self, t: float, servo_tick: int | None) -> None:
+        self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t))
+
+    def _wait(self, stop: threading.Event, frame: RgbdFrame | None) -> None:
+        """Until the rig has answered this step (or a new run, or `stop`); a frame not answered is resent."""
+        sent = time.monotonic()
+        with self._cond:
+            while not stop.is_set() and self._pending is None:
+                self.lockstep.controllers(self.rig.servo_counts())
+                waiting = self.lockstep.expire(time.monotonic())
+                for note in self.lockstep.notes:
+                    self.say(note)
+                self.lockstep.notes.clear()
+                if not waiting:
+                    if self.lockstep.ended() and self._ended != self.run_id:
+                        self._ended = self.run_id
+                        self._final_truth()  # at the very step the run ended, before the world moves on
+                        self.lockstep.start_run(None)
+                    break
+                if frame is not None and waiting[0].startswith("perception") and time.monotonic() - sent > FRAME_RESEND_S:
+                    sent = time.monotonic()
+                    self._frame_pub.put(frame)
+                # the controllers' counts move without telling: look again soon while only they are awaited
+                self._cond.wait(0.001 if all("CR5" in w for w in waiting) else 0.05)
+            self.lockstep.done_with_step()
+
     def _say_alarms(self) -> None:
         """Print why a simulated controller alarmed (its GetErrorID gives the id only)."""
         for name, arm in self.rig.arms.items():
@@ -183,7 +337,7 @@ class SimNode:
                 self.say(f"{name} CR5 alarm {alarm} ({describe_alarm(alarm)}) at t = {t:.2f} s" + (f": {detail}" if detail else ""))
 
     def close(self) -> None:
-        for x in (self._state_sub, self._frame_pub, self._truth_pub):
+        for x in (self._state_sub, self._frame_pub, self._truth_pub, *self._lockstep_parts):
             x.close()
         try:
             self._token.undeclare()

@@ -23,6 +23,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from bagit.common import cr5
+from bagit.common.clock import SIM_EPOCH0_S, next_epoch, sim_time
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import invert_transform
 from bagit.common.messages import RgbdFrame
@@ -114,6 +115,8 @@ class SimRig:
         for name in ARMS:
             self.arms[name] = SimulatedCR5(self.rig.arms[name], q0=start[name], name=name)
         self.servers: dict[str, DobotControllerServer] = {}
+        self.epoch = SIM_EPOCH0_S  # the rig's clock when this world's time began (see `clock_s`)
+        self._stamp_feedback = False
         self._loop_lock = threading.Lock()
         self._synced_q: dict[str, np.ndarray] = {}
         if with_servers:
@@ -147,9 +150,11 @@ class SimRig:
             world.close()
             raise
         with self._loop_lock:
+            self.epoch = next_epoch(self.clock_s)  # the new world's time begins at 0: the clock goes on
             old, self.world = self.world, world
             for name, q in start.items():
                 self.arms[name].teleport(q)
+            self._sync_clock_offsets()
             self._synced_q = {}
             self._sync_mounts()
         old.close()
@@ -182,7 +187,31 @@ class SimRig:
 
     @property
     def time(self) -> float:
+        """The world's time (back to 0 at each reset)."""
         return float(self.world.time)
+
+    @property
+    def clock_s(self) -> float:
+        """The rig's clock: the world's time from this world's epoch (`sim_time`), which never goes back."""
+        return sim_time(float(self.world.time), self.epoch)
+
+    def stamp_feedback(self, on: bool = True) -> None:
+        """Have the simulated controllers stamp their feedback on the rig's clock (lockstep) or the wall's."""
+        self._stamp_feedback = on
+        self._sync_clock_offsets()
+
+    def _sync_clock_offsets(self) -> None:
+        for robot in self.arms.values():
+            robot.clock_offset = (self.epoch + float(self.world.time) - robot.time) if self._stamp_feedback else None
+
+    def servo_counts(self) -> dict[str, int]:
+        """Each simulated controller's servo commands (ServoP/ServoJ) received so far."""
+        return {name: robot.servo_commands for name, robot in self.arms.items()}
+
+    def push_feedback(self) -> None:
+        """Each served controller's feedback packet now (a lockstep step is over: its driver may cycle)."""
+        for server in self.servers.values():
+            server.push_feedback()
 
     def _sync_mounts(self) -> None:
         """Mount targets from the flanges; only the arms whose joints moved are sent (setting one is not free)."""
@@ -206,7 +235,10 @@ class SimRig:
                 self.world.step(WORLD_STEP_S)
 
     def render_rgbd(self, seq: int = 0) -> RgbdFrame:
-        return self.world.render_rgbd(seq)
+        """A camera frame, stamped on the rig's clock (`clock_s`)."""
+        frame = self.world.render_rgbd(seq)
+        frame.stamp = self.clock_s
+        return frame
 
     def ground_truth(self) -> Any:
         """The world's ground truth (tests and benchmarks only)."""

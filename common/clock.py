@@ -1,0 +1,127 @@
+"""The one clock every service reads time from: the wall clock on a real rig, the simulator's on a simulated one.
+
+ROS 2's `use_sim_time` with `/clock`, in this project's terms: with `BusConfig.clock == "sim"`
+every timer (control ticks, SOI and arm-state ages, the arm driver's servo period and watchdog,
+the coordinator's limits) runs on the time `bagit sim` publishes on sim/clock, so a machine that
+cannot keep up makes a run slower, never different. With "wall" (a real rig, or `bagit up
+--clock wall`) they run on this host's clock; the e-stop and the TCP links to the controllers
+always do (they guard against real processes dying, whatever the world's time).
+
+    clock = WallClock()                  # now() = time.time(); wait_until() sleeps
+    clock = SimClock()                   # now() = the newest sim/clock time; advance(t) from the bus
+    clock.wait_until(t, stop)            # True once now() >= t; False if `stop` was set first
+
+This module holds no bus: `SimClock.advance` is fed by whoever subscribes to sim/clock (see
+`bagit.common.bus.follow_sim_clock`).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Literal, Protocol
+
+ClockKind = Literal["wall", "sim"]
+CLOCK_KINDS: tuple[ClockKind, ...] = ("wall", "sim")
+
+# The simulated rig's clock is quantised to 2^-20 s (~1 us), each world's time begins at a whole
+# second (its epoch), and every time lies in [2^30, 2^31) s: one binade, so a time plus a constant
+# (a period, a dt) rounds alike whatever the epoch. A run then computes the same ages, dts, limits and
+# trajectory times, bit for bit, whether its world is `bagit run`'s only one or the simulator's
+# tenth of the day.
+SIM_QUANTUM_S = 2.0**-20
+SIM_EPOCH0_S = 2.0**30  # the first world's epoch
+
+
+def sim_time(world_t: float, epoch: float = SIM_EPOCH0_S) -> float:
+    """The rig's clock for a world at `world_t` seconds whose time began at `epoch` (whole seconds)."""
+    return epoch + round(world_t / SIM_QUANTUM_S) * SIM_QUANTUM_S
+
+
+def next_epoch(clock_t: float) -> float:
+    """The epoch of a new world begun when the clock read `clock_t`: the next whole second."""
+    return float(math.floor(clock_t) + 1)
+
+
+class Clock(Protocol):
+    """Seconds on the rig's clock: stamps, ages and timers all read this."""
+
+    simulated: bool
+
+    def now(self) -> float: ...
+
+    def wait_until(self, t: float, stop: threading.Event, timeout: float | None = None) -> bool: ...
+
+
+class WallClock:
+    """This host's clock (Unix seconds): a real rig's, or `--clock wall`."""
+
+    simulated = False
+
+    def now(self) -> float:
+        return time.time()
+
+    def wait_until(self, t: float, stop: threading.Event, timeout: float | None = None) -> bool:
+        """Sleep until `t` (or `stop`, or `timeout` wall seconds); True if `t` was reached."""
+        delay = t - time.time()
+        if timeout is not None:
+            delay = min(delay, timeout)
+        if delay > 0 and stop.wait(delay):
+            return False
+        return time.time() >= t
+
+
+class SimClock:
+    """The simulator's time as last heard on sim/clock; it only moves forward.
+
+    `ticks` carries the servo ticks the simulator asks for (see `bagit.common.messages.ClockTick`):
+    the arm driver cycles once per tick, so its servo period is the simulator's, not this host's.
+    """
+
+    simulated = True
+
+    def __init__(self, t0: float = 0.0) -> None:
+        self._t = float(t0)
+        self._tick: tuple[int, float] = (-1, float("-inf"))  # (servo tick number, its time)
+        self._cond = threading.Condition()
+
+    def now(self) -> float:
+        with self._cond:
+            return self._t
+
+    def advance(self, t: float, servo_tick: int | None = None) -> None:
+        """The simulator says it is `t` (and, with `servo_tick`, that this is servo tick number n)."""
+        with self._cond:
+            if t > self._t:
+                self._t = float(t)
+            if servo_tick is not None and servo_tick > self._tick[0]:
+                self._tick = (int(servo_tick), float(t))
+            self._cond.notify_all()
+
+    def wait_until(self, t: float, stop: threading.Event, timeout: float | None = None) -> bool:
+        """Block until the simulator's time reaches `t`, `stop` is set or `timeout` wall seconds pass."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._t < t and not stop.is_set():
+                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            return self._t >= t
+
+    def next_tick(self, after: int, stop: threading.Event, timeout: float | None = None) -> tuple[int, float] | None:
+        """The first servo tick numbered above `after` as (n, t); None on `stop` or `timeout` (wall s)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._tick[0] <= after and not stop.is_set():
+                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+            return self._tick if self._tick[0] > after else None
+
+
+def make_clock(kind: ClockKind) -> WallClock | SimClock:
+    """The clock of a service on a rig whose bus config says `kind`."""
+    return SimClock() if kind == "sim" else WallClock()

@@ -1,0 +1,201 @@
+"""Lockstep: the simulator steps on only when the rig has answered the last frame and servo tick.
+
+Two pure parts, with no bus and no clock of their own:
+
+- `Schedule`: when the next camera frame and the next servo tick fall, on the simulated clock.
+  `bagit run` and `bagit sim` both step by it, so the two hosts see the same events at the same
+  simulated times (a servo tick first when both fall at once, then the frame).
+- `Lockstep`: what the simulator still waits for. The simulator says what it just did
+  (`servo_tick`, `frame`); the services' `StepAck`s (sim/ack), the simulated controllers' count
+  of servo commands received and liveliness changes come in; `pending(now)` says who it still
+  waits for. The chain of one frame, as `bagit run` runs it in one process:
+    perception (the SOI, or none) -> the coordinator (its stage after the SOI; planning included)
+    -> in a servo stage, the controller's command and status for it -> the arm driver's receipt
+    of the command, and the coordinator's stage once it handled the status (the run may end there);
+  and of one servo tick: the arm driver's cycle, then its ServoPs landed in the controllers.
+  A service that is gone, or silent for `timeout_s` of wall time, is dropped from the wait for
+  the rest of the run and said so: the simulated clock then goes on, and the coordinator's own
+  limits (on that clock) fail the run with its reason. Between runs nothing is waited for.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+from bagit.common.messages import StepAck
+from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES, SERVO_STAGES
+
+EPS_S = 1e-9
+STAMP_TOL_S = 1e-6  # a frame's stamp matched in an answer
+
+
+@dataclass
+class Schedule:
+    """The simulated times of the next frame and the next servo tick (period None: no arms to tick)."""
+
+    frame_dt: float
+    period: float | None
+    next_frame: float
+    next_servo: float
+    ticks: int = 0  # servo ticks so far
+
+    @classmethod
+    def starting(cls, now: float, frame_dt: float, period: float | None, ticks: int = 0) -> "Schedule":
+        """Both events due at `now`; servo ticks numbered on from `ticks` (their numbers never repeat)."""
+        return cls(frame_dt, period, now, now, ticks)
+
+    def servo_due(self, now: float) -> int | None:
+        """The number of the servo tick due at `now` (and the schedule moves past it), else None."""
+        if self.period is None or now < self.next_servo - EPS_S:
+            return None
+        self.next_servo += self.period
+        self.ticks += 1
+        return self.ticks - 1
+
+    def frame_due(self, now: float) -> bool:
+        """Whether a frame is due at `now` (and the schedule moves past it)."""
+        if now < self.next_frame - EPS_S:
+            return False
+        self.next_frame += self.frame_dt
+        return True
+
+    def until_next(self, now: float) -> float:
+        """Simulated seconds to step before the next event (> 0)."""
+        due = min(self.next_frame, self.next_servo) if self.period is not None else self.next_frame
+        return max(due - now, EPS_S)
+
+
+@dataclass
+class _Frame:
+    stamp: float
+    soi: bool | None = None  # perception answered (with an SOI or not)
+    stage: str | None = None  # the coordinator answered: its stage after the frame
+    cmd_seq: int | None = None
+    status_seq: int | None = None  # the controller's status for the frame
+    controller: bool = False  # the controller answered
+    after: str | None = None  # the coordinator's stage once it handled that status
+
+
+@dataclass
+class Lockstep:
+    """What the simulator still waits for (see the module docstring)."""
+
+    timeout_s: float = 20.0
+    services: tuple[str, ...] = LOCKSTEP_SERVICES
+    run_id: str | None = None
+    dropped: dict[str, str] = field(default_factory=dict)  # service -> why it is no longer waited for
+    frame: _Frame | None = None
+    tick: tuple[int, float] | None = None  # (n, wall time asked)
+    tick_sent: dict[str, int] | None = None  # the driver's ServoPs of the tick, per arm
+    tick_base: dict[str, int] = field(default_factory=dict)  # the controllers' counts when the tick began
+    received: dict[str, int] = field(default_factory=dict)  # the controllers' counts now
+    commands: deque[int] = field(default_factory=lambda: deque(maxlen=64))  # seqs of the commands the driver has received
+    since: float = 0.0  # wall time the current wait began
+    notes: list[str] = field(default_factory=list)  # what the host should say (drops)
+
+    # -- what the simulator does ------------------------------------------------------------------
+
+    def start_run(self, run_id: str | None) -> None:
+        """A new run (None: no run, nothing waited for)."""
+        self.run_id, self.dropped, self.frame, self.tick, self.tick_sent = run_id, {}, None, None, None
+        self.commands.clear()
+
+    @property
+    def active(self) -> bool:
+        return self.run_id is not None
+
+    def servo_tick(self, n: int, counts: dict[str, int], wall: float) -> None:
+        """Servo tick n was published; `counts`: each simulated controller's servo commands so far."""
+        self.tick, self.tick_sent, self.tick_base, self.received, self.since = (n, wall), None, dict(counts), dict(counts), wall
+
+    def frame_published(self, stamp: float, wall: float) -> None:
+        self.frame, self.since = _Frame(stamp), wall
+
+    def controllers(self, counts: dict[str, int]) -> None:
+        """The simulated controllers' servo command counts now."""
+        self.received = dict(counts)
+
+    # -- what comes in ----------------------------------------------------------------------------
+
+    def on_ack(self, ack: StepAck, wall: float) -> None:
+        f = self.frame
+        if ack.service == "arm-driver" and ack.tick is not None and self.tick is not None and ack.tick == self.tick[0]:
+            self.tick_sent = dict(ack.servo_sent or {})
+        elif ack.service == "arm-driver" and ack.cmd_seq is not None:
+            self.commands.append(ack.cmd_seq)  # the receipt may overtake the controller's own answer
+        elif f is None or (ack.frame is not None and abs(ack.frame - f.stamp) > STAMP_TOL_S):
+            return
+        elif ack.service == "perception":
+            f.soi = ack.soi_seq is not None
+        elif ack.service == "planner" and ack.status_seq is not None:
+            f.after = ack.stage or "idle"
+        elif ack.service == "planner":
+            f.stage = ack.stage or "idle"
+        elif ack.service == "controller":
+            f.controller, f.cmd_seq, f.status_seq = True, ack.cmd_seq, ack.status_seq
+        else:
+            return
+        self.since = wall  # progress: the silence clock starts again
+
+    def on_alive(self, service: str, alive: bool) -> None:
+        if not alive and self.active and service in self.services and service not in self.dropped:
+            self._drop(service, "its liveliness token is gone")
+
+    def _drop(self, service: str, why: str) -> None:
+        self.dropped[service] = why
+        self.notes.append(f"lockstep: no longer waiting for {service} in run {self.run_id}: {why}")
+
+    # -- the verdict ------------------------------------------------------------------------------
+
+    def _waits_for(self, service: str) -> bool:
+        return self.active and service in self.services and service not in self.dropped
+
+    def pending(self) -> list[str]:
+        """Who the simulator still waits for, as short texts; [] = step on."""
+        out: list[str] = []
+        if self.tick is not None and self._waits_for("arm-driver"):
+            n = self.tick[0]
+            if self.tick_sent is None:
+                out.append(f"arm-driver: servo tick {n}")
+            else:
+                late = [a for a, k in self.tick_sent.items() if self.received.get(a, 0) - self.tick_base.get(a, 0) < k]
+                out += [f"{a} CR5: the servo command of tick {n}" for a in late]
+        f = self.frame
+        if f is None:
+            return out
+        if f.soi is None and self._waits_for("perception"):
+            return out + [f"perception: frame {f.stamp:.3f}"]
+        if f.stage is None and self._waits_for("planner"):
+            return out + [f"planner: frame {f.stamp:.3f}"]
+        if f.stage not in SERVO_STAGES:
+            return out
+        if not f.controller and self._waits_for("controller"):
+            return out + [f"controller: frame {f.stamp:.3f}"]
+        if f.cmd_seq is not None and f.cmd_seq not in self.commands and self._waits_for("arm-driver"):
+            out.append(f"arm-driver: command {f.cmd_seq}")
+        if f.controller and f.status_seq is not None and f.after is None and self._waits_for("planner"):
+            out.append(f"planner: controller status {f.status_seq}")
+        return out
+
+    def ended(self) -> bool:
+        """Whether the frame just answered ended the run (the coordinator's stage after it is final)."""
+        f = self.frame
+        return f is not None and (f.after in FINAL_STAGES or f.stage in FINAL_STAGES)
+
+    def expire(self, wall: float) -> list[str]:
+        """Drop the services the wait has been on for `timeout_s`; returns who is still pending."""
+        waiting = self.pending()
+        if waiting and wall - self.since > self.timeout_s:
+            for w in waiting:
+                service = w.split(":")[0]
+                service = "arm-driver" if service.endswith("CR5") else service
+                if service not in self.dropped:
+                    self._drop(service, f"no answer for {self.timeout_s:g} s ({w})")
+            self.since = wall
+            waiting = self.pending()
+        return waiting
+
+    def done_with_step(self) -> None:
+        """The simulator steps on: the tick and frame answered are forgotten."""
+        self.tick, self.tick_sent, self.frame = None, None, None

@@ -1,0 +1,123 @@
+"""Lockstep's pure parts: the rig clock's arithmetic, the event schedule, and who the simulator waits for."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from bagit.common.clock import SIM_EPOCH0_S, SIM_QUANTUM_S, SimClock, WallClock, next_epoch, sim_time
+from bagit.common.messages import StepAck
+from bagit.services.sim.lockstep import Lockstep, Schedule
+
+
+def test_differences_of_rig_times_do_not_depend_on_the_epoch():
+    # what makes `bagit up`'s tenth run compute what `bagit run` computes: ages, dts and a time plus a
+    # period round alike in every epoch (one binade, a quantised grid)
+    rng = np.random.default_rng(0)
+    worlds = np.cumsum(rng.uniform(0.001, 0.05, 400))
+    epochs = [SIM_EPOCH0_S, next_epoch(SIM_EPOCH0_S + 7.3), next_epoch(SIM_EPOCH0_S + 86_400.2)]
+    rel = []
+    for e in epochs:
+        t = np.array([sim_time(w, e) for w in worlds])
+        rel.append([np.diff(t).tolist(), [((x + 0.03) - x) for x in t], [(x + 1 / 30) - e for x in t]])
+    assert rel[0] == rel[1] == rel[2]
+    assert all((sim_time(w) - SIM_EPOCH0_S) / SIM_QUANTUM_S == round((sim_time(w) - SIM_EPOCH0_S) / SIM_QUANTUM_S) for w in worlds[:20])
+
+
+def test_a_new_worlds_epoch_is_after_the_clock_so_it_never_goes_back():
+    for t in (SIM_EPOCH0_S, SIM_EPOCH0_S + 0.999999, SIM_EPOCH0_S + 41.0):
+        e = next_epoch(t)
+        assert e > t and e == int(e) and sim_time(0.0, e) > t
+
+
+def test_sim_clock_moves_forward_only_and_wakes_its_waiters():
+    c, stop = SimClock(SIM_EPOCH0_S), threading.Event()
+    c.advance(SIM_EPOCH0_S + 1.0)
+    c.advance(SIM_EPOCH0_S + 0.5)  # a late message never turns the clock back
+    assert c.now() == SIM_EPOCH0_S + 1.0
+    assert not c.wait_until(SIM_EPOCH0_S + 2.0, stop, timeout=0.05)
+    threading.Timer(0.05, c.advance, args=(SIM_EPOCH0_S + 2.0, 7)).start()
+    assert c.wait_until(SIM_EPOCH0_S + 2.0, stop, timeout=5.0)
+    assert c.next_tick(6, stop, timeout=1.0) == (7, SIM_EPOCH0_S + 2.0)
+    assert c.next_tick(7, stop, timeout=0.05) is None  # no newer tick: the driver does not cycle twice
+    stop.set()
+    assert not c.wait_until(SIM_EPOCH0_S + 9.0, stop)  # a stopping service is never stuck in a wait
+    assert not WallClock().simulated and c.simulated
+
+
+def test_schedule_a_tick_then_a_frame_and_tick_numbers_go_on_across_worlds():
+    s = Schedule.starting(1.0, 1 / 30, 0.03)
+    events, t = [], 1.0
+    for _ in range(12):
+        n, f = s.servo_due(t), s.frame_due(t)
+        events.append((t, n, f))
+        t += s.until_next(t)
+    assert events[0] == (1.0, 0, True)  # both at once: the tick comes first (`bagit run` does the same)
+    assert [e[1] for e in events if e[1] is not None] == list(range(len([e for e in events if e[1] is not None])))
+    frames = [e[0] for e in events if e[2]]
+    assert np.allclose(np.diff(frames), 1 / 30)
+    assert Schedule.starting(5.0, 0.1, 0.03, ticks=s.ticks).servo_due(5.0) == s.ticks
+    assert Schedule(0.1, None, 0.0, 0.0).servo_due(0.0) is None  # floating grippers: no ticks
+
+
+def _ack(service: str, frame: float | None = None, **kw) -> StepAck:
+    return StepAck(service=service, frame=frame, **kw)
+
+
+def test_a_servo_frame_waits_for_the_whole_chain_in_any_arrival_order():
+    ls = Lockstep(timeout_s=5.0)
+    ls.start_run("r1")
+    ls.frame_published(10.0, wall=0.0)
+    assert ls.pending() == ["perception: frame 10.000"]
+    ls.on_ack(_ack("arm-driver", cmd_seq=4), 0.01)  # the driver's receipt may overtake the controller's answer
+    ls.on_ack(_ack("perception", 10.0, soi_seq=3), 0.02)
+    assert ls.pending() == ["planner: frame 10.000"]
+    ls.on_ack(_ack("planner", 10.0, stage="bagging"), 0.03)
+    assert ls.pending() == ["controller: frame 10.000"]
+    ls.on_ack(_ack("controller", 10.0, cmd_seq=4, status_seq=4), 0.04)
+    assert ls.pending() == ["planner: controller status 4"]
+    ls.on_ack(_ack("planner", 9.0, status_seq=4, stage="done"), 0.05)  # another frame's: not this one's answer
+    assert ls.pending() == ["planner: controller status 4"]
+    ls.on_ack(_ack("planner", 10.0, status_seq=4, stage="done"), 0.05)
+    assert ls.pending() == [] and ls.ended()
+
+
+def test_outside_a_servo_stage_the_coordinator_ends_a_frame_and_no_run_waits_for_nothing():
+    ls = Lockstep()
+    ls.frame_published(1.0, wall=0.0)
+    assert ls.pending() == []  # between runs the world never waits
+    ls.start_run("r1")
+    ls.frame_published(2.0, wall=0.0)
+    ls.on_ack(_ack("perception", 2.0), 0.0)  # a frame without an SOI is still answered
+    ls.on_ack(_ack("planner", 2.0, stage="planning"), 0.0)
+    assert ls.pending() == [] and not ls.ended()
+
+
+def test_a_servo_tick_waits_for_the_drivers_cycle_and_its_servo_commands_to_land():
+    ls = Lockstep()
+    ls.start_run("r1")
+    ls.servo_tick(12, {"left": 100, "right": 100}, wall=0.0)
+    assert ls.pending() == ["arm-driver: servo tick 12"]
+    ls.on_ack(_ack("arm-driver", tick=11, servo_sent={"left": 1, "right": 1}), 0.0)  # an old tick's answer
+    assert ls.pending() == ["arm-driver: servo tick 12"]
+    ls.on_ack(_ack("arm-driver", tick=12, servo_sent={"left": 1, "right": 1}), 0.0)
+    ls.controllers({"left": 101, "right": 100})
+    assert ls.pending() == ["right CR5: the servo command of tick 12"]
+    ls.controllers({"left": 101, "right": 101})
+    assert ls.pending() == []
+
+
+def test_a_service_gone_or_silent_is_dropped_for_the_run_and_said_so():
+    ls = Lockstep(timeout_s=2.0)
+    ls.start_run("r1")
+    ls.frame_published(3.0, wall=100.0)
+    ls.on_ack(_ack("perception", 3.0, soi_seq=1), 100.0)
+    ls.on_ack(_ack("planner", 3.0, stage="pre-bagging"), 100.0)
+    ls.on_alive("controller", False)
+    assert ls.pending() == [] and "controller" in ls.dropped and "liveliness" in ls.notes[-1]
+    ls.servo_tick(1, {"left": 0, "right": 0}, wall=200.0)
+    assert ls.expire(201.0) == ["arm-driver: servo tick 1"]  # not silent long enough yet
+    assert ls.expire(202.5) == [] and "no answer for 2 s" in ls.dropped["arm-driver"]
+    ls.start_run("r2")  # a new run waits for everyone again
+    assert ls.dropped == {}
