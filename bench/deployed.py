@@ -86,13 +86,30 @@ def compare(run: RunResult, up: RunResult) -> dict[str, Any]:
             "within": run.success == up.success and (d_err is not None and d_err <= ERROR_TOLERANCE_CM or not run.success)}
 
 
-def pair(scenario: str, seed: int, controller: str, speed: float) -> dict[str, Any]:
-    up, up_wall, cpu = deployed(scenario, seed, controller, speed)
+class Hogs:
+    """`n` busy processes, one core's worth of work each, for as long as the `with` lasts: a loaded machine."""
+
+    def __init__(self, n: int) -> None:
+        self.n, self.procs = n, []
+
+    def __enter__(self) -> "Hogs":
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.n)]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for p in self.procs:
+            p.kill()
+            p.wait()
+
+
+def pair(scenario: str, seed: int, controller: str, speed: float, hogs: int = 0) -> dict[str, Any]:
+    with Hogs(hogs):
+        up, up_wall, cpu = deployed(scenario, seed, controller, speed)
     run, run_wall = alone(scenario, seed, controller)
     return {"scenario": scenario, "seed": seed, "controller": controller, **compare(run, up),
             "run": run.model_dump(mode="json"), "up": up.model_dump(mode="json"),
             "wall_s": {"run": round(run_wall, 2), "up": round(up_wall, 2)}, "cpu_s_per_service": cpu, "load_avg": [round(v, 2) for v in os.getloadavg()],
-            "effective": {"speed": speed, "clock": "lockstep"}, "provenance": provenance(up.provenance.params if up.provenance else {}).model_dump(mode="json")}
+            "effective": {"speed": speed, "clock": "lockstep", "hogs": hogs}, "provenance": provenance(up.provenance.params if up.provenance else {}).model_dump(mode="json")}
 
 
 def load(path: Path) -> list[dict[str, Any]]:
@@ -147,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--controller", choices=CONTROLLER_NAMES, default=DEFAULT_CONTROLLER)
     p.add_argument("--speed", type=float, default=1000.0, help="bagit up --speed (lockstep: as fast as the rig answers)")
     p.add_argument("--jsonl", type=Path, default=RESULTS)
+    p.add_argument("--hogs", type=int, default=0, help="busy processes hogging the cores while `bagit up` runs (a loaded machine)")
     p.add_argument("--markdown", type=Path, default=None, help="write the table here (default: beside the JSONL, .md)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
@@ -157,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(a.seeds):
             if (name, seed, a.controller) in done:
                 continue
-            rec = pair(name, seed, a.controller, a.speed)
+            rec = pair(name, seed, a.controller, a.speed, a.hogs)
             with a.jsonl.open("a") as f:
                 f.write(json.dumps(rec) + "\n")
             log.info("%s s%d: run %s %.2f cm / up %s %.2f cm: %s", name, seed, rec["run"]["success"], rec["run"]["error_cm"] or -1,

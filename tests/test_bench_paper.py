@@ -69,9 +69,11 @@ def test_quick_placements_and_closed_loop(quick):
     assert (m["success"], m["of"], m["error_cm_mean"]) == (1, 2, 0.8)
     assert r["manipulation"]["exp01-coffee-box"]["mpc/ideal"]["success"] == 1
     # cr5 and ideal side by side, the wall-time ratio between them and the arm side's events
-    row = [c for c in _cells(md, "exp01-coffee-box") if c[1] == "mpc" and len(c) == 11]
-    assert [(c[3], c[4], c[6], c[7], c[9], c[10]) for c in row] == [("1/2", "0.80 ± 0.00", "1/1", "0.50 ± 0.00", "1.50", "slowed 3")]
-    assert [c[3] for c in _cells(md, "exp06-work-bin-tilted") if c[1] == "mpc" and len(c) == 11] == ["not run"]
+    # (and the deployed stack's column: no `bagit bench deployed` records in this folder)
+    row = [c for c in _cells(md, "exp01-coffee-box") if c[1] == "mpc" and len(c) == 12]
+    assert [(c[3], c[4], c[6], c[7], c[9], c[10], c[11]) for c in row] == [
+        ("1/2", "0.80 ± 0.00", "1/1", "0.50 ± 0.00", "1.50", "slowed 3", "not run")]
+    assert [c[3] for c in _cells(md, "exp06-work-bin-tilted") if c[1] == "mpc" and len(c) == 12] == ["not run"]
     assert "commit abc1234def" in md
     # each method over every experiment, cr5 against ideal, and where they differ
     assert "| mpc | cr5 | 1/2 | 0.80 | 16.0 | 30.0 | slowed 3 |" in md and "| mpc | ideal | 1/1 | 0.50 | 12.0 | 20.0 | none |" in md
@@ -106,3 +108,18 @@ def test_reuse_keeps_runs_and_rejects_other_files(quick, tmp_path):
     broken.write_text('{"scenario": "exp01"}\n')
     with pytest.raises(ValueError, match="without scenario/success"):
         paper.run(quick=True, reuse=out / "paper.json", closed_loop=[broken], out_dir=tmp_path, figures=False)
+
+
+def test_the_deployed_column_comes_from_the_deployed_records():
+    from bagit.bench.deployed import markdown, summary
+    from bagit.bench.paper_report import _deployed
+
+    rec = {"scenario": "exp02-canned-pineapple", "seed": 0, "controller": "mpc", "identical": True, "within": True, "d_error_cm": 0.0,
+           "run": {"success": True, "error_cm": 0.63, "ticks": 522}, "up": {"success": True, "error_cm": 0.63, "ticks": 522},
+           "wall_s": {"run": 20.0, "up": 40.0}, "provenance": {"commit": "abc1234def0", "host": "vm", "cpu": "x", "cores": 2}}
+    other = {**rec, "seed": 1, "identical": False, "within": False, "d_error_cm": 0.5}
+    s = summary([rec, other])["exp02-canned-pineapple"]
+    assert (s["pairs"], s["identical"], s["within"], s["max_d_error_cm"]) == (2, 1, 1, 0.5)
+    assert _deployed(s) == "1/2 bit for bit, 1/2 within 0.2 cm" and _deployed(None) == "not run"
+    md = markdown([rec, other])
+    assert "Bit for bit: 1/2" in md and "| exp02-canned-pineapple | 1 |" in md and "abc1234def" in md

@@ -50,7 +50,9 @@ class Rig:
         from bagit.common.messages import ArmState, EStop, PointCloud, RunState, SoiState
 
         self.tmp = tmp_path
-        self.proc, status = start_up(tmp_path)
+        # On the wall clock, as an operator's rig runs: the e-stop's effect is timed in wall time, against
+        # the arm states' own stamps (lockstep runs are test_up's)
+        self.proc, status = start_up(tmp_path, "--clock", "wall")
         self.session = None
         try:
             d = wait_status(status, (*ALL, "dashboard"), timeout=120)

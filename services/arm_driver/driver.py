@@ -615,6 +615,9 @@ class ArmDriver:
             if all(r is not None and int(r["TimeStamp"]) >= due_ms for r in recs):
                 return
             time.sleep(0.0005)
+        if not self._stop.is_set():
+            self.counters["lockstep_late"] += 1
+            self._event("lockstep", f"servo tick at {t:.3f}: cycled without the feedback of that step")
 
     def _cycle(self, t0: float) -> bool:
         """One servo period; True if motion commands went out."""

@@ -195,6 +195,10 @@ class ControllerNode:
             if state_ok and soi_ok and arms_ok:
                 return
             time.sleep(0.0005)
+        if not self._stop.is_set():  # a message lost on the way: this tick may differ from `bagit run`'s
+            missing = [w for w, ok in (("run/state", state_ok), ("its SOI", soi_ok), ("the arms' states", arms_ok)) if not ok]
+            self.counters["lockstep_late"] = self.counters.get("lockstep_late", 0) + 1
+            self.report(f"lockstep: frame {t:.3f} ticked without {', '.join(missing)} after {LOCKSTEP_WAIT_S:g} s")
 
     def _loop(self) -> None:
         next_t = time.monotonic()

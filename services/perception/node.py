@@ -128,7 +128,7 @@ class PerceptionNode:
         self.counters = {"frames": 0, "processed": 0, "dropped": 0, "bad": 0, "cold": 0, "published": 0, "clouds": 0,
                          "objects": 0, "object_failures": 0}
         self.last_bad: str | None = None
-        self._last_report = {"bad": -1e9, "object": -1e9}
+        self._last_report = {"bad": -1e9, "object": -1e9, "hint": -1e9}
         self.last_object_error: str | None = None
         self._rim: RimTracker | None = None  # the SOI over frames (warm starts), for the run's bag
         self._rim_bag: tuple[int, str, tuple[float, float, float]] | None = None
@@ -321,6 +321,8 @@ class PerceptionNode:
                 if msg is not None and msg.stamp >= frame.stamp - 1e-6:
                     break
                 time.sleep(0.0005)
+            else:
+                self._report_every("hint", f"lockstep: frame {frame.seq} fitted without the left arm's state of its step")
         item = self._arm.get_with_time()
         if item is None or time.monotonic() - item[1] > self.cfg.hint_max_age_s:
             return None
