@@ -121,6 +121,7 @@ class _Run:
         self.session: ServoSession | None = None
         self.seq = 0
         self.frames = 0
+        self.last_tick: float | None = None  # the controller's last tick (a frame's, or a keep-alive's)
         self.marker_due = np.inf
         self.trace = _Trace()
 
@@ -157,6 +158,8 @@ class _Run:
                 self.arms.servo(now)
             if sched.frame_due(sim.time):
                 self._frame(now)
+            elif (keep := self._keepalive_due()) is not None and now >= keep - 1e-9:
+                self._control(self.arms.states(), now)  # frames sparser than the keep-alive pace: a tick on the last SOI
             self._apply(coord.tick(now), now)
             if coord.state.stage in FINAL_STAGES:
                 break
@@ -165,11 +168,22 @@ class _Run:
                 coord.fail(f"simulator: too slow, {wall:.0f} s of wall time for {now - SETTLE_S:.1f} s simulated "
                            f"(limit {opts.wall_limit_s:.0f} s; the contact solver crawls?)", now)
                 break
+            step = sched.until_next(sim.time)
+            if (keep := self._keepalive_due()) is not None:
+                step = max(min(step, keep - now), 1e-9)
             try:
-                self.arms.step(sched.until_next(sim.time))
+                self.arms.step(step)
             except SimulationFailed as e:
                 coord.fail(f"simulator: {e}", sim.clock_s)
         return self._result()
+
+    def _keepalive_due(self) -> float | None:
+        """When the controller must tick again without a new frame, as the node ticks at its pace
+        between camera frames (`ServoSession.tick_s`); None while frames come at least that often."""
+        s = self.session
+        if s is None or s.finished is not None or self.frame_dt <= s.tick_s + 1e-9 or self.last_tick is None:
+            return None
+        return self.last_tick + s.tick_s
 
     def _frame(self, now: float) -> None:
         """A camera frame: perception (the SOI, the object's marker), then a control tick."""
@@ -223,8 +237,9 @@ class _Run:
         if st.stage not in SERVO_STAGES or self.path is None or self.path.run_id != st.run_id:
             return
         if self.session is None:
-            self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq)
+            self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq, watchdog_s=self.sim.rig.safety.watchdog_s)
             self._send(out, now)
+        self.last_tick = now
         grippers, problem = gripper_poses(states)
         fault = arm_fault(states) if problem is None else None
         age = None if self.soi is None else now - self.soi.source_stamp

@@ -119,13 +119,14 @@ class Cr5Arms:
             self._set_fault(out.fault)
         if out.poses is None or self.fault is not None:
             return
+        aheadtime, gain = self.cfg.servo_params(out.halting)
         for a in ARMS:
             robot = self.robots[a]
             if self.cfg.servo_command == "servoj" and out.joints is not None:
-                code = robot.servo_j(np.round(np.degrees(out.joints[a]), 6), self.servo_t, self.cfg.aheadtime, self.cfg.gain)
+                code = robot.servo_j(np.round(np.degrees(out.joints[a]), 6), self.servo_t, aheadtime, gain)
             else:
                 pose6 = np.round(cr5.matrix_to_pose6(self.motion.frames[a].flange_in_base(out.poses[a])), 6)  # as the wire carries it
-                code = robot.servo_p(pose6, self.servo_t, self.cfg.aheadtime, self.cfg.gain)
+                code = robot.servo_p(pose6, self.servo_t, aheadtime, gain)
             if code != 0:
                 self._set_fault(f"{a}: {self.cfg.servo_command} refused ({code})")
                 return

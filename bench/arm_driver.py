@@ -28,21 +28,9 @@ from bagit.services.arm_driver.frames import ArmFrames
 from bagit.services.arm_driver.pipeline import MotionPipeline
 from bagit.services.arm_driver.safety import Envelope
 from bagit.services.arm_driver.streaming import N_DOF, Streamer
+from bagit.services.sim.harness import home_poses
 
 PERIOD = 0.03
-
-
-def _home() -> dict[str, np.ndarray]:
-    """The simulated rig's start: mounts 0.21 m apart at 0.475 m, tool axes pointing into the bag."""
-    out = {}
-    for name, s in (("left", -1.0), ("right", 1.0)):
-        T = np.eye(4)
-        z = np.array([0.0, -s, 0.0])
-        x = np.array([-s, 0.0, 0.0])
-        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-        T[:3, 3] = [0.15, s * 0.106, 0.475]
-        out[name] = T
-    return out
 
 
 def _ruckig(n: int) -> dict:
@@ -74,11 +62,11 @@ def _ruckig(n: int) -> dict:
 def _offline(n: int) -> dict:
     rig = RigConfig()
     pipe = MotionPipeline(Envelope.from_rig(rig), PERIOD)
-    pipe.reset(_home())
+    pipe.reset(home_poses())
     frames = {a: ArmFrames.from_config(rig.arms[a]) for a in ARMS}
     seeds = {}
     for a in ARMS:
-        T_bf = frames[a].flange_in_base(_home()[a])
+        T_bf = frames[a].flange_in_base(home_poses()[a])
         seeds[a] = cr5.ik_all(T_bf)[0]
     state = {"k": 0, "now": 0.0}
 
@@ -126,32 +114,13 @@ def _offline(n: int) -> dict:
 
 def _live(seconds: float, estops: int) -> dict:
     """The running driver against two simulated controllers (imports the simulator only here)."""
-    from bagit.common.geometry import invert_transform
     from bagit.common.messages import Command
     from bagit.services.arm_driver.config import DriverConfig
     from bagit.services.arm_driver.driver import ArmDriver
-    from bagit.services.sim.cr5_sim import SimulatedCR5
-    from bagit.services.sim.dobot_server import DobotControllerServer
-    from bagit.services.sim.rig_sim import natural_ik
+    from bagit.services.sim.harness import start_sims
 
-    class Logged(DobotControllerServer):
-        def __init__(self, *a, **kw):
-            super().__init__(*a, **kw)
-            self.estop_at: list[float] = []
-
-        def handle(self, text: str) -> str:
-            if text.strip() == "EmergencyStop(1)":
-                self.estop_at.append(time.monotonic())
-            return super().handle(text)
-
-    base = RigConfig()
-    servers, arms = {}, {}
-    for a in ARMS:
-        conf = base.arms[a]
-        T_bf = invert_transform(conf.T_world_base()) @ _home()[a] @ invert_transform(conf.T_flange_mount())
-        servers[a] = Logged(SimulatedCR5(conf, q0=natural_ik(T_bf), name=a), dashboard_port=0, feedback_port=0, step_in_background=True).start()
-        arms[a] = conf.model_copy(update={"dashboard_port": servers[a].dashboard_port, "feedback_port": servers[a].feedback_port})
-    rig = base.model_copy(update={"arms": arms})
+    sims = start_sims()
+    rig, servers = sims.rig, sims.servers
     latency = {a: [] for a in ARMS}
     try:
         drv = ArmDriver(rig, DriverConfig(feedback_timeout_s=0.5)).start()
@@ -171,14 +140,13 @@ def _live(seconds: float, estops: int) -> dict:
                 t_call = time.monotonic()
                 drv.estop("bench")
                 for a in ARMS:
-                    latency[a].append((servers[a].estop_at[-1] - t_call) * 1000.0)
+                    latency[a].append((servers[a].commands("EmergencyStop")[-1][0] - t_call) * 1000.0)
                 drv.reset_estop()
                 time.sleep(0.05)
         finally:
             drv.close()
     finally:
-        for s in servers.values():
-            s.stop()
+        sims.close()
     return {"loop_cycle": cycle, "servo_interval": period, **{f"estop_{a}": stats_ms(latency[a]) for a in ARMS}}
 
 

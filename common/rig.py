@@ -12,7 +12,7 @@ from typing import Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bagit.common.board import BoardSpec
 from bagit.common.errors import BadScenario
@@ -124,8 +124,27 @@ class SafetyLimits(BaseModel):
     max_angular_jerk_rps3: float = Field(40.0, gt=0, le=1000.0)
     min_flange_distance_m: float = Field(0.08, ge=0.0)
     max_flange_distance_m: float = Field(0.32, gt=0.0, description="the rim cannot stretch further")
-    watchdog_s: float = Field(0.2, gt=0, le=5.0)
+    watchdog_s: float = Field(
+        0.12, gt=0, le=5.0,
+        description="no command for this long: the arms brake to rest (issued a servo period ahead, so a gap of "
+        "watchdog_s - servo_period_s halts them). The controller sends one every control tick while servoing, a "
+        "keep-alive between camera frames, so at 30 Hz a whole late tick passes; commands older than this are refused",
+    )
     servo_period_s: float = Field(0.03, ge=0.03, le=0.2, description="ServoP no faster than every 30 ms")
+
+    @model_validator(mode="after")
+    def _watchdog_lets_a_late_command_pass(self) -> "SafetyLimits":
+        """The watchdog acts a servo period ahead of its deadline, so it halts after a gap of watchdog_s -
+        servo_period_s; with watchdog_s >= 4 servo periods that gap is at least 3/4 of the watchdog, more
+        than two of the controller's keep-alive periods (`bagit.services.controller.session.KEEPALIVE_SHARE`)."""
+        if self.watchdog_s < 4 * self.servo_period_s:
+            raise ValueError(f"watchdog_s ({self.watchdog_s:g} s) must be at least 4 servo periods ({4 * self.servo_period_s:g} s)")
+        return self
+
+    @property
+    def halt_gap_s(self) -> float:
+        """The longest gap between two commands that does not halt the arms."""
+        return self.watchdog_s - self.servo_period_s
 
 
 class RigConfig(BaseModel):

@@ -3,39 +3,13 @@ example of every message kind."""
 
 from __future__ import annotations
 
-import time
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 import pytest
 
-from bagit.common.bus import BusConfig, locators, open_session
 from bagit.common.messages import MESSAGE_TYPES, CameraInfo, Message
-
-
-def wait_until(pred: Callable[[], bool], timeout: float = 3.0, step: float = 0.005) -> bool:
-    """Poll `pred` until true or `timeout` seconds pass."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return bool(pred())
-
-
-def session_pair(rig: str) -> Iterator[tuple]:
-    """Peer A listens on tcp/127.0.0.1:0 (port read back from its admin space), peer B connects to it.
-    Multicast scouting is off (the BusConfig default), so nothing else joins."""
-    a = open_session(BusConfig(rig=rig, adminspace=True))
-    b = None
-    try:
-        b = open_session(BusConfig(rig=rig, connect=locators(a)))
-        assert wait_until(lambda: len(list(b.info.peers_zid())) == 1, 3.0), "peers did not connect"
-        yield a, b
-    finally:
-        if b is not None:
-            b.close()
-        a.close()
+from bagit.harness import session_pair, wait_until  # noqa: F401 - re-exported for the bus tests
 
 
 @pytest.fixture

@@ -28,6 +28,7 @@ from bus_support import wait_until
 from bagit.common.bus import BusConfig, Keys, LatestCache, Publisher, locators, open_session
 from bagit.common.messages import ArmState, Command, RunState
 from bagit.common.rig import ARMS
+from bagit.harness import stop_process
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import STALE
@@ -168,12 +169,7 @@ def test_sigstop_and_sigcont_of_the_arm_driver_process_move_nothing_after_the_ru
         stop.set()
         if proc is not None:
             os.kill(proc.pid, signal.SIGCONT)
-            proc.terminate()
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+            stop_process(proc)
         s.close()
         sims.close()
         err.seek(0)

@@ -129,23 +129,107 @@ def moving_streamer(ticks: int) -> tuple[Streamer, dict]:
 
 def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
     st_, _ = moving_streamer(40)  # up to cruise (0.25/sqrt(3) m/s per axis)
-    assert st_.vel[0, 0] == pytest.approx(LIM.max_tcp_speed_mps / np.sqrt(3), rel=1e-6)
-    x = [st_.p[0, 0]]
+    v0 = LIM.max_tcp_speed_mps / np.sqrt(3)
+    assert st_.vel[0, 0] == pytest.approx(v0, rel=1e-6)
+    p = [st_.p[0].copy()]
     st_.begin_stop()
     n = 0
     while st_.mode != "idle":
         out = st_.step()
-        x.append(out.poses["left"][0, 3])
+        p.append(out.poses["left"][:3, 3])
         n += 1
         assert n < 100
-    x = np.array(x)
-    assert np.all(np.diff(x) >= -1e-12)  # never backs up
-    v = np.diff(x) / T
-    assert np.abs(np.diff(v) / T).max() <= LIM.max_tcp_accel_mps2 / np.sqrt(3) * (1 + 1e-6)
-    # braking from v with jerk j and acceleration a limits takes v/a + a/j; one period of slack
-    v0, a, j = (LIM.max_tcp_speed_mps, LIM.max_tcp_accel_mps2, LIM.max_tcp_jerk_mps3)
+    p = np.array(p)
+    assert np.all(np.diff(p[:, 0]) >= -1e-12) and np.ptp(p[:, 1:], axis=0).max() < 1e-12  # along x, never backing up
+    _, acc, jerk = finite_difference_limits(p)
+    assert acc <= LIM.max_tcp_accel_mps2 * (1 + 1e-6) and jerk <= LIM.max_tcp_jerk_mps3 * (1 + 1e-6)
+    # the whole Cartesian budget along x (not 1/sqrt(3) of it): braking from v with jerk j and acceleration
+    # a takes v/a + a/j; one period of slack
+    a, j = LIM.max_tcp_accel_mps2, LIM.max_tcp_jerk_mps3
     assert n * T <= v0 / a + a / j + T
     assert st_.at_rest and np.all(st_.vel == 0)
+
+
+def test_braking_shares_keep_the_norms_and_go_along_the_motion():
+    from bagit.services.arm_driver.streaming import braking_shares
+
+    d = braking_shares(np.array([0.04, 0.0, 0.0]), np.zeros(3), 0.25, 1.0)
+    assert np.sum(d**2) == pytest.approx(1.0) and d[0] > 0.999 and d[1] == d[2] > 0  # nearly all along x, none zero
+    v, a = np.array([0.03, -0.04, 0.0]), np.array([0.0, 0.0, 0.5])  # turning: a across v
+    d = braking_shares(v, a, 0.25, 1.0)
+    assert np.sum(d**2) == pytest.approx(1.0)
+    assert np.all(np.abs(v) <= 0.25 * d + 1e-15) and np.all(np.abs(a) <= 1.0 * d + 1e-15)  # the state starts inside
+    assert d[1] > d[0] > 0  # the rest along the velocity, its larger component most
+    assert np.allclose(braking_shares(np.zeros(3), np.zeros(3), 0.25, 1.0), 1 / np.sqrt(3))
+
+
+axis_state = st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))  # fractions of the per-axis limits
+
+
+@settings(max_examples=80, deadline=None, derandomize=True)
+@given(state=st.lists(axis_state, min_size=12, max_size=12))
+def test_a_halt_from_any_tracking_state_stays_within_the_cartesian_limits_and_comes_to_rest(state):
+    """Whatever the trajectory was doing (each axis within its per-axis limits, as tracking leaves it),
+    braking keeps the norms of velocity, acceleration and jerk per arm, linear and angular, within the
+    Cartesian limits, and ends at rest."""
+    st_ = Streamer(LIM, T)
+    st_.reset(home_poses())
+    fr = np.array(state)
+    st_.vel = (fr[:, 0] * st_.max_velocity).reshape(2, 6)
+    st_.acc = (fr[:, 1] * st_.max_acceleration).reshape(2, 6)
+    st_.mode = "position"
+    st_.begin_stop()
+    vel, acc = [st_.vel.copy()], [st_.acc.copy()]
+    for _ in range(100):
+        out = st_.step()
+        vel.append(out.velocity)
+        acc.append(out.acceleration)
+        if st_.mode == "idle":
+            break
+    assert st_.mode == "idle" and st_.at_rest and st_.errors == 0
+    vel, acc = np.array(vel), np.array(acc)
+    cart = st_.cartesian  # [[v, a, j] linear, [v, a, j] angular]
+    # The orientation coordinates are re-based every period and the angular rates mapped back with the
+    # left Jacobian J(r), |J(r) - I| <= |r| / 2 with |r| <= w_max T: the angular acceleration may read up
+    # to a_max w_max T / 2 more, its change per period up to a_max w_max / 2 more (as when tracking)
+    w, a = cart[1, 0], cart[1, 1]
+    slack = [(1e-9, 1e-9), (a * w * T / 2, a * w / 2)]
+    for k, sl in enumerate((slice(0, 3), slice(3, 6))):
+        speed = np.linalg.norm(vel[:, :, sl], axis=2)
+        accel = np.linalg.norm(acc[:, :, sl], axis=2)
+        jerk = np.linalg.norm(np.diff(acc[:, :, sl], axis=0), axis=2) / T
+        assert speed.max() <= max(cart[k, 0], speed[0].max()) + 1e-9
+        assert accel.max() <= cart[k, 1] + slack[k][0] and jerk.max() <= cart[k, 2] + slack[k][1], (k, accel.max(), jerk.max())
+
+
+def test_tracking_never_goes_through_the_halting_profile():
+    """Nominal motion (commands arriving) is the per-axis tracking computation alone: the halting
+    Ruckig is only asked once the stream stops."""
+    pipe = MotionPipeline(ENV, T)
+    pipe.reset(home_poses())
+    calls = []
+    otg = pipe.streamer._halt_otg
+
+    class Counting:
+        def update(self, inp, out):
+            calls.append(1)
+            return otg.update(inp, out)
+
+    pipe.streamer._halt_otg = Counting()
+    u = np.zeros(12)
+    u[0] = u[7] = 0.05 / 30
+    ticks = []
+    for k in range(90):  # 27 commands at 30 Hz, then the trajectory lands on the last target
+        if k < 27:
+            pipe.submit(u, 1 / 30, k / 30)
+        ticks.append(pipe.tick(k * T))
+    assert not calls and not any(t.halting for t in ticks) and sum(t.command is not None for t in ticks) == 90
+    pipe.submit(u, 1 / 30, 3.0)
+    for k in range(10):
+        pipe.tick(3.0 + k * T)
+    pipe.stop()
+    braking = [pipe.tick(3.3 + k * T) for k in range(20)]
+    assert calls and braking[0].halting and not pipe.moving
 
 
 def test_a_ruckig_refusal_while_tracking_brakes_instead_of_escaping_the_servo_loop():

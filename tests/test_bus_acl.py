@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,7 +24,6 @@ from bagit.common.bus import (
     Publisher,
     Subscriber,
     declare_alive,
-    locators,
     open_session,
     request_run_control,
     serve_run_control,
@@ -33,39 +31,18 @@ from bagit.common.bus import (
 from bagit.common.errors import BusError
 from bagit.common.messages import Command, EStop, RunControl, RunControlReply, SoiState
 from bagit.common.names import ESTOP_RELEASE_SOURCES
-from bagit.deploy.certs import write_lab_pki
+from bagit.harness import SECURE_CLIENT_CFG, SECURE_IDENTITIES, SECURE_ROUTER_CFG, secure_rig
 
-ROOT = Path(__file__).resolve().parents[1]
-ROUTER_CFG = ROOT / "deploy" / "secure" / "zenoh-router-secure.json5"
-CLIENT_CFG = ROOT / "deploy" / "secure" / "client.json5"
+ROUTER_CFG, CLIENT_CFG = SECURE_ROUTER_CFG, SECURE_CLIENT_CFG
 RIG = "secure"
-IDENTITIES = ["router", "controller", "arm-driver", "perception", "planner", "dashboard", "cli", "intruder"]
+IDENTITIES = list(SECURE_IDENTITIES)
 
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     """The secured router plus a client per identity ("intruder" is CA-signed but not in the rules)."""
-    pki = write_lab_pki(tmp_path_factory.mktemp("pki"), IDENTITIES, ["localhost", "127.0.0.1"])
-    router = open_session(
-        BusConfig(
-            mode="router", config_file=ROUTER_CFG, listen=["tls/127.0.0.1:0"], adminspace=True,
-            tls_ca=pki["ca"], tls_cert=pki["router"], tls_key=pki["router.key"],
-        )
-    )
-    port = locators(router)[0].rsplit(":", 1)[1]
-    endpoint = f"tls/localhost:{port}"
-    clients: dict[str, zenoh.Session] = {}
-    try:
-        for name in IDENTITIES[1:]:
-            clients[name] = open_session(
-                BusConfig(rig=RIG, config_file=CLIENT_CFG, connect=[endpoint],
-                          tls_ca=pki["ca"], tls_cert=pki[name], tls_key=pki[f"{name}.key"])
-            )
-        yield {"router": router, "clients": clients, "pki": pki, "endpoint": endpoint, "port": port}
-    finally:
-        for c in clients.values():
-            c.close()
-        router.close()
+    with secure_rig(tmp_path_factory.mktemp("pki"), RIG, tuple(IDENTITIES)) as r:
+        yield {"router": r.router, "clients": r.clients, "pki": r.pki, "endpoint": r.endpoint, "port": r.port}
 
 
 def _cmd(seq: int) -> Command:

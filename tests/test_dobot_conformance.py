@@ -14,32 +14,9 @@ import pytest
 from bagit.common import cr5, dobot
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
+from bagit.services.sim.harness import DashboardText as Client
 
 READY = [0.0, 0.0, -90.0, 0.0, 90.0, 0.0]
-
-
-class Client:
-    """A minimal dashboard client: one command, one reply."""
-
-    def __init__(self, port: int):
-        self.sock = socket.create_connection(("127.0.0.1", port), timeout=3.0)
-        self.buf = ""
-
-    def raw(self, text: str) -> str:
-        self.sock.sendall(text.encode())
-        while ";" not in self.buf:
-            chunk = self.sock.recv(4096)
-            assert chunk, "controller closed the connection"
-            self.buf += chunk.decode()
-        replies, self.buf = dobot.split_replies(self.buf)
-        assert len(replies) == 1, replies
-        return replies[0]
-
-    def ask(self, text: str) -> dobot.Reply:
-        return dobot.parse_reply(self.raw(text))
-
-    def close(self) -> None:
-        self.sock.close()
 
 
 @pytest.fixture
@@ -434,24 +411,6 @@ def test_stop_is_allowed_in_error_and_with_the_emergency_stop_pressed(client):
     assert client.ask("GetAngle()").values[0] < 30.0
 
 
-def collect(c: Client, seconds: float, until: int | None = None) -> list[dobot.Reply]:
-    """The replies that arrive on `c` within `seconds` (or as soon as `until` have)."""
-    c.sock.settimeout(0.05)
-    end = time.monotonic() + seconds
-    try:
-        while time.monotonic() < end and (until is None or c.buf.count(";") < until):
-            try:
-                chunk = c.sock.recv(65536)
-            except (socket.timeout, TimeoutError):
-                continue
-            assert chunk, "controller closed the connection"
-            c.buf += chunk.decode()
-    finally:
-        c.sock.settimeout(3.0)
-    replies, c.buf = dobot.split_replies(c.buf)
-    return [dobot.parse_reply(r) for r in replies]
-
-
 def test_framing_one_reply_per_command_or_malformed_send(client):
     """Manual: one reply per send. A command may come in several TCP segments (here 300 ms apart); a
     malformed send (unbalanced parentheses, a 100 kB line, text left unfinished) gets exactly one
@@ -460,17 +419,17 @@ def test_framing_one_reply_per_command_or_malformed_send(client):
     s.sendall(b"SpeedFactor(")
     time.sleep(0.3)
     s.sendall(b"50)")
-    assert [r.command for r in collect(client, 0.5)] == ["SpeedFactor(50)"]
+    assert [r.command for r in client.collect(0.5)] == ["SpeedFactor(50)"]
     # ended by their closing parenthesis or newline: answered at once (a second reply would show below)
     for line in [b"MovJ(joint={" + b"1," * 50_000 + b"1})", b"A" * 100_000 + b"\n", b")" * 30 + b"\n"]:
         s.sendall(line)
-        replies = collect(client, 2.0, until=1)
+        replies = client.collect(2.0, until=1)
         assert [r.error_id for r in replies] == [-10000], line[:20]
         assert len(replies[0].command) <= 256
     # unbalanced and unfinished: answered once, after the 1 s time-out
     for text in [b"RobotMode()" + b")" * 30, b"MovJ((((joint={0,0,-90,0,90,0})"]:
         s.sendall(text)
-        replies = collect(client, 1.6)
+        replies = client.collect(1.6)
         assert [r.error_id for r in replies] == [-10000], text
         assert replies[0].command.startswith(text.decode()[:9])
     assert client.raw("RobotMode()") == "0,{4},RobotMode();"  # exactly one reply: the link works on

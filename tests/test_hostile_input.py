@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
+from bagit.bench.probes import npy_with_header
 from bagit.cli import main
 from bagit.common.errors import BadScenario
 from bagit.common.scenario import MAX_SCENARIO_BYTES, MAX_SCENARIO_DEPTH, Scenario
@@ -137,15 +138,6 @@ def test_a_file_over_the_size_limit_is_not_read_whole(tmp_path):
 
 
 # --- 3. cloud headers are checked against the file before anything is allocated ---------------------
-
-
-def npy_with_header(path: Path, shape: tuple[int, ...], descr: str = "<f8", total: int = 128) -> Path:
-    """A .npy of `total` bytes whose header claims `shape`: np.save could never write it."""
-    header = f"{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}"
-    header += " " * (-(10 + len(header) + 1) % 64) + "\n"
-    data = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header.encode("latin1")
-    path.write_bytes(data + b"\0" * max(0, total - len(data)))
-    return path
 
 
 def ply_with_header(path: Path, n: int, fmt: str = "binary_little_endian", body: bytes = b"\0" * 24) -> Path:

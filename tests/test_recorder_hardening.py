@@ -11,9 +11,6 @@ import io
 import json
 import os
 import signal
-import struct
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -25,32 +22,17 @@ from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
 from mcap.reader import make_reader
 from test_recorder_files import T0, Clock, FullDisk
 
+from bagit.bench.probes import hostile_headers, killed_recording, nested_payload, restarted_recorder
 from bagit.cli import main
 from bagit.common import wire
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
 from bagit.common.errors import BadMessage
-from bagit.common.messages import SCHEMA_VERSION, ArmState, CameraInfo, PointCloud, RgbdFrame, RunState, SoiState
-from bagit.services.recorder import RecorderConfig, RecordingWriter, list_runs, read_messages
+from bagit.common.messages import ArmState, CameraInfo, PointCloud, RgbdFrame, RunState, SoiState
+from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messages
 from bagit.services.recorder.node import RecorderNode, outcome
 from bagit.services.recorder.writer import _RawFile
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def nested_payload(depth: int, kind: str = "run_state") -> bytes:
-    """A wire payload whose header nests `depth` JSON arrays in a dict field (RunState.result):
-    100,000 levels make the ~200 kB header a user found killing the recorder's writer thread."""
-    nest = "[" * depth + "]" * depth
-    header = (f'{{"kind": "{kind}", "v": {SCHEMA_VERSION}, "fields": {{"run_id": "evil", "stage": "bagging", '
-              f'"elapsed_s": 5.0, "result": {{"a": {nest}}}}}, "arrays": {{}}}}').encode()
-    return wire.MAGIC + struct.pack("<I", len(header)) + header
-
-
-def spawn_recorder(args: list[str], cwd: Path) -> subprocess.Popen:
-    """`bagit recorder ...` as its own process (as `bagit up` starts it), output captured."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen([sys.executable, "-m", "bagit.cli", "recorder", *args], cwd=cwd, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 # ---- 1. a hostile message cannot stop the writer; a dead writer is never silent ------------------
@@ -77,41 +59,19 @@ def test_deeply_nested_header_is_a_bad_message_not_a_recursion_error():
 def test_hostile_headers_are_counted_as_malformed_and_the_recorder_keeps_recording(tmp_path):
     """The user's case through the real command: a ~200 kB nested header on any key (and one that
     decodes but nests too deep for a JSON record) are malformed; everything after is recorded."""
-    rig = "hostile"
-    a = open_session(BusConfig(rig=rig, adminspace=True))
+    a = open_session(BusConfig(rig="hostile", adminspace=True))
     try:
-        proc = spawn_recorder(["--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--linger-s", "30", "--json"],
-                              tmp_path)
-        state = Publisher(a, f"bagit/{rig}/run/state", RunState)
-        soi = Publisher(a, f"bagit/{rig}/perception/soi", SoiState)
-        assert wait_until(lambda: state.matched and soi.matched, 20.0), "the recorder did not subscribe"
-        deep = nested_payload(100_000)
-        assert len(deep) > 200_000
-        a.put(f"bagit/{rig}/anything/at/all", deep)
-        a.put(f"bagit/{rig}/run/state", deep)
-        a.put(f"bagit/{rig}/run/state", nested_payload(600))  # decodes; pydantic cannot serialise it
-        state.put(RunState(run_id="h1", stage="bagging"))
-        for i in range(50):
-            soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))
-            threading.Event().wait(0.005)
-        state.put(RunState(run_id="h1", stage="done", progress=1.0))
-        threading.Event().wait(0.5)
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=30)
+        assert len(nested_payload(100_000)) > 200_000
+        r = hostile_headers(a, locators(a)[0], "hostile", tmp_path)
     finally:
         a.close()
-    assert proc.returncode == 0, err
-    res = json.loads(out)
+    res = r["summary"]
+    assert r["exit"] == 0, r["stderr"]
     assert res["success"] and res["malformed"] == 3 and res["lost"] == 0 and res["dead"] is None, res
     assert res["messages"] == 52
-    assert "malformed message #1" in err and "nested too deeply" in err
-    sois = []
-    for f in tmp_path.glob(f"{rig}_*.mcap"):  # the first SOI may overtake the run state (higher priority): idle file
-        got, rec = read_messages(f)
-        assert rec.complete
-        sois += [m.seq for _, m in got if isinstance(m, SoiState)]
-    assert sorted(sois) == list(range(50))
-    assert not list(tmp_path.glob("*_run-evil*"))  # the hostile run state routed nothing, not even held messages
+    assert "malformed message #1" in r["stderr"] and "nested too deeply" in r["stderr"]
+    assert r["sois"] == list(range(50))
+    assert not r["evil_files"]  # the hostile run state routed nothing, not even held messages
 
 
 class BrokenFile(_RawFile):
@@ -264,39 +224,15 @@ def test_a_file_abandoned_on_a_full_disk_opens_in_the_standard_reader(tmp_path):
 def test_recorder_killed_with_sigkill_leaves_a_file_the_standard_reader_opens(tmp_path):
     """The user's case: `make_reader(f).iter_messages()` on a SIGKILLed recorder's file returns every
     message up to the last complete chunk (it returned none: RecordLengthLimitExceeded)."""
-    rig = "sigkill"
-    a = open_session(BusConfig(rig=rig, adminspace=True))
-    proc = None
+    a = open_session(BusConfig(rig="sigkill", adminspace=True))
     try:
-        proc = spawn_recorder(["--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--flush-s", "0.2"], tmp_path)
-        state = Publisher(a, f"bagit/{rig}/run/state", RunState)
-        soi = Publisher(a, f"bagit/{rig}/perception/soi", SoiState)
-        assert wait_until(lambda: state.matched and soi.matched, 20.0), "the recorder did not subscribe"
-        state.put(RunState(run_id="k2", stage="bagging"))
-        threading.Event().wait(0.2)
-        sent_at: list[float] = []
-        for i in range(300):
-            if i == 250:
-                proc.send_signal(signal.SIGKILL)
-                proc.wait(5)
-            soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))
-            sent_at.append(time.monotonic())
-            threading.Event().wait(0.008)
-        killed_at = sent_at[250]
-        assert proc.returncode == -signal.SIGKILL
+        r = killed_recording(a, locators(a)[0], "sigkill", tmp_path)
     finally:
-        if proc is not None and proc.poll() is None:
-            proc.kill()
         a.close()
-    (run_file,) = tmp_path.glob(f"{rig}_*_run-k2.mcap")
-    with open(run_file, "rb") as fh:
-        std = [(ch.topic, m.log_time, bytes(m.data)) for _, ch, m in make_reader(fh).iter_messages()]
-    got, rec = read_messages(run_file)
-    assert not rec.complete and rec.truncated
-    assert std == [(r.topic, r.log_time_ns, r.data) for r, _ in got]
-    seqs = [m.seq for _, m in got if isinstance(m, SoiState)]
-    settled = sum(1 for t in sent_at[:250] if t < killed_at - 1.0)  # older than --flush-s plus a margin
-    assert settled > 50 and seqs[:settled] == list(range(settled)), (settled, seqs[:5], len(seqs))
+    assert r["returncode"] == -signal.SIGKILL
+    assert not r["complete"] and r["truncated"]
+    assert r["same"] and r["standard"] > 0  # the standard reader reads what bagit's reads
+    assert r["settled_in_order"], (r["settled"], r["seqs"][:5], len(r["seqs"]))  # every SOI older than --flush-s, in order
 
 
 # ---- 4. rotation keeps files under --max-mb -----------------------------------------------------
@@ -364,51 +300,16 @@ def test_a_restarted_recorder_continues_the_run_within_a_second(tmp_path, capsys
     """`bagit up` restarts a dead recorder; the new one began 4.4 s late (a scipy import in the CLI
     and messages filed as idle until a run/state came by). Now from its start to the first message
     of the current run in its file: under 1 s, and nothing of the run in an idle file."""
-    rig = "restart"
-    keys = Keys(rig)
-    a = open_session(BusConfig(rig=rig, adminspace=True))
-    stop = threading.Event()
-    run_began = time.time() - 5.0
-
-    def coordinator() -> None:  # the planner's 2 Hz run/state and a 30 Hz SOI stream
-        state, soi = Publisher(a, keys.run_state, RunState), Publisher(a, keys.perception_soi, SoiState)
-        i, next_state = 0, 0.0
-        while not stop.is_set():
-            now = time.time()
-            if now >= next_state:
-                state.put(RunState(run_id="r1", stage="bagging", elapsed_s=now - run_began, stamp=now))
-                next_state = now + 0.5
-            soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))
-            i += 1
-            stop.wait(1 / 30)
-
-    th = threading.Thread(target=coordinator, daemon=True)
-    th.start()
-    args = ["--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--json"]
+    a = open_session(BusConfig(rig="restart", adminspace=True))
     try:
-        first = spawn_recorder(args, tmp_path)
-        assert wait_until(lambda: any(tmp_path.glob(f"{rig}_*_run-r1*.mcap")), 20.0)
-        threading.Event().wait(0.5)
-        first.send_signal(signal.SIGKILL)
-        first.wait(5)
-        started_ns = time.time_ns()
-        second = spawn_recorder(args, tmp_path)
-        threading.Event().wait(2.5)
-        second.send_signal(signal.SIGTERM)
-        out, err = second.communicate(timeout=30)
+        r = restarted_recorder(a, locators(a)[0], "restart", tmp_path)
     finally:
-        stop.set()
-        th.join(5)
         a.close()
-    assert second.returncode == 0, err
-    res = json.loads(out)
+    res = r["summary"]
     assert res["success"] and [Path(f).name for f in res["files"]] == [Path(res["files"][0]).name]
-    got, rec = read_messages(res["files"][0])
-    assert "_run-r1" in res["files"][0] and rec.complete
-    delay_s = (got[0][0].log_time_ns - started_ns) / 1e9
+    assert "_run-r1" in res["files"][0] and r["file_complete"]
     with capsys.disabled():
-        print(f"\nrestarted recorder: first message of the run recorded {delay_s:.3f} s after its start")
-    assert 0 < delay_s < 1.0, delay_s
-    assert not list(tmp_path.glob(f"{rig}_*_idle*.mcap"))
-    runs = list_runs(tmp_path)["runs"]
-    assert [(r["run_id"], len(r["files"]), r["complete"]) for r in runs] == [("r1", 2, False)]  # the killed part is truncated
+        print(f"\nrestarted recorder: first message of the run recorded {r['delay_s']:.3f} s after its start")
+    assert 0 < r["delay_s"] < 1.0, r["delay_s"]
+    assert not r["idle_files"]
+    assert r["runs"] == [("r1", 2, False)]  # the killed part is truncated

@@ -29,3 +29,12 @@ def test_bad_rig_file(tmp_path):
         RigConfig.from_file(p)
     with pytest.raises(BadScenario):
         RigConfig.from_file(tmp_path / "missing.yaml")
+
+
+def test_a_watchdog_shorter_than_four_servo_periods_is_refused():
+    """It halts after a gap of watchdog_s less a servo period: under 4 periods a late command would halt the arms."""
+    from bagit.common.rig import SafetyLimits
+
+    assert SafetyLimits(watchdog_s=0.12, servo_period_s=0.03).halt_gap_s == pytest.approx(0.09)
+    with pytest.raises(ValueError, match="at least 4 servo periods"):
+        SafetyLimits(watchdog_s=0.1, servo_period_s=0.03)

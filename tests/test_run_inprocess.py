@@ -33,6 +33,16 @@ def test_a_short_run_goes_through_the_coordinators_stages_with_the_cr5s():
 
 
 @pytest.mark.slow
+def test_a_camera_slower_than_the_keep_alive_pace_gets_keep_alive_ticks_not_watchdog_stops():
+    """At 10 frames/s a control tick per frame leaves 100 ms between commands, over the watchdog's 90 ms
+    gap: the host ticks the controller on the last SOI in between (keep-alives), as the node does."""
+    s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
+    r = run_inprocess(RunOptions(scenario=s, seed=0, time_limit_s=2.0, fps=10.0))
+    assert r.stage_reached == "pre-bagging" and r.ticks >= 15  # servoed, a control tick per frame
+    assert r.arm_events["watchdog_stops"] == 0 and r.arm_events["faults"] == 0, r.arm_events
+
+
+@pytest.mark.slow
 def test_two_runs_with_one_seed_are_the_same_bit_for_bit():
     s = Scenario.from_file(find_scenario("exp10-printed-cuboid"))
     a, b = (run_inprocess(RunOptions(scenario=s, seed=3, time_limit_s=2.0)) for _ in range(2))

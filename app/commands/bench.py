@@ -1,5 +1,5 @@
 """`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
-(`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), compare runs (`compare`)."""
+(`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings (`probes`), compare runs (`compare`)."""
 
 from __future__ import annotations
 
@@ -14,19 +14,20 @@ from typing import Any
 from bagit.commands import _args
 
 NAME = "bench"
-HELP = "run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), or `compare OLD NEW`"
+HELP = "run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), `probes` (issue 25's findings re-run), or `compare OLD NEW`"
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
-STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "cr5", "sim", "zenoh", "recorder", "latency"]
+STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.bench.closed_loop import add_sweep_arguments
 
-    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "compare"], help="which benchmark")
+    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "compare"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
-    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02")
+    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; for `probes`: group(s), v4 cli recorder arm")
+    p.add_argument("--no-readme", action="store_true", help="for `probes`: leave the README's probe section as it is")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
     p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); for `sweep`: seeds per scenario, controller, planner and arms (default 8; --quick 1)")
     p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
@@ -53,6 +54,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             argv += ["--jsonl", str(Path(args.out) / "deployed-vs-run.jsonl")]
         code = deployed.main(argv)
         return {"success": code == 0}
+    if args.what == "probes":
+        from bagit.bench import probes
+
+        unknown = sorted(set(args.only or []) - set(probes.RUNNERS))
+        if unknown:
+            raise ValueError(f"unknown probe group(s) {unknown}; choose from {list(probes.RUNNERS)}")
+        return probes.run(args.only, readme=not args.no_readme)
     if args.what == "paper":
         from bagit.bench import paper
 
@@ -114,6 +122,10 @@ def compare(old: Path, new: Path) -> dict[str, Any]:
 
 
 def human(result: dict[str, Any]) -> str:
+    if result.get("kind") == "probes":
+        from bagit.bench.probes import summary
+
+        return summary(result)
     if "runs" in result and "rows" in result:
         from bagit.bench.closed_loop import table
 

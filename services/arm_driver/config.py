@@ -30,6 +30,11 @@ class DriverConfig(BaseModel):
     )
     aheadtime: float = Field(50.0, ge=20.0, le=100.0, description="ServoP/ServoJ aheadtime (Dobot's range 20..100)")
     gain: float = Field(500.0, ge=200.0, le=1000.0, description="ServoP/ServoJ gain (Dobot's range 200..1000)")
+    halt_aheadtime: float = Field(
+        100.0, ge=20.0, le=100.0,
+        description="aheadtime of the ServoPs that brake to rest (hold, watchdog, fault): the controller follows the "
+        "braking without its lag, so the arms are still sooner (on the simulated CR5: ~30 ms); `aheadtime` turns it off",
+    )
     reply_timeout_s: float = Field(0.5, gt=0.0, le=10.0, description="a dashboard reply later than this is an error")
     connect_timeout_s: float = Field(1.0, gt=0.0, le=30.0)
     feedback_timeout_s: float = Field(
@@ -46,6 +51,12 @@ class DriverConfig(BaseModel):
     max_failed_requests: int = Field(
         3, ge=1, le=100, description="this many motion requests in a row without a good reply is a fault"
     )
+
+
+    def servo_params(self, halting: bool) -> tuple[float, float]:
+        """(aheadtime, gain) of a ServoP/ServoJ; `halting`: it brakes to rest. Commands being tracked
+        always go with `aheadtime`, so nominal motion does not depend on the halting value."""
+        return (self.halt_aheadtime if halting else self.aheadtime), self.gain
 
 
 class ArmDriverServiceConfig(BaseModel):

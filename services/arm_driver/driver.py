@@ -16,9 +16,13 @@ faster) the loop thread takes one step of the motion pipeline (targets -> 12-DoF
 one period later, so a slow controller never stalls the other arm.
 
 What stops the arms, and how:
-- watchdog: no command for `watchdog_s` (200 ms). The stop is issued at the last tick before the
-  deadline, Ruckig brakes to rest (velocity target zero), then the arms hold. A later command
-  starts a new stream from the pose the arms are at.
+- watchdog: no command for `watchdog_s` (120 ms; the controller sends one every control tick while
+  servoing). The stop is issued at the last tick before the deadline, Ruckig brakes to rest, then the
+  arms hold. A later command starts a new stream from the pose the arms are at. Every halt (the
+  watchdog, a hold, a fault, a lost link) brakes along the motion with the whole Cartesian budget
+  (`streaming.braking_shares`), and its ServoPs go with `halt_aheadtime`, so the controllers follow
+  the braking without their lag: ~200 ms from the last command to the arms still at 4 cm/s on the
+  simulated CR5s (`python -m bagit.bench.stop_time`).
 - a stale command: one made (its `stamp`) longer than `watchdog_s` before it is applied, e.g. queued
   while the process was stopped, is refused (`gate.stale_refusal`); so is one stamped that far ahead.
 - a pause of the servo loop longer than `watchdog_s` (SIGSTOP, a machine that kept the process off
@@ -641,7 +645,7 @@ class ArmDriver:
             if command is None:
                 return False
             for a in active:
-                sends[a] = self._servo_text(a, command[a], None if joints is None else joints[a])
+                sends[a] = self._servo_text(a, command[a], None if joints is None else joints[a], out.halting)
         # On the wall clock: never two ServoPs less than a period apart, whatever the schedule did, and
         # none made before a pause; on the simulator's the ticks are a period apart and the world waits.
         late = 0.0
@@ -669,13 +673,15 @@ class ArmDriver:
                     self._link_lost(a, str(e))
         return bool(sends)
 
-    def _servo_text(self, arm: str, T_world_mount: np.ndarray, q: np.ndarray | None) -> str:
-        """The ServoP for one arm's mount pose, or the ServoJ for its joints `q (6,)` (rad)."""
+    def _servo_text(self, arm: str, T_world_mount: np.ndarray, q: np.ndarray | None, halting: bool = False) -> str:
+        """The ServoP for one arm's mount pose, or the ServoJ for its joints `q (6,)` (rad); `halting`:
+        a braking pose, sent with the halting servo parameters (`DriverConfig.servo_params`)."""
         cfg = self.cfg
+        aheadtime, gain = cfg.servo_params(halting)
         if cfg.servo_command == "servoj" and q is not None:
-            return DobotClient.servo_text("ServoJ", np.degrees(q), self.servo_t, cfg.aheadtime, cfg.gain)
+            return DobotClient.servo_text("ServoJ", np.degrees(q), self.servo_t, aheadtime, gain)
         T_bf = self.frames[arm].flange_in_base(T_world_mount)
-        return DobotClient.servo_text("ServoP", cr5.matrix_to_pose6(T_bf), self.servo_t, cfg.aheadtime, cfg.gain)
+        return DobotClient.servo_text("ServoP", cr5.matrix_to_pose6(T_bf), self.servo_t, aheadtime, gain)
 
     def _check_replies(self, now: float) -> None:
         """Earlier periods' ServoP replies: a refusal is a fault; missing or garbled ones add up to one."""

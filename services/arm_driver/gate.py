@@ -4,7 +4,7 @@ The arms move only for the run the coordinator announced on run/state as servoin
 `SERVO_STAGES`), and only on commands that are still fresh when they are applied:
 
     why = command_refusal(cmd, run)            # the node, for each command: None, or a Refusal
-    why = stale_refusal(cmd.stamp, now, 0.2)   # the driver, as it applies one: None, or a Refusal
+    why = stale_refusal(cmd.stamp, now, limits.watchdog_s)   # the driver, as it applies one: None, or a Refusal
     why = stream_end(streaming_run, run)       # the node, on run/state: the run it streamed for is over
     why = estop_refusal(msg)                   # a release from anyone but the operator's tools
 

@@ -38,12 +38,14 @@ REACH_JOINT_SPEED_FRACTION = 0.5
 
 @dataclass
 class Cycle:
-    """One servo period: the mount `poses` to send (None: nothing), their `joints`, a `fault` that stops the arms."""
+    """One servo period: the mount `poses` to send (None: nothing), their `joints`, a `fault` that stops
+    the arms; `halting`: the poses brake to rest (sent with the halting servo parameters)."""
 
     poses: Poses | None = None
     joints: Joints | None = None
     fault: str | None = None
     violations: list[Violation] = field(default_factory=list)
+    halting: bool = False
 
 
 class ArmMotion:
@@ -148,9 +150,9 @@ class ArmMotion:
         if tick.command is None or prev is None:
             return Cycle(violations=tick.violations)
         if not active or not check_reach:
-            return Cycle(tick.command, None, None, tick.violations)
+            return Cycle(tick.command, None, None, tick.violations, tick.halting)
         poses, joints, fault = self.within_reach(prev, tick.command, list(active))
-        return Cycle(poses, joints, fault, tick.violations)
+        return Cycle(poses, joints, fault, tick.violations, tick.halting)
 
     def within_reach(self, prev: Poses, cmd: Poses, active: list[str]) -> tuple[Poses | None, Joints | None, str | None]:
         """`cmd`, or the longest part of the step from `prev` the joints of the `active` arms can follow,

@@ -29,12 +29,14 @@ from bagit.services.arm_driver.streaming import StreamStep, Streamer, TargetInte
 
 @dataclass
 class Tick:
-    """One period's result: the poses to send (None: send nothing), what the gate found, the trajectory."""
+    """One period's result: the poses to send (None: send nothing), what the gate found, the trajectory;
+    `halting`: the poses brake to rest (a stop, not a command being tracked)."""
 
     command: Poses | None
     violations: list[Violation] = field(default_factory=list)
     step: StreamStep | None = None
     mode: str = "idle"
+    halting: bool = False
 
 
 class MotionPipeline:
@@ -140,7 +142,7 @@ class MotionPipeline:
             self.streamer.mode = "idle"
         else:
             self.last_sent = cmd
-        return Tick(cmd, found, step, self.streamer.mode)
+        return Tick(cmd, found, step, self.streamer.mode, halting=mode == "stopping")
 
     def replace_last(self, sent: Poses, previous: Poses) -> None:
         """The driver sent `sent` instead of the last tick's command (the joints could not follow it,

@@ -15,6 +15,14 @@ Limits come from `SafetyLimits` and are applied per axis divided by sqrt(3), so 
 the velocity, acceleration and jerk vectors never exceeds the configured Cartesian limit whatever
 the direction of motion. (The controller's own increments stay far below: 5 cm/s per axis.)
 
+Halting (a hold, the watchdog, a fault, a lost link, the run's end) brakes with the same Cartesian
+limits split along the motion instead (`braking_shares`): per axis the limits are d_i times the
+Cartesian one with sum(d_i^2) = 1, so the norms stay within the limits whatever the profile
+(|x_i| <= d_i L for every axis gives |x|^2 <= L^2 sum(d_i^2) = L^2), and a straight motion brakes
+with the whole budget along its direction: from 4 cm/s in 2 sqrt(v/j) = 126 ms instead of 166 ms.
+It is a Ruckig instance of its own, used only in mode 'stopping': tracking (commands arriving) is
+the same computation as without it, bit for bit.
+
 `TargetIntegrator` turns the controller's increments into targets: a `Command` moves the target
 by u over its `dt`, linearly, starting when it arrives; a new command first completes the previous
 one, so every increment is applied exactly once. Positions add, rotations compose
@@ -34,6 +42,28 @@ from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_ar
 
 N_DOF = 12
 SQRT3 = float(np.sqrt(3.0))
+# The share of the braking budget every axis keeps whatever the motion's direction: an axis at rest
+# stays at rest, and Ruckig gets no zero limit.
+BRAKING_FLOOR = 1e-3
+
+
+def braking_shares(v: np.ndarray, a: np.ndarray, v_max: float, a_max: float) -> np.ndarray:
+    """`(3,)` shares d (sum of squares 1) of one arm's Cartesian limits for braking its linear (or
+    angular) motion, velocity `v (3,)` and acceleration `a (3,)`, to rest.
+
+    Every axis gets at least the share its current velocity and acceleration already use, so the
+    state starts inside its per-axis limits (a tracking state, within the limits / sqrt(3) per axis,
+    uses at most 1/3 per axis); the rest goes along the velocity (along the acceleration when at rest).
+    """
+    need = np.maximum(np.abs(v) / v_max, np.abs(a) / a_max) ** 2
+    spare = 1.0 - float(need.sum())
+    if spare <= 0.0:  # a state at the per-axis limits on every axis: nothing left to move
+        return np.sqrt(need / need.sum())
+    along = v if np.linalg.norm(v) > 0 else a
+    n = float(np.linalg.norm(along))
+    w = (along / n) ** 2 if n > 0 else np.full(3, 1 / 3)
+    w = (1.0 - BRAKING_FLOOR) * w + BRAKING_FLOOR / 3
+    return np.sqrt(need + spare * w)
 
 
 @dataclass
@@ -73,6 +103,17 @@ class Streamer:
         self._inp.max_acceleration = self.max_acceleration.tolist()
         self._inp.max_jerk = self.max_jerk.tolist()
         self._inp.synchronization = Synchronization.Time
+        # braking to rest ('stopping'): its own instance, limits split along the motion each cycle
+        self.cartesian = np.array([[limits.max_tcp_speed_mps, limits.max_tcp_accel_mps2, limits.max_tcp_jerk_mps3],
+                                   [limits.max_angular_speed_rps, limits.max_angular_accel_rps2, limits.max_angular_jerk_rps3]])
+        self._halt_otg = Ruckig(N_DOF, self.period)
+        self._halt_inp = InputParameter(N_DOF)
+        self._halt_out = OutputParameter(N_DOF)
+        self._halt_inp.synchronization = Synchronization.Time
+        self._halt_inp.control_interface = ControlInterface.Velocity
+        self._halt_inp.target_velocity = [0.0] * N_DOF
+        self._halt_inp.target_acceleration = [0.0] * N_DOF
+        self._halt_failed = False  # this stop fell back to the per-axis limits
         self.mode = "idle"
         self.p = np.zeros((2, 3))
         self.R = np.tile(np.eye(3), (2, 1, 1))
@@ -104,6 +145,18 @@ class Streamer:
         """Brake to rest with Ruckig (velocity and acceleration targets zero), then go idle."""
         if self.mode != "idle":
             self.mode = "idle" if self.at_rest else "stopping"
+            self._halt_failed = False
+
+    def halting_limits(self) -> np.ndarray:
+        """`(12, 3)` per-axis [velocity, acceleration, jerk] limits for braking from the current state:
+        each arm's linear and angular Cartesian limits split along its motion (`braking_shares`)."""
+        out = np.empty((N_DOF, 3))
+        for i in range(2):
+            for k, sl in enumerate((slice(0, 3), slice(3, 6))):
+                cart = self.cartesian[k]
+                d = braking_shares(self.vel[i, sl], self.acc[i, sl], cart[0], cart[1])
+                out[6 * i + 3 * k : 6 * i + 3 * k + 3] = d[:, None] * cart[None, :]
+        return out
 
     def sync(self, sent: Poses, previous: Poses, dt: float) -> None:
         """Take the pose actually sent (after the safety gate changed it) as the trajectory's state.
@@ -134,6 +187,10 @@ class Streamer:
         """Advance one period towards `target` (mode 'position') or towards rest (mode 'stopping')."""
         if self.mode == "idle":
             return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), True)
+        if self.mode == "stopping" and not self._halt_failed:
+            halted = self._halt_step()
+            if halted is not None:
+                return halted
         self._set_current()
         inp = self._inp
         if self.mode == "position":
@@ -157,6 +214,32 @@ class Streamer:
         self._apply(np.asarray(self._out.new_position), np.asarray(self._out.new_velocity), np.asarray(self._out.new_acceleration))
         finished = result == Result.Finished
         if finished and self.mode == "stopping":
+            self.vel[:] = 0.0
+            self.acc[:] = 0.0
+            self.mode = "idle"
+        return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), self.at_rest)
+
+    def _halt_step(self) -> StreamStep | None:
+        """One period of braking with the limits split along the motion; None if Ruckig refused (the
+        stop then goes on with the per-axis limits)."""
+        lim = self.halting_limits()
+        inp = self._halt_inp
+        inp.max_velocity, inp.max_acceleration, inp.max_jerk = lim[:, 0].tolist(), lim[:, 1].tolist(), lim[:, 2].tolist()
+        zeros = np.zeros(3)
+        inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
+        inp.current_velocity = self.vel.ravel().tolist()
+        inp.current_acceleration = self.acc.ravel().tolist()
+        try:
+            result = self._halt_otg.update(inp, self._halt_out)
+        except (RuckigError, RuntimeError):
+            result = Result.Error
+        if result not in (Result.Working, Result.Finished):
+            self.errors += 1
+            self._halt_failed = True
+            return None
+        out = self._halt_out
+        self._apply(np.asarray(out.new_position), np.asarray(out.new_velocity), np.asarray(out.new_acceleration))
+        if result == Result.Finished:
             self.vel[:] = 0.0
             self.acc[:] = 0.0
             self.mode = "idle"

@@ -45,9 +45,10 @@ from bagit.common.clock import ClockKind
 from bagit.common.messages import ArmState, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
-from bagit.common.rig import ARMS, SafetyLimits
+from bagit.common.rig import ARMS
 from bagit.services.controller.controller import CONTROLLERS
-from bagit.services.controller.session import ARM_MAX_AGE_S, SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, gripper_poses
+from bagit.services.controller.session import (ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault,
+                                                    gripper_poses)
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
@@ -63,8 +64,9 @@ class ControllerServiceConfig(BaseModel):
     soi_max_age_s: float = Field(SOI_MAX_AGE_S, gt=0.0, le=10.0, description="a SOI older than this: hold")
     arm_max_age_s: float = Field(ARM_MAX_AGE_S, gt=0.0, le=10.0, description="an arm state older than this: hold")
     params: dict[str, Any] = Field(default_factory=dict, description="method parameter overrides laid over the run's")
-    driver_watchdog_s: float = Field(SafetyLimits().watchdog_s, gt=0.0, le=5.0,
-                                     description="the arm driver's watchdog: a command's dt stays under it")
+    driver_watchdog_s: float = Field(DRIVER_WATCHDOG_S, gt=0.0, le=5.0,
+                                     description="the arm driver's watchdog: a command's dt stays under it, and while servoing "
+                                     "a command goes out at least every third of it (keep-alives)")
 
 
 def stderr_report(text: str) -> None:
@@ -216,7 +218,7 @@ class ControllerNode:
     def _period(self) -> float:
         run = self._run
         if run is not None:
-            return run.dt
+            return run.tick_s  # the control period, or the keep-alive pace of a slower control rate
         return 1.0 / (self.cfg.control_rate_hz or MethodParams().control_rate_hz)
 
     def _tick(self, now: float | None = None) -> None:

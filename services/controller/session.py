@@ -29,13 +29,18 @@ from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, Goal, Path, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams
-from bagit.common.rig import ARMS
+from bagit.common.rig import ARMS, SafetyLimits
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
 
 # A command's dt (the time the driver spreads its increment over) stays this far under the arm
-# driver's watchdog (`SafetyLimits.watchdog_s`, 0.2 s), so a slow SOI gives slower motion, never a stop.
+# driver's watchdog (`SafetyLimits.watchdog_s`), so a slow SOI gives slower motion, never a stop.
 WATCHDOG_MARGIN = 0.9
+# While servoing a command goes out at least every KEEPALIVE_SHARE of the watchdog (at the control
+# rate, and keep-alives between slower control ticks): the watchdog halts the arms after a gap of at
+# least 3/4 of it (`SafetyLimits.halt_gap_s`), so one late or lost command never stops them.
+KEEPALIVE_SHARE = 1 / 3
+DRIVER_WATCHDOG_S = SafetyLimits().watchdog_s
 KEEPALIVE = "keep-alive: no new SOI yet"  # the reason a zero servo increment carries
 SOI_MAX_AGE_S = 0.5  # a SOI older than this (by its camera stamp): hold
 ARM_MAX_AGE_S = 0.3  # an arm state older than this: hold
@@ -85,13 +90,14 @@ class ServoSession:
     """One run being servoed (see the module docstring)."""
 
     def __init__(self, run_id: str | None, name: str, controller: Controller | None, params: MethodParams,
-                 rate_hz: float, next_seq: Callable[[], int], watchdog_s: float = 0.2):
+                 rate_hz: float, next_seq: Callable[[], int], watchdog_s: float = DRIVER_WATCHDOG_S):
         self.run_id = run_id
         self.name = name
         self.controller = controller
         self.params = params
         self.dt = 1.0 / rate_hz
         self.dt_max = max(WATCHDOG_MARGIN * watchdog_s, self.dt)
+        self.keepalive_s = KEEPALIVE_SHARE * watchdog_s
         self.next_seq = next_seq
         self.seq = 0  # the last command's
         self.last_soi: tuple[int, float] | None = None  # (seq, source stamp) of the last SOI acted on
@@ -108,7 +114,8 @@ class ServoSession:
 
     @classmethod
     def build(cls, state: RunState, path: Path, goal: Goal | None, overrides: dict[str, Any], next_seq: Callable[[], int],
-              controller: str | None = None, rate_hz: float | None = None, watchdog_s: float = 0.2) -> tuple["ServoSession", Outbox]:
+              controller: str | None = None, rate_hz: float | None = None,
+              watchdog_s: float = DRIVER_WATCHDOG_S) -> tuple["ServoSession", Outbox]:
         """The run's session from its run state and path (params: the scenario's, the run's overrides,
         then `overrides`); a finished one whose outbox says why when it cannot be built."""
         if not path.success:
@@ -162,7 +169,7 @@ class ServoSession:
             out.status = self._status(mode="hold", stage="failed", reason=arm_fault)
             return out
         key = (soi.seq, soi.source_stamp)
-        if key == self.last_soi:  # fresh but not new: nothing to learn from; keep the stream alive
+        if key == self.last_soi or not self.control_due(now):  # nothing new to act on yet: keep the stream alive
             if not self.servoing:
                 return Outbox()
             self.seq = self.next_seq()
@@ -201,6 +208,19 @@ class ServoSession:
             self.finished = "done"
             report = f"run {self.run_id}: at g* (error {out.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"
         return Outbox(cmd, status, report)
+
+    @property
+    def tick_s(self) -> float:
+        """How often the host ticks the session: the control period, or the keep-alive pace when the
+        control rate is slower than that (then most ticks are keep-alives)."""
+        return min(self.dt, self.keepalive_s)
+
+    def control_due(self, now: float) -> bool:
+        """A new SOI may be acted on at `now`: always when the host ticks at the control rate; with a
+        control rate slower than the keep-alive pace, a control period after the last control tick."""
+        if self.dt <= self.keepalive_s or self.last_cmd_t is None:
+            return True
+        return now - self.last_cmd_t >= self.dt - 0.5 * self.tick_s
 
     def command_dt(self, now: float) -> float:
         """Over how long the driver spreads this increment: the time since the last command (a tick
