@@ -134,11 +134,15 @@ class Cr5Arms:
     def states(self) -> dict[str, ArmState]:
         """Each arm as its controller reports it, the driver's fault laid over (as the arm-driver node does)."""
         out = {}
+        aim = self.motion.aim()
         for a, rec in self._records().items():
             st = feedback_state(a, rec, self.motion.frames[a])
+            update: dict = {"slowed": self.motion.slowing}
+            if aim is not None:
+                update["target_pose"] = np.concatenate([aim[a][:3, 3], matrix_to_rpy(aim[a][:3, :3])])
             if self.fault is not None and not st.error_reason:
-                st = st.model_copy(update={"error": True, "error_reason": f"driver fault: {self.fault}"})
-            out[a] = st
+                update.update(error=True, error_reason=f"driver fault: {self.fault}")
+            out[a] = st.model_copy(update=update)
         return out
 
     def events(self) -> dict[str, int]:

@@ -210,6 +210,10 @@ class ArmState(Message):
     command_id: int = 0
     estopped: bool = False
     events: dict[str, int] = Field(default_factory=dict, description="the arm side's counts this run (RunResult.arm_events)")
+    target_pose: ArrayF64 | None = Field(
+        None, description="(6,) world [x y z rx ry rz] (m, rad): where the arm side is taking the tool, the end of the "
+        "increments it has taken (target_pose - tool_pose: the motion still in flight); None: not reported")
+    slowed: bool = Field(False, description="the arm side's last servo period sent only part of its step: the joints could not follow")
 
 
 class ControllerStatus(Message):

@@ -2,10 +2,13 @@
 
 import numpy as np
 
-from bagit.common.messages import Path, RunState, SoiState
-from bagit.services.controller.increment import apply_increment
+from bagit.common.messages import ArmState, Path, RunState, SoiState
 from bagit.common.rig import SafetyLimits
-from bagit.services.controller.session import KEEPALIVE, KEEPALIVE_SHARE, SOI_MAX_AGE_S, ServoSession
+from bagit.common.so3 import matrix_to_rpy
+from bagit.services.controller.increment import apply_increment, pose_increment
+from bagit.services.controller.session import (
+    KEEPALIVE, KEEPALIVE_SHARE, SOI_MAX_AGE_S, ServoSession, arms_slowed, gripper_poses, pending_motion,
+)
 from bagit.services.controller.synthetic import SyntheticRim
 
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
@@ -83,3 +86,58 @@ def test_a_control_rate_slower_than_the_keep_alive_pace_acts_at_its_rate_with_ke
         t += s.tick_s
     assert len(keep) > len(control) > 10
     assert np.diff(control).min() >= s.dt - 0.5 * s.tick_s - 1e-9 and np.diff(control).max() <= s.dt + s.tick_s
+
+
+class _WalledArms:
+    """An arm side that lags (each tick it makes a quarter of the way to its target) and cannot take the
+    left mount above `z_wall` (out of its reach): a step that would is cut short for both arms, as the
+    driver's reach does, and the states say `slowed`; `target_pose` is where it is taking them."""
+
+    def __init__(self, m: SyntheticRim, z_wall: float):
+        self.g, self.aim, self.z_wall, self.slowed = m.home(), m.home(), z_wall, False
+
+    def submit(self, cmd) -> None:
+        self.aim = apply_increment(self.aim, np.asarray(cmd.u)) if cmd.mode == "servo" else {a: T.copy() for a, T in self.g.items()}
+
+    def servo(self) -> None:
+        step = pose_increment(self.g, self.aim) / 4
+        z, dz = self.g["left"][2, 3], step[2]
+        f = max(self.z_wall - z, 0.0) / dz if dz > 0 and z + dz > self.z_wall else 1.0
+        self.g, self.slowed = apply_increment(self.g, f * step), f < 1.0
+
+    def states(self) -> dict[str, ArmState]:
+        pose = lambda T: np.r_[T[:3, 3], matrix_to_rpy(T[:3, :3])]  # noqa: E731
+        return {a: ArmState(arm=a, q=np.zeros(6), qd=np.zeros(6), tool_pose=pose(self.g[a]), target_pose=pose(self.aim[a]), slowed=self.slowed)
+                for a in self.g}
+
+
+def _walled_run(told: bool, ticks: int = 500) -> tuple[_WalledArms, ServoSession, list[float]]:
+    s, m, nodes = _session()
+    path = Path(run_id="r1", nodes=nodes, dagger_index=4)
+    arms = _WalledArms(m, m.home()["left"][2, 3] + 0.03)  # g* needs the left mount 7.5 cm up
+    t, leads = 0.0, []
+    for k in range(ticks):
+        t += s.dt
+        states = arms.states()
+        g, _ = gripper_poses(states)
+        pending, slowed = (pending_motion(states, g), arms_slowed(states)) if told else (None, False)
+        out = s.tick(SoiState(seq=k + 1, source_stamp=t, rim=m.rim(g)), 0.0, SOI_MAX_AGE_S, g, None, None, path, None, t, pending, slowed)
+        barred = s.controller.barred
+        if told and barred is not None and out.command.mode == "servo":  # no share along what the arm side could not make
+            assert float((out.command.u / s.controller.u_max) @ barred) <= 1e-9
+        arms.submit(out.command)
+        arms.servo()
+        leads.append(arms.aim["left"][2, 3] - arms.g["left"][2, 3])
+    return arms, s, leads
+
+
+def test_a_reported_reach_limit_stops_the_asking():
+    """The arm side cannot take the left mount where the path goes. A controller blind to it asks for the
+    same lift every tick and the target runs away (metres here; on the rig the driver pulls it back
+    to its lead limit every period); told through the arm states (target_pose, slowed), it stops
+    asking for that motion and takes back what is in flight, so the target stays by the arm."""
+    blind_arms, _, blind = _walled_run(told=False)
+    arms, s, told = _walled_run(told=True)
+    assert max(blind) > 0.5, max(blind)
+    assert max(told) < 0.01 and abs(told[-1]) < 0.003, (max(told), told[-1])
+    assert arms.g["left"][2, 3] <= arms.z_wall + 1e-9 and s.finished is None  # the wall held: no g*, and no pretending

@@ -81,3 +81,25 @@ def test_a_fault_stops_streaming_refuses_commands_and_shows_in_the_arm_states():
     assert ev["faults"] == 1 and ev["alarms"] == 1 and ev["rejected"] >= 4
     states = arms.states()
     assert states["left"].error and states["left"].error_reason.startswith("driver fault")
+
+
+def test_the_arm_states_report_the_motion_still_in_flight_and_a_slowed_step():
+    """What the controller predicts from: target_pose (where the arm side is taking each mount) less
+    tool_pose is the motion taken and not yet made; slowed says the joints set the pace."""
+    arms, robots = _arms(Q_NEAR_SINGULAR, Q_EASY)
+    start = {a: robots[a].mount_pose_world() for a in ARMS}
+    axis = robots["left"].flange_pose_world()[:3, 1]
+    u = np.zeros(12)
+    u[3:6] = np.radians(0.3) * axis  # the tilt the near-singular wrist must slow down for
+    u[6] = 0.001  # and the right mount 1 mm per tick along x
+    _drive(arms, u, ticks=10, settle_ticks=0)
+    states = arms.states()
+    slowed_then = states["left"].slowed and states["right"].slowed  # one step for both arms: both are slowed
+    aim = {a: states[a].target_pose for a in ARMS}
+    assert np.allclose(aim["right"][:3], start["right"][:3, 3] + [0.010, 0, 0], atol=1e-6)  # all ten ticks taken ...
+    assert aim["right"][0] - states["right"].tool_pose[0] > 0.002  # ... and not all made yet
+    _drive(arms, np.zeros(12), ticks=0, settle_ticks=150)
+    states = arms.states()
+    assert slowed_then and not states["left"].slowed
+    for a in ARMS:  # once the arms caught up, nothing is in flight
+        assert np.allclose(states[a].target_pose[:3], states[a].tool_pose[:3], atol=5e-4), a

@@ -57,7 +57,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter, deque
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -67,6 +67,7 @@ from bagit.common.dobot import RobotMode, describe_alarm
 from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
 from bagit.common.messages import ArmState, Command, EStop
 from bagit.common.rig import ARMS, RigConfig
+from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
@@ -447,13 +448,26 @@ class ArmDriver:
         def on_packet(rec: np.ndarray, t: float) -> None:
             cb = self.on_state
             if cb is not None:
-                cb(feedback_state(arm, rec, self.frames[arm], estopped=self._estop, stamp=self._stamp(rec)))
+                cb(self._with_aim(feedback_state(arm, rec, self.frames[arm], estopped=self._estop, stamp=self._stamp(rec))))
 
         return on_packet
 
     def _stamp(self, rec: np.ndarray) -> float:
         """When a feedback packet was true, on the rig's clock (a simulated controller stamps its own time)."""
         return float(rec["TimeStamp"]) / 1000.0 if self.clock.simulated else time.time()
+
+    def _with_aim(self, state: ArmState) -> ArmState:
+        """`state` with where the driver is taking that mount (`ArmMotion.aim`) and whether its last
+        period was slowed: what the controller predicts from and stops asking for. Read without the
+        lock, as the node reads the fault: the feedback thread must never wait on a servo cycle, and a
+        pose read while a command lands is one packet's worth off."""
+        aim = self.motion.aim()
+        slowed = bool(self.motion.slowing)
+        update: dict[str, Any] = {"slowed": slowed}
+        if aim is not None:
+            T = aim[state.arm]
+            update["target_pose"] = np.concatenate([T[:3, 3], matrix_to_rpy(T[:3, :3])])
+        return state.model_copy(update=update)
 
     def states(self) -> dict[str, ArmState]:
         """The latest state of each arm that has reported since (re)connecting."""

@@ -91,6 +91,15 @@ class ArmMotion:
     def moving(self) -> bool:
         return self.pipe.moving
 
+    def aim(self) -> Poses | None:
+        """Where the arm side is taking the mounts: the end of the increments taken while it streams,
+        the trajectory's own pose while it brakes or rests (None before the first `restart`). Less the
+        measured poses, it is the motion still in flight, which a controller's prediction needs: the
+        arms follow a command over several servo periods (target, Ruckig, the controllers' servo loop)."""
+        if self.pipe.last_sent is None:
+            return None
+        return self.pipe.targets.end() if self.pipe.mode == "position" else self.pipe.streamer.poses()
+
     def restart(self, records: dict[str, np.ndarray]) -> list[Violation] | None:
         """At rest at the poses the controllers command (feedback `ToolVectorTarget`, `QTarget`: the
         measured ones once the arms settle). None if a record reports a non-finite pose; else the

@@ -36,7 +36,8 @@ class Controller(Protocol):
     ) -> None: ...
 
     def step(
-        self, x: np.ndarray | None, now: float, gripper_poses: dict[str, np.ndarray], source_stamp: float | None = None
+        self, x: np.ndarray | None, now: float, gripper_poses: dict[str, np.ndarray], source_stamp: float | None = None,
+        pending: np.ndarray | None = None, slowed: bool = False,
     ) -> ControlOutput: ...
 
 

@@ -47,8 +47,9 @@ from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS
 from bagit.services.controller.controller import CONTROLLERS
-from bagit.services.controller.session import (ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault,
-                                                    gripper_poses)
+from bagit.services.controller.session import (
+    ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, arms_slowed, gripper_poses, pending_motion,
+)
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
@@ -296,7 +297,9 @@ class ControllerNode:
         grippers, arm_problem = (None, arm_problem) if arm_problem else gripper_poses(states)
         soi, age = (None, None) if item is None else (item[0], self.soi_age(*item, now=now))
         fault = arm_fault(states) if soi is not None and arm_problem is None else None
-        out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, now)
+        pending = pending_motion(states, grippers) if arm_problem is None else None
+        slowed = arm_problem is None and arms_slowed(states)
+        out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, now, pending, slowed)
         if out.keepalive:
             self.counters["keepalive"] += 1
             self._put(out.command)  # not a control tick: no status, no count as servo

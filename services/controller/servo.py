@@ -23,7 +23,7 @@ from bagit.common.params import MethodParams
 from bagit.common.so3 import so3_log
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
-from bagit.services.controller.increment import pose_increment
+from bagit.services.controller.increment import apply_increment, pose_increment
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
 
 EXPLORE_PUSH_TICKS = 4  # ticks each exploratory push lasts (at the C7 limit)
@@ -36,6 +36,14 @@ TAUT_MARGIN_M = 0.01
 SEP_RECOVER_M = 0.001  # outside the C6 band the grippers head back by at least this per tick
 BROYDEN_SCALED = True  # Broyden's update in units of each input's C7 limit (see BroydenJacobian)
 MIN_SCALED_STEP = 0.5  # ... and windows that moved less than half a full-speed tick are not learnt from
+PREDICT_PENDING = True  # the law predicts from the SOI the motion still in flight will make (see ServoBase._predicted)
+# When the arm side reports a step its joints could not follow (ArmState.slowed), the direction of the
+# motion it still has in flight is barred for this many ticks: the law may not ask for more of it, and
+# while the arms stay slowed the input takes it back (see ServoBase._bar_unmade). Traced on the CR5s:
+# an arm at its elbow margin stood still for 15 s while the controller, blind to it, asked for the same
+# turn every tick and the driver pulled its target back to the lead limit each time.
+REACH_BAR_TICKS = 30
+MIN_BAR_STEP = 0.5  # motion in flight under half a full-speed tick (in C7 units) names no direction to bar
 GOAL_STALL_TICKS = 45  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
 # What a numerical routine raises on bad data (LinAlgError: e.g. 'SVD did not converge'); a tick that
 # meets one holds the arms with the reason.
@@ -97,6 +105,25 @@ def bound_pitch(u: np.ndarray, grippers: dict[str, np.ndarray], start: dict[str,
         elif step < 0 and pitch + step < -limit_rad:
             out[cols] += (min(-limit_rad - pitch, 0.0) - step) * axis
     return out
+
+
+def project_box_halfspace(v: np.ndarray, d: np.ndarray, limit: float, iterations: int = 60) -> np.ndarray:
+    """The point of {w : |w_i| <= 1, w·d <= limit} nearest `v (n,)` (`d (n,)` unit, `limit` >= -1: never
+    empty): clip(v - λ d) for the smallest λ >= 0 that meets the half-space, found by bisection
+    (w·d falls as λ grows)."""
+    w = np.clip(v, -1.0, 1.0)
+    if float(w @ d) <= limit:
+        return w
+    lo, hi = 0.0, 1.0
+    while float(np.clip(v - hi * d, -1.0, 1.0) @ d) > limit:
+        hi *= 2.0
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if float(np.clip(v - mid * d, -1.0, 1.0) @ d) > limit:
+            lo = mid
+        else:
+            hi = mid
+    return np.clip(v - hi * d, -1.0, 1.0)
 
 
 def scale_into_box(u: np.ndarray, u_max: np.ndarray) -> np.ndarray:
@@ -223,6 +250,8 @@ class ServoBase:
         self._sep_offset: float | None = None
         self.ticks = 0
         self._start_rot: dict[str, np.ndarray] | None = None  # the grippers' rotations at the first tick (max_pitch_deg)
+        self._barred: np.ndarray | None = None  # (12,) unit, C7 units: motion the arm side could not make (see _note_reach)
+        self._barred_ticks = 0
         if x0 is not None and gripper_poses is not None:
             self._learn_separation_offset(x0, gripper_poses)
         self._on_reset()
@@ -245,9 +274,14 @@ class ServoBase:
         now: float,
         gripper_poses: dict[str, np.ndarray],
         source_stamp: float | None = None,
+        pending: np.ndarray | None = None,
+        slowed: bool = False,
     ) -> ControlOutput:
         """u for this tick from the SOI `x (n_x, 3)` (None if none arrived) at time `now` (s) and the
-        grippers' poses; `source_stamp`: when the SOI's camera frame was taken (staleness check)."""
+        grippers' poses; `source_stamp`: when the SOI's camera frame was taken (staleness check);
+        `pending (12,)`: the motion the arm side has taken and not yet made (None: none known), which
+        the law predicts from (see `_predicted`); `slowed`: the arm side could not make its last step
+        (its joints), so that motion is not coming and is not asked for again (see `_bar_unmade`)."""
         if self.tracker is None:
             raise BadControlInput("step() before reset(): the controller has no path")
         self.ticks += 1
@@ -286,9 +320,12 @@ class ServoBase:
             self._u_prev = np.zeros(12)
             return self._out(np.zeros(12), "settle", None, x)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]
+        pending = self._valid_pending(pending)
+        self._note_reach(pending, slowed)
         try:
-            target = (slide_to(goal, x) + self.tracker.push(x)).ravel()  # push: zero without the enclosure rule (and for ssvs)
-            u, solve_ms, why = self._law(self.jacobian.J, xf, target, gripper_poses)
+            xp, grippers = self._predicted(xf, gripper_poses, None if slowed else pending)
+            target = (slide_to(goal, xp.reshape(-1, 3)) + self.tracker.push(x)).ravel()  # push: zero without the enclosure rule (and for ssvs)
+            u, solve_ms, why = self._law(self.jacobian.J, xp, target, grippers)
         except NUMERIC_ERRORS as e:  # hold with the reason; never let a numerical error out of a tick
             return self._hold(f"the {self.name} law failed numerically: {e}", x)
         u = np.asarray(u, dtype=float).ravel()
@@ -302,11 +339,65 @@ class ServoBase:
         if self.p.max_pitch_deg is not None:
             # the cut is along the grippers' axis, which is not a C7 box axis: alternate with the box
             for _ in range(3):
-                u = np.clip(bound_pitch(u, gripper_poses, self._start_rot, np.radians(self.p.max_pitch_deg)), -self.u_max, self.u_max)
+                u = np.clip(bound_pitch(u, grippers, self._start_rot, np.radians(self.p.max_pitch_deg)), -self.u_max, self.u_max)
+        u = self._bar_unmade(u, pending if slowed else None)
         self._u_prev = u
         out = self._out(u, "servo", None, x)
         out.solve_ms = solve_ms
         return out
+
+    def _predicted(
+        self, xf: np.ndarray, grippers: dict[str, np.ndarray], pending: np.ndarray | None
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The SOI `(3 n_x,)` and gripper poses this tick's input will act on: the measured ones moved by
+        the motion `pending (12,)` still in flight (x + J p; the grippers at the arm side's aim).
+
+        Why: the CR5s follow a command over 4-6 ticks (the driver's target, Ruckig, the controllers'
+        servo loop; measured on the simulated rig), while the paper's model x_{t+1} = x_t + J u_t has
+        each input act at once. Predicting from the measured SOI alone, the MPC asks again for motion
+        already on its way, saturates C7 and overshoots, then reverses: the rim circles a subgoal."""
+        if not PREDICT_PENDING or pending is None or self.jacobian is None:
+            return xf, grippers
+        return xf + self.jacobian.J @ pending, apply_increment(grippers, pending)
+
+    @staticmethod
+    def _valid_pending(pending: np.ndarray | None) -> np.ndarray | None:
+        """`pending` as a finite `(12,)`, or None (unknown)."""
+        if pending is None:
+            return None
+        p = np.asarray(pending, dtype=float).ravel()
+        return p if p.shape == (12,) and np.all(np.isfinite(p)) else None
+
+    def _note_reach(self, pending: np.ndarray | None, slowed: bool) -> None:
+        """Bar the direction (unit, in C7 units `(12,)`) of the motion in flight while the arm side
+        reports it slowed; the bar lapses REACH_BAR_TICKS ticks after the last such report."""
+        if slowed and pending is not None:
+            v = pending / self.u_max
+            n = float(np.linalg.norm(v))
+            if n >= MIN_BAR_STEP:
+                self._barred, self._barred_ticks = v / n, REACH_BAR_TICKS
+                return
+        if self._barred is not None:
+            self._barred_ticks -= 1
+            if self._barred_ticks <= 0:
+                self._barred = None
+
+    def _bar_unmade(self, u: np.ndarray, unmade: np.ndarray | None) -> np.ndarray:
+        """`u (12,)` with no share along the barred direction (C7 units), and while the arms are slowed
+        taking back up to one full-speed tick of the `unmade (12,)` motion still in flight along it:
+        the arm side's target then returns within reach and its other axes move again (the driver cuts
+        a step its joints cannot follow as a whole). Stays inside C7."""
+        d = self._barred
+        if d is None:
+            return u
+        v = np.asarray(u, dtype=float) / self.u_max
+        limit = 0.0 if unmade is None else -min(max(float((unmade / self.u_max) @ d), 0.0), 1.0)
+        return project_box_halfspace(v, d, limit) * self.u_max
+
+    @property
+    def barred(self) -> np.ndarray | None:
+        """The direction `(12,)` (unit, in C7 units) the controller does not ask for, or None."""
+        return None if self._barred is None else self._barred.copy()
 
     def _learn_separation_offset(self, x: np.ndarray, grippers: dict[str, np.ndarray]) -> None:
         """How far inside the rim's ends the mounts hold it: the rim's extent along the grippers' axis

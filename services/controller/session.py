@@ -32,6 +32,7 @@ from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS, SafetyLimits
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
+from bagit.services.controller.increment import pose_increment
 
 # A command's dt (the time the driver spreads its increment over) stays this far under the arm
 # driver's watchdog (`SafetyLimits.watchdog_s`), so a slow SOI gives slower motion, never a stop.
@@ -75,6 +76,27 @@ def gripper_poses(states: dict[str, ArmState]) -> tuple[dict[str, np.ndarray] | 
             return None, f"the {a} arm's tool pose is not 6 finite numbers"
         out[a] = pose_to_matrix(p[:3], p[3:])
     return out, None
+
+
+def pending_motion(states: dict[str, ArmState], grippers: dict[str, np.ndarray] | None) -> np.ndarray | None:
+    """The motion `(12,)` (the controller's u: world [dp, drotvec] left then right) the arm side has
+    taken and not yet made: from each gripper's measured pose to the arm side's `target_pose`. None
+    when an arm does not report one (the controller then predicts from the measured poses alone)."""
+    if grippers is None:
+        return None
+    aims = {}
+    for a in ARMS:
+        msg = states.get(a)
+        t = None if msg is None or msg.target_pose is None else np.asarray(msg.target_pose, dtype=float)
+        if t is None or t.shape != (6,) or not np.all(np.isfinite(t)):
+            return None
+        aims[a] = pose_to_matrix(t[:3], t[3:])
+    return pose_increment(grippers, aims)
+
+
+def arms_slowed(states: dict[str, ArmState]) -> bool:
+    """The arm side reports that its last step was cut short: the joints could not follow it."""
+    return any(msg is not None and msg.slowed for msg in states.values())
 
 
 def arm_fault(states: dict[str, ArmState]) -> str | None:
@@ -153,9 +175,12 @@ class ServoSession:
     # -- one tick ----------------------------------------------------------------------------------
 
     def tick(self, soi: SoiState | None, soi_age_s: float | None, soi_max_age_s: float, grippers: dict[str, np.ndarray] | None,
-             arm_problem: str | None, arm_fault: str | None, path: Path, goal: Goal | None, now: float) -> Outbox:
+             arm_problem: str | None, arm_fault: str | None, path: Path, goal: Goal | None, now: float,
+             pending: np.ndarray | None = None, slowed: bool = False) -> Outbox:
         """The newest SOI (None: none yet) `soi_age_s` old, the grippers' poses (or why there are none),
-        a latched arm fault: the command and status for this tick (an empty outbox: nothing new)."""
+        a latched arm fault, the motion `pending (12,)` still in flight on the arm side (None: unknown,
+        see `pending_motion`) and whether the arm side is `slowed` (`arms_slowed`): the command and
+        status for this tick (an empty outbox: nothing new)."""
         if self.finished is not None or self.controller is None:
             return Outbox()
         if soi is None:
@@ -191,7 +216,7 @@ class ServoSession:
                               f"by {self.params.enclose_margin_m * 1000:.0f} mm before the lift and at g*")
                 elif self.params.enclose_margin_m is not None:
                     report = f"run {self.run_id}: no goal (with the object's V) yet at the first tick: no enclosure rule"
-            out = c.step(x, now, grippers)
+            out = c.step(x, now, grippers, pending=pending, slowed=slowed)
         except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so
             return self.hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", now)
         self.ticks = c.ticks
