@@ -163,6 +163,8 @@ class ControllerNode:
                     self._frames_cond.wait(0.1)
                 if self._stop.is_set():
                     return
+                while len(self._frames) > 1:  # between runs the world does not wait: only the newest frame matters
+                    self._frames.popleft()
                 ack = self._frames.popleft()
             assert ack.frame is not None
             self._sent = self._status_sent = None

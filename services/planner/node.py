@@ -79,10 +79,10 @@ class PlannerNode:
         self.clock: Callable[[], float] = (lambda: self._sim_t) if self.lockstep else time.time
         self._planning = 0  # plan threads running
         self._frames: list[tuple[StepAck, float]] = []  # lockstep: perception's answers (and when they came) not yet answered
-        self._soi_handled: int | None = None
+        self._soi_handled = float("-inf")  # lockstep: the newest frame stamp whose SOI is handled
         self._statuses: list[StepAck] = []  # lockstep: the controller's answers whose status is not handled yet
         self._status_handled: int | None = None
-        self._object_handled: float | None = None  # lockstep: the stamp of the last ObjectDetection handled
+        self._object_handled = float("-inf")  # lockstep: the newest stamp of an ObjectDetection handled
         self.on_state = on_state
         self.coord = Coordinator(self.cfg.coordinator, now=self.clock())
         self._lock = threading.RLock()
@@ -125,7 +125,7 @@ class PlannerNode:
         self._apply(lambda: self.coord.on_soi(soi, self.clock()))
         if self.lockstep:
             with self._pub_lock:
-                self._soi_handled = soi.seq
+                self._soi_handled = max(self._soi_handled, soi.source_stamp)
                 self._answer_frames()
 
     # -- lockstep ------------------------------------------------------------------------------
@@ -165,8 +165,9 @@ class PlannerNode:
         """Answer the frames whose SOI is handled, unless a plan is under way (with _pub_lock held)."""
         while self._frames and not self._planning:
             ack, came = self._frames[0]
-            missing = ("its SOI" if ack.soi_seq is not None and ack.soi_seq != self._soi_handled else
-                       "its object detection" if ack.object_stamp is not None and ack.object_stamp != self._object_handled else None)
+            # by stamps, which the rig's clock makes grow across worlds (an SOI's is its frame's)
+            missing = ("its SOI" if ack.soi_seq is not None and (ack.frame or 0.0) > self._soi_handled else
+                       "its object detection" if ack.object_stamp is not None and ack.object_stamp > self._object_handled else None)
             if missing is not None:  # they come on their own keys (best effort): after the answer, or never
                 if time.monotonic() - came < LOCKSTEP_WAIT_S:
                     return
@@ -183,7 +184,7 @@ class PlannerNode:
         self._apply(lambda: self.coord.on_object(det, self.clock()))
         if self.lockstep:
             with self._pub_lock:
-                self._object_handled = det.source_stamp
+                self._object_handled = max(self._object_handled, det.source_stamp)
                 self._answer_frames()
 
     def _on_status(self, st: ControllerStatus) -> None:
