@@ -29,7 +29,7 @@ from bagit.common.bus import (
     declare_alive,
     serve_run_control,
 )
-from bagit.common.clock import ClockKind
+from bagit.common.clock import ClockKind, SimClock, make_clock
 from bagit.common.messages import (
     ClockTick,
     ControllerStatus,
@@ -75,8 +75,8 @@ class PlannerNode:
         self.cfg = config or PlannerServiceConfig()
         self.keys = keys
         self.lockstep = clock == "sim"
-        self._sim_t = 0.0
-        self.clock: Callable[[], float] = (lambda: self._sim_t) if self.lockstep else time.time
+        self._clock = make_clock(clock)  # fed from sim/clock below when simulated
+        self.clock: Callable[[], float] = self._clock.now
         self._planning = 0  # plan threads running
         self._frames: list[tuple[StepAck, float]] = []  # lockstep: perception's answers (and when they came) not yet answered
         self._soi_handled = float("-inf")  # lockstep: the newest frame stamp whose SOI is handled
@@ -132,8 +132,8 @@ class PlannerNode:
 
     def _on_clock(self, tick: ClockTick) -> None:
         """The simulator's time: the coordinator's limits run on it."""
-        with self._pub_lock:
-            self._sim_t = max(self._sim_t, tick.t)
+        if isinstance(self._clock, SimClock):  # subscribed only in lockstep
+            self._clock.advance(tick.t, tick.servo_tick)
         self._apply(lambda: self.coord.tick(self.clock()))
 
     def _on_ack(self, ack: StepAck) -> None:
