@@ -40,6 +40,7 @@ from bagit.common.errors import BagItError
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
 from bagit.common.results import provenance
 from bagit.scenarios import list_scenarios
+from bagit.common.logs import configure_logging
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -307,7 +308,7 @@ def add_sweep_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_from_args(a: argparse.Namespace) -> dict:
     """A sweep from parsed flags (`bagit bench sweep` and this module's own command line); progress on stderr."""
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(message)s", stream=sys.stderr)
+    configure_logging(logging.WARNING)  # a sweep runs many in-process rigs: only their warnings, and its own progress
     log.setLevel(logging.INFO)
     with suppress(ImportError):  # Dask sets its loggers' levels when first imported: import it before quieting them
         import distributed  # noqa: F401

@@ -27,6 +27,7 @@ from typing import Any
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
 from bagit.common.results import RunResult, provenance
 from bagit.scenarios import list_scenarios
+from bagit.common.logs import configure_logging
 
 log = logging.getLogger("bagit.bench.deployed")
 
@@ -167,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hogs", type=int, default=0, help="busy processes hogging the cores while `bagit up` runs (a loaded machine)")
     p.add_argument("--markdown", type=Path, default=None, help="write the table here (default: beside the JSONL, .md)")
     a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    configure_logging()
     names = a.only.split(",") if a.only else [Path(s).stem for s in list_scenarios()]
     done = {(r["scenario"], r["seed"], r["controller"]) for r in load(a.jsonl)}
     a.jsonl.parent.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from bagit.bench.common import RESULTS_DIR
 from bagit.common.results import Provenance, provenance
 from bagit.harness import ENV, stop_process, wait_until
+from bagit.common.logs import configure_logging
 
 log = logging.getLogger("bagit.bench.probes")
 
@@ -882,8 +883,7 @@ def secure_probe(rows: Rows, tmp: Path) -> None:
         sims = start_sims()
         try:
             with secure_rig(tmp, "secure") as sec:
-                node = ArmDriverNode(sec.clients["arm-driver"], keys, ArmDriver(sims.rig, DriverConfig(feedback_timeout_s=0.5)),
-                                     report=lambda s: None)
+                node = ArmDriverNode(sec.clients["arm-driver"], keys, ArmDriver(sims.rig, DriverConfig(feedback_timeout_s=0.5)))
                 try:
                     cmd = Publisher(sec.clients["controller"], keys.controller_cmd, Command)
                     run = Publisher(sec.clients["planner"], keys.run_state, RunState)
@@ -1008,7 +1008,7 @@ def main() -> None:
     ap.add_argument("--only", default=None, help=f"comma-separated groups of {', '.join(RUNNERS)}")
     ap.add_argument("--no-readme", action="store_true", help="do not rewrite the README's probe section")
     args = ap.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    configure_logging()
     log.info("%s", summary(run(args.only.split(",") if args.only else None, readme=not args.no_readme)))
 
 

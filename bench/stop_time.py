@@ -43,6 +43,7 @@ from bagit.common.rig import ARMS
 from bagit.harness import ENV, stop_process, wait_until
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.sim.harness import FeedbackRecorder, RecordingServer, servo_parameter, servo_positions, start_sims
+from bagit.common.logs import configure_logging
 
 log = logging.getLogger("bagit.bench.stop_time")
 
@@ -302,7 +303,7 @@ def main() -> None:
     if args.stand_in:
         stand_in_controller(args.stand_in[0], args.stand_in[1], float(args.stand_in[2]))
         return
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    configure_logging()
     cases = tuple(c for c in args.cases.split(",") if c)
     unknown = sorted(set(cases) - set(CASES))
     if unknown or args.trials < 1:

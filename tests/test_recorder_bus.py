@@ -8,6 +8,7 @@ i.e. a message of every published model, in the order a run produces them."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -19,11 +20,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bus_support import assert_same_message, pair, wait_until  # noqa: F401 - pair is a fixture
+from log_support import LogLines
 
 from bagit.cli import main
 from bagit.common import wire
 from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, locators, open_session
 from bagit.common.errors import BusError
+from bagit.common.logs import configure_logging
 from bagit.common.messages import (
     ArmState, CameraInfo, Command, ControllerStatus, EStop, Message, PointCloud, RgbdFrame, RunState, SoiState,
 )
@@ -230,11 +233,10 @@ def test_disk_full_is_reported_on_stderr_and_run_state(tmp_path, pair, capfd):
     a, b = pair
     rig = "diskfull"
     keys = Keys(rig)
-    reports: list = []
+    configure_logging()  # as the CLI does: the one format, on stderr
+    lines = LogLines("bagit.recorder")
     w = RecordingWriter(RecorderConfig(dir=tmp_path, chunk_bytes=1024), rig, opener=lambda p: FullDisk(p, 5000))
-    from bagit.services.recorder.node import stderr_report
-
-    node = RecorderNode(b, keys, w, report=lambda lvl, txt: (reports.append((lvl, txt)), stderr_report(lvl, txt)))
+    node = RecorderNode(b, keys, w)
     states: list[RunState] = []
     Subscriber(a, keys.run_state, RunState, states.append)
     pub_state = Publisher(a, keys.run_state, RunState)
@@ -249,8 +251,9 @@ def test_disk_full_is_reported_on_stderr_and_run_state(tmp_path, pair, capfd):
     assert flagged.run_id == "df1" and flagged.stage == "bagging"
     status = node.close()
     assert status["errors"] >= 1 and status["lost"] > 0 and "ENOSPC" in status["error"]
-    assert any(lvl == "error" and "disk full" in t for lvl, t in reports)
-    assert "bagit recorder: ERROR: recording stopped: disk full (ENOSPC)" in capfd.readouterr().err
+    lines.close()
+    assert any("disk full" in t for t in lines.at(logging.ERROR))
+    assert "ERROR bagit.recorder: recording stopped: disk full (ENOSPC)" in capfd.readouterr().err
 
 
 def test_recorder_stopped_by_sigterm_closes_its_files_with_the_result(tmp_path, plan):

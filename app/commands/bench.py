@@ -4,14 +4,16 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import importlib
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.bench")
 
 NAME = "bench"
 HELP = "run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), `probes` (issue 25's findings re-run), or `compare OLD NEW`"
@@ -75,11 +77,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"unknown stage(s) {unknown}; choose from {STAGES}")
     results: dict[str, Any] = {"machine": machine(), "quick": args.quick, "stages": {}}
     for name in stages:
-        print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+        log.info("%s ...", name)
         t0 = time.perf_counter()
         mod = importlib.import_module(f"bagit.bench.{name}")
         results["stages"][name] = mod.run(quick=args.quick)
-        print(f"[bench] {name} done in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+        log.info("%s done in %.1f s", name, time.perf_counter() - t0)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     jp, mp = write_results(f"stages-{stamp}", results, stages_markdown(results), args.out)
     results["files"] = {"json": str(jp), "markdown": str(mp)}

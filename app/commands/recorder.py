@@ -9,11 +9,14 @@ status 1, the loss and the reason in its summary) after taking its liveliness to
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.recorder")
 
 NAME = "recorder"
 HELP = "record every message of a rig to MCAP files (one per run, rolling while idle)"
@@ -49,7 +52,6 @@ def _bytes(value: float, unit: float) -> int:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import signal
-    import sys
     import threading
     import time
 
@@ -80,7 +82,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         session = open_session(bus)
         try:
             node = RecorderNode(session, keys, writer, exclude=args.exclude)
-            print(f"bagit recorder: recording {keys.all} into {cfg.dir}; Ctrl-C to stop", file=sys.stderr, flush=True)
+            log.info("recording %s into %s; Ctrl-C to stop", keys.all, cfg.dir)
             deadline = None if args.duration is None else time.monotonic() + args.duration
             while not stop.is_set() and not node.stopped.is_set():  # stopped: the writer died
                 left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
