@@ -229,3 +229,13 @@ def test_every_name_is_defined_once_and_the_registries_follow_it():
 
     assert tuple(CONTROLLERS) == CONTROLLER_NAMES and tuple(PLANNERS) == PLANNER_NAMES
     assert set(STAGES) == set(RunState.model_fields["stage"].annotation.__args__)
+
+
+def test_a_fresh_provenance_names_the_commit_host_date_and_parameters():
+    from datetime import datetime, timedelta, timezone
+
+    from bagit.common.results import provenance
+
+    p = provenance({"horizon": 10})
+    assert p.commit and p.host and p.params == {"horizon": 10}
+    assert p.date is not None and abs(datetime.now(timezone.utc) - datetime.fromisoformat(p.date)) < timedelta(minutes=1)
