@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; for `probes`: group(s), v4 cli recorder arm")
-    p.add_argument("--no-readme", action="store_true", help="for `probes`: leave the README's probe section as it is")
+    p.add_argument("--no-doc", action="store_true", help="for `probes`: leave the probe section of docs/testing.md as it is")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
     p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); for `sweep`: seeds per scenario, controller, planner and arms (default 8; --quick 1)")
     p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         unknown = sorted(set(args.only or []) - set(probes.RUNNERS))
         if unknown:
             raise ValueError(f"unknown probe group(s) {unknown}; choose from {list(probes.RUNNERS)}")
-        return probes.run(args.only, readme=not args.no_readme)
+        return probes.run(args.only, doc=not args.no_doc)
     if args.what == "paper":
         from bagit.bench import paper
 
