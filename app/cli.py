@@ -13,8 +13,9 @@ import importlib
 import json
 import os
 import sys
+from collections.abc import Sequence
 from types import ModuleType
-from typing import Any, NoReturn, Sequence
+from typing import Any, NoReturn
 
 import numpy as np
 

@@ -28,9 +28,10 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, TextIO
+from typing import Any, Literal, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
@@ -385,7 +386,7 @@ class Up:
             self.session = None
         return codes
 
-    def __enter__(self) -> "Up":
+    def __enter__(self) -> Up:
         return self
 
     def __exit__(self, *_: Any) -> None:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -37,10 +36,10 @@ import numpy as np
 
 from bagit.bench.isolated import Key, WrongCommit, failed_record, run_isolated, stop_runs, worker_commit
 from bagit.common.errors import BagItError
+from bagit.common.logs import configure_logging
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
 from bagit.common.results import provenance
 from bagit.scenarios import list_scenarios
-from bagit.common.logs import configure_logging
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -323,7 +322,8 @@ def table(r: dict) -> str:
     lines = ["| scenario | controller | planner | arms | success | error cm | time s | MPC solve ms |", "|---|---|---|---|---|---|---|---|"]
     for x in r["rows"]:
         lines.append(
-            f"| {x['scenario']} | {x['controller']} | {x['planner']} | {x['arms']} | {x['success']}/{x['of']} | {x['error_cm_mean']:.2f} ± {x['error_cm_std']:.2f} | "
+            f"| {x['scenario']} | {x['controller']} | {x['planner']} | {x['arms']} | {x['success']}/{x['of']} | "
+            f"{x['error_cm_mean']:.2f} ± {x['error_cm_std']:.2f} | "
             f"{x['time_s_mean']:.1f} | {x['solve_ms_median']:.2f} |"
         )
     return "\n".join(lines)

@@ -29,18 +29,19 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal
+from typing import Any, Literal
 
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.bench.common import RESULTS_DIR
+from bagit.common.logs import configure_logging
 from bagit.common.results import Provenance, provenance
 from bagit.harness import ENV, stop_process, wait_until
-from bagit.common.logs import configure_logging
 
 log = logging.getLogger("bagit.bench.probes")
 

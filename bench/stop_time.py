@@ -37,13 +37,13 @@ from typing import Any
 import numpy as np
 
 from bagit.bench.common import RESULTS_DIR
+from bagit.common.logs import configure_logging
 from bagit.common.messages import Command
 from bagit.common.results import provenance
 from bagit.common.rig import ARMS
 from bagit.harness import ENV, stop_process, wait_until
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.sim.harness import FeedbackRecorder, RecordingServer, servo_parameter, servo_positions, start_sims
-from bagit.common.logs import configure_logging
 
 log = logging.getLogger("bagit.bench.stop_time")
 

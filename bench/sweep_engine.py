@@ -31,8 +31,8 @@ import numpy as np
 from bagit.bench.closed_loop import engine
 from bagit.bench.common import RESULTS_DIR, machine, stats_ms
 from bagit.bench.isolated import ONE_THREAD_ENV
-from bagit.common.results import provenance
 from bagit.common.logs import configure_logging
+from bagit.common.results import provenance
 
 log = logging.getLogger("bagit.bench.sweep_engine")
 

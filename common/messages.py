@@ -391,7 +391,7 @@ class ObjectDetection(Message):
         return v
 
     @model_validator(mode="after")
-    def _complete(self) -> "ObjectDetection":
+    def _complete(self) -> ObjectDetection:
         if self.ok and (self.marker_id is None or self.vertices is None or self.T_world_object is None
                         or self.height is None or not np.isfinite(self.height) or self.height <= 0):
             raise ValueError("a detection with ok=True needs marker_id, vertices, T_world_object and a positive height")

@@ -46,7 +46,7 @@ class Streamer:
             k += 1
             time.sleep(self.dt)
 
-    def start(self) -> "Streamer":
+    def start(self) -> Streamer:
         self._thread.start()
         return self
 
@@ -56,7 +56,7 @@ class Streamer:
 
 
 @contextlib.contextmanager
-def node_on_bus(rig: str, cfg: "DriverConfig"):
+def node_on_bus(rig: str, cfg: DriverConfig):
     """(sims, node, peer session, keys): an ArmDriverNode for two simulated CR5s on one in-process Zenoh
     peer, the test's publishers on the other; the node's log lines kept in `node.events`."""
     from bus_support import session_pair

@@ -16,9 +16,9 @@ from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.geometry import matrix_to_rpy
 from bagit.common.messages import ArmState, Command, ControllerStatus, EllipseParams, Goal, Path, RunState, SoiState
 from bagit.common.rig import SafetyLimits
+from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
 from bagit.services.controller.session import KEEPALIVE
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.synthetic import SyntheticRim
 
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5

@@ -73,7 +73,7 @@ def test_a_simulated_frame_on_camera_rgbd_gives_the_object_on_perception_object(
 
 
 def test_object_source_off_publishes_nothing_and_no_library_marker_is_reported(tmp_path):
-    for a, b in session_pair("probjoff"):
+    for a, _b in session_pair("probjoff"):
         node = PerceptionNode(a, Keys("probjoff"), PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), object_source="off"))
         try:
             assert node._library is None and node._object_pub is None

@@ -13,14 +13,14 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from bus_support import assert_same_message, pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
 from log_support import LogLines
+from test_recorder_files import FullDisk
 
 from bagit.cli import main
 from bagit.common import wire
@@ -28,11 +28,19 @@ from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, locators, o
 from bagit.common.errors import BusError
 from bagit.common.logs import configure_logging
 from bagit.common.messages import (
-    ArmState, CameraInfo, Command, ControllerStatus, EStop, Message, PointCloud, RgbdFrame, RunState, SoiState,
+    ArmState,
+    CameraInfo,
+    Command,
+    ControllerStatus,
+    EStop,
+    Message,
+    PointCloud,
+    RgbdFrame,
+    RunState,
+    SoiState,
 )
 from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messages
 from bagit.services.recorder.node import RecorderNode, Replayer
-from test_recorder_files import FullDisk
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -145,7 +153,7 @@ def test_recorder_killed_mid_run_keeps_every_message_up_to_its_last_chunk(tmp_pa
     assert set(got_by_key) <= set(by_key)
     for key, msgs in got_by_key.items():  # every key's recovered messages: exactly what was sent, in order
         assert len(msgs) <= len(by_key[key])
-        for m, s in zip(msgs, by_key[key]):
+        for m, s in zip(msgs, by_key[key], strict=False):
             assert wire.encode(m) == wire.encode(s), key
     # everything sent well before the kill (flush 0.2 s + margin) is in a complete chunk
     settled = [k for k, _, t in sent if t < killed_t - 1.0]
@@ -208,7 +216,7 @@ def test_replay_publishes_the_same_soi_sequence_with_its_timing(tmp_path, plan):
     res = json.loads(out)
     assert res["sent"] == len(rows) - sum(1 for k, _, _ in rows if k.endswith(("/controller/cmd", "/estop")))
     assert [m.seq for m, _ in got] == [m.seq for m in sois]
-    for (m, _), s in zip(got, sois):
+    for (m, _), s in zip(got, sois, strict=False):
         assert np.array_equal(m.rim, s.rim)
     arrived = got[-1][1] - got[0][1]
     soi_span = (sum(1 for _ in sois) - 1) * 0.04 / 2

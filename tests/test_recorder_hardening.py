@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
 from log_support import LogLines
 from mcap.reader import make_reader
 from test_recorder_files import T0, Clock, FullDisk

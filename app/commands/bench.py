@@ -1,12 +1,13 @@
 """`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
-(`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings (`probes`), compare runs (`compare`)."""
+(`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings
+(`probes`), compare runs (`compare`)."""
 
 from __future__ import annotations
 
 import argparse
-import logging
 import importlib
 import json
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,8 @@ from bagit.commands import _args
 log = logging.getLogger("bagit.bench")
 
 NAME = "bench"
-HELP = "run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), `probes` (issue 25's findings re-run), or `compare OLD NEW`"
+HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), "
+        "`probes` (issue 25's findings re-run), or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency"]
@@ -28,10 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "compare"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
-    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; for `probes`: group(s), v4 cli recorder arm")
+    p.add_argument("--only", action="append", default=None,
+                   help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; "
+                   "for `probes`: group(s), v4 cli recorder arm")
     p.add_argument("--no-doc", action="store_true", help="for `probes`: leave the probe section of docs/testing.md as it is")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
-    p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); for `sweep`: seeds per scenario, controller, planner and arms (default 8; --quick 1)")
+    p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); "
+                   "for `sweep`: seeds per scenario, controller, planner and arms (default 8; --quick 1)")
     p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
     p.add_argument(
         "--closed-loop", type=Path, action="append", default=None,

@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-    return {"success": True, "rig": bus.rig, "uptime_s": time.monotonic() - t0, "runs": runs, "last_state": last.model_dump(mode="json", exclude={"scenario_doc"})}
+    return {"success": True, "rig": bus.rig, "uptime_s": time.monotonic() - t0, "runs": runs,
+            "last_state": last.model_dump(mode="json", exclude={"scenario_doc"})}
 
 
 def human(r: dict[str, Any]) -> str:

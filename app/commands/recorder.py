@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_bus_arguments(p)
     p.add_argument("--dir", type=Path, default=Path("recordings"), help="folder of the recordings (default ./recordings)")
-    p.add_argument("--max-mb", type=_args.positive_number, default=1024.0, help="close a file before it would exceed this size in MB, and continue in the next part (default 1024)")
+    p.add_argument("--max-mb", type=_args.positive_number, default=1024.0,
+                   help="close a file before it would exceed this size in MB, and continue in the next part (default 1024)")
     p.add_argument("--chunk-kb", type=_args.positive_number, default=1024.0, help="MCAP chunk size in KB (default 1024)")
     p.add_argument("--flush-s", type=_args.positive_seconds, default=1.0, help="close a chunk at most this long after its first message")
     p.add_argument("--linger-s", type=_args.non_negative_seconds, default=2.0, help="keep a finished run's file open this long (its last states)")

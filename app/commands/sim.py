@@ -43,15 +43,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from pydantic import ValidationError
+
     from bagit.common.errors import BadScenario
     from bagit.common.rig import RigConfig
     from bagit.common.scenario import Scenario
     from bagit.scenarios import find_scenario
-    from bagit.services.sim.rig_sim import RealtimeStats, SimRig
-
-    from pydantic import ValidationError
-
     from bagit.services.sim.node import SimNodeConfig
+    from bagit.services.sim.rig_sim import RealtimeStats, SimRig
 
     try:  # the node's bounds on the flags, before the world is built
         SimNodeConfig(speed=args.speed, fps=args.fps, truth_hz=args.truth_hz)

@@ -34,8 +34,8 @@ from bagit.common.bus.keys import (
     RESULT,
     STATE,
     STATE_HIGH,
-    KeySpec,
     Keys,
+    KeySpec,
     QoS,
     key_table_markdown,
 )

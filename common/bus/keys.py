@@ -100,7 +100,9 @@ KEY_TABLE: tuple[KeySpec, ...] = (
             "marker id, object and its outline V in the world, ~1 Hz while a run perceives; the newest replaces the last"),
     KeySpec("planner/goal", Goal, RESULT, "pub", "g† and g* of a run: once per run, must arrive"),
     KeySpec("planner/path", PathMsg, RESULT, "pub", "SOI path of a run: once per run, must arrive"),
-    KeySpec("controller/cmd", Command, COMMAND, "pub", "arm increments: none may be lost or reordered; `source_stamp` = the camera stamp of the SOI it came from (0 for a hold without one); `run_id` must be the servoing run's"),
+    KeySpec("controller/cmd", Command, COMMAND, "pub",
+            "arm increments: none may be lost or reordered; `source_stamp` = the camera stamp of the SOI it came from "
+            "(0 for a hold without one); `run_id` must be the servoing run's"),
     KeySpec("controller/status", ControllerStatus, DISPLAY, "pub", "per-tick errors and solve time, for live plots"),
     KeySpec("arm/*/state", ArmState, STATE_HIGH, "pub", "joint and tool state of the left or right arm; newest wins"),
     KeySpec("run/state", RunState, STATE, "pub", "run id, stage, progress, reason; republished periodically"),

@@ -68,7 +68,7 @@ class LivelinessWatcher:
         except zenoh.ZError:
             pass
 
-    def __enter__(self) -> "LivelinessWatcher":
+    def __enter__(self) -> LivelinessWatcher:
         return self
 
     def __exit__(self, *_: Any) -> None:

@@ -73,7 +73,7 @@ class Publisher(Generic[M]):
         except zenoh.ZError:
             pass  # the session is already closed
 
-    def __enter__(self) -> "Publisher[M]":
+    def __enter__(self) -> Publisher[M]:
         return self
 
     def __exit__(self, *_: Any) -> None:
@@ -150,7 +150,7 @@ class Subscriber(Generic[M]):
         except zenoh.ZError:
             pass
 
-    def __enter__(self) -> "Subscriber[M]":
+    def __enter__(self) -> Subscriber[M]:
         return self
 
     def __exit__(self, *_: Any) -> None:

@@ -98,7 +98,7 @@ class Server(Generic[M, R]):
         except zenoh.ZError:
             pass
 
-    def __enter__(self) -> "Server[M, R]":
+    def __enter__(self) -> Server[M, R]:
         return self
 
     def __exit__(self, *_: Any) -> None:

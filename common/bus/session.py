@@ -68,7 +68,7 @@ class BusConfig(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _tls_pair(self) -> "BusConfig":
+    def _tls_pair(self) -> BusConfig:
         if (self.tls_cert is None) != (self.tls_key is None):
             raise ValueError("tls_cert and tls_key go together")
         return self

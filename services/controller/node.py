@@ -32,13 +32,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
 import zenoh  # noqa: F401 - the node is where the service meets the bus
 from pydantic import BaseModel, ConfigDict, Field
-
-from collections import deque
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.clock import ClockKind
@@ -48,7 +47,15 @@ from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS
 from bagit.services.controller.controller import CONTROLLERS
 from bagit.services.controller.session import (
-    ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, arms_slowed, gripper_poses, pending_motion,
+    ARM_MAX_AGE_S,
+    DRIVER_WATCHDOG_S,
+    SOI_MAX_AGE_S,
+    Outbox,
+    ServoSession,
+    arm_fault,
+    arms_slowed,
+    gripper_poses,
+    pending_motion,
 )
 
 log = logging.getLogger("bagit.controller")

@@ -54,8 +54,8 @@ from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import back_project
 from bagit.services.perception.soi import SoiParams
-from bagit.services.perception.tracker import RimTracker
 from bagit.services.perception.sources import SourceConfig, open_source
+from bagit.services.perception.tracker import RimTracker
 
 log = logging.getLogger("bagit.perception")
 

@@ -9,8 +9,9 @@ grippers. Each of those is a knob here. Everything is seeded, so a cloud is repr
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 

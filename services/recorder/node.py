@@ -25,8 +25,8 @@ controller/cmd on the target rig (an arm driver would move the arms).
 
 from __future__ import annotations
 
-import queue
 import logging
+import queue
 import threading
 import time
 from pathlib import Path
