@@ -23,14 +23,14 @@ DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
 LEVEL_ENV = "BAGIT_LOG_LEVEL"
 
 
-class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+class _StderrHandler(logging.StreamHandler):
     """A stream handler that writes to whatever sys.stderr is at the time of each record (so a
     handler set up once still writes where stderr is redirected later, e.g. by a test's capture)."""
 
     def __init__(self) -> None:
         super().__init__(sys.stderr)
 
-    @property  # type: ignore[override]
+    @property
     def stream(self) -> TextIO:
         return sys.stderr
 

@@ -9,7 +9,7 @@ JSON header, never as JSON numbers.
 from __future__ import annotations
 
 import time
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, TypeAlias
 
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
@@ -33,10 +33,16 @@ def _array(dtype: str) -> Any:
     ]
 
 
-ArrayF64 = _array("<f8")
-ArrayF32 = _array("<f4")
-ArrayU8 = _array("u1")
-ArrayU16 = _array("<u2")
+if TYPE_CHECKING:  # to a type checker each is an ndarray; pydantic sees the coercion and the serializer
+    ArrayF64: TypeAlias = np.ndarray
+    ArrayF32: TypeAlias = np.ndarray
+    ArrayU8: TypeAlias = np.ndarray
+    ArrayU16: TypeAlias = np.ndarray
+else:
+    ArrayF64 = _array("<f8")
+    ArrayF32 = _array("<f4")
+    ArrayU8 = _array("u1")
+    ArrayU16 = _array("<u2")
 
 
 def _check_points(a: np.ndarray, what: str) -> np.ndarray:

@@ -109,7 +109,7 @@ def make_rim_cloud(
     occlusion, occlusion_at, seed, margin_m).
     """
     rim = true_rim(kind, perimeter=perimeter, center=center, rpy=rpy, aspect=aspect)
-    cloud, _ = rim_cloud(rim, **cloud_options)  # type: ignore[arg-type]
+    cloud, _ = rim_cloud(rim, **cloud_options)
     return cloud, rim
 
 
