@@ -91,7 +91,7 @@ class KeySpec:
     why: str
 
 
-# The key space and QoS, in one place (README "Zenoh key space and QoS" is generated from this).
+# The key space and QoS, in one place (docs/architecture.md's "Zenoh key space and QoS" is generated from this).
 KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("camera/rgbd", RgbdFrame, STATE, "pub", "640x480 colour + depth, ~1.5 MB; a stale frame is useless"),
     KeySpec("perception/cloud", PointCloud, DISPLAY, "pub", "down-sampled cloud, for display only"),
@@ -175,7 +175,7 @@ def _priority_label(q: QoS) -> str:
 
 
 def key_table_markdown(rig: str = "<rig>") -> str:
-    """The key space and QoS as a Markdown table (README-ready)."""
+    """The key space and QoS as a Markdown table (as docs/architecture.md shows it)."""
     lines = [
         "| key (under `bagit/<rig>/`) | message | kind | reliability | congestion | priority | express | why |",
         "|---|---|---|---|---|---|---|---|",
