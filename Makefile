@@ -1,4 +1,4 @@
-# BagIt: `make demo` runs the main job, `make test` the whole test suite.
+# BagIt: `make demo` runs the main job, `make test` the linter, the type checker and the whole test suite.
 # Both create .venv in the repository root and install what is needed, system packages included.
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
@@ -8,7 +8,7 @@ APT_PACKAGES := libusb-1.0-0 libosmesa6 libgl1 libglib2.0-0 libgomp1 chromium ch
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: demo test sysdeps setup bench clean
+.PHONY: demo test lint sysdeps setup bench clean
 
 sysdeps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -34,8 +34,13 @@ setup: sysdeps $(VENV)/.installed
 demo: setup
 	$(BIN)/bagit up exp02 --exit-when-done
 
-test: setup
+test: setup lint
 	$(BIN)/python -m pytest -q
+
+# Lint (ruff) and type check (mypy, through tools/typecheck.py): both configured in pyproject.toml.
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/python tools/typecheck.py
 
 bench: setup
 	$(BIN)/bagit bench stages

@@ -2,6 +2,8 @@
 
 Errors the user can fix (bad files, bad input, infeasible goals, bad flags) print one line on stderr
 and exit with status 2; a job that ran but did not succeed exits with 1. Set BAGIT_DEBUG=1 for tracebacks.
+The composition root of every process: it sets up logging (`bagit.common.logs`, one format on
+stderr, level from BAGIT_LOG_LEVEL) before a command runs; stdout carries only the command's result.
 """
 
 from __future__ import annotations
@@ -11,13 +13,15 @@ import importlib
 import json
 import os
 import sys
+from collections.abc import Sequence
 from types import ModuleType
-from typing import Any, NoReturn, Sequence
+from typing import Any, NoReturn
 
 import numpy as np
 
 from bagit import __version__
 from bagit.common.errors import BagItError
+from bagit.common.logs import configure_logging
 
 # The subcommands, in the order `bagit --help` lists them.
 COMMAND_MODULES: list[str] = [
@@ -98,6 +102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     mod = modules[args.command]
     try:
+        configure_logging()
         result = mod.run(args)
     except KeyboardInterrupt:
         print(f"bagit {args.command}: interrupted", file=sys.stderr)

@@ -14,10 +14,10 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Callable, Iterator
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, locators, open_session
 from bagit.common.messages import Command, RunState

@@ -16,7 +16,7 @@ Both count what happened on the arm side (`events()`, the result's `arm_events`)
 from __future__ import annotations
 
 import logging
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -57,7 +57,7 @@ class Cr5Arms:
             log.debug("%s: %s", kind, detail)
 
     @classmethod
-    def of(cls, sim: SimRig, cfg: DriverConfig | None = None) -> "Cr5Arms":
+    def of(cls, sim: SimRig, cfg: DriverConfig | None = None) -> Cr5Arms:
         """The simulated rig's two CR5s, stepped with its world."""
         return cls(sim.rig, sim.arms, sim.step, cfg)
 

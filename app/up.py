@@ -28,9 +28,10 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, TextIO
+from typing import Any, Literal, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
@@ -168,8 +169,9 @@ class Up:
     # -- set-up ----------------------------------------------------------------------------------
 
     def say(self, text: str, who: str = "up") -> None:
-        with self._print_lock:
-            print(f"[{who}] {text}", file=self.log, flush=True)
+        with self._print_lock:  # one write per line: a child's line never splits another's
+            self.log.write(f"[{who}] {text}\n")
+            self.log.flush()
         if self.on_line is not None:
             self.on_line(who, text)
 
@@ -249,10 +251,8 @@ class Up:
 
     def _pump(self, name: str, proc: subprocess.Popen) -> None:
         assert proc.stdout is not None
-        own = f"[{name}] "
         for line in proc.stdout:
-            line = line.rstrip("\n")
-            self.say(line[len(own):] if line.startswith(own) else line, who=name)
+            self.say(line.rstrip("\n"), who=name)
 
     def _on_alive(self, service: str, alive: bool) -> None:
         self.say(f"service {service} {'up' if alive else 'gone'}")
@@ -386,7 +386,7 @@ class Up:
             self.session = None
         return codes
 
-    def __enter__(self) -> "Up":
+    def __enter__(self) -> Up:
         return self
 
     def __exit__(self, *_: Any) -> None:

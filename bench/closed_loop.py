@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -37,6 +36,7 @@ import numpy as np
 
 from bagit.bench.isolated import Key, WrongCommit, failed_record, run_isolated, stop_runs, worker_commit
 from bagit.common.errors import BagItError
+from bagit.common.logs import configure_logging
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
 from bagit.common.results import provenance
 from bagit.scenarios import list_scenarios
@@ -307,7 +307,7 @@ def add_sweep_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_from_args(a: argparse.Namespace) -> dict:
     """A sweep from parsed flags (`bagit bench sweep` and this module's own command line); progress on stderr."""
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(message)s", stream=sys.stderr)
+    configure_logging(logging.WARNING)  # a sweep runs many in-process rigs: only their warnings, and its own progress
     log.setLevel(logging.INFO)
     with suppress(ImportError):  # Dask sets its loggers' levels when first imported: import it before quieting them
         import distributed  # noqa: F401
@@ -322,7 +322,8 @@ def table(r: dict) -> str:
     lines = ["| scenario | controller | planner | arms | success | error cm | time s | MPC solve ms |", "|---|---|---|---|---|---|---|---|"]
     for x in r["rows"]:
         lines.append(
-            f"| {x['scenario']} | {x['controller']} | {x['planner']} | {x['arms']} | {x['success']}/{x['of']} | {x['error_cm_mean']:.2f} ± {x['error_cm_std']:.2f} | "
+            f"| {x['scenario']} | {x['controller']} | {x['planner']} | {x['arms']} | {x['success']}/{x['of']} | "
+            f"{x['error_cm_mean']:.2f} ± {x['error_cm_std']:.2f} | "
             f"{x['time_s_mean']:.1f} | {x['solve_ms_median']:.2f} |"
         )
     return "\n".join(lines)

@@ -22,9 +22,9 @@ from bagit.bench.common import stats_ms
 from bagit.common.names import CONTROLLER_NAMES
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits, make_controller
+from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.mpc import separation_bounds, separation_gradient, uncondensed_qp
 from bagit.services.controller.subgoal import rms_error, slide_to
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.synthetic import SyntheticRim
 
 N_X = 32
@@ -52,7 +52,7 @@ def closed_loop(kind: str, p: MethodParams, scale: float = 1.0, noise: float = 0
         c.solver.solve = spy
     rng = np.random.default_rng(seed)
     t, out, ms, servo_ms = 0.0, None, [], []
-    for k in range(1, 1500):
+    for k in range(1, 1500):  # noqa: B007 - the count is read after the loop
         x = m.rim(g) + rng.normal(size=(N_X, 3)) * noise
         t0 = time.perf_counter()
         out = c.step(x, t, g)
@@ -175,7 +175,7 @@ def run(quick: bool = False) -> dict:
     unc_ms, unc_cpu = _sparse_uncondensed(qps[: 30 if quick else 100], p, ref.R)
 
     def diff(xs):  # largest difference to PIQP dense, as a share of each input's C7 range
-        return float(max(np.max(np.abs(a - b) / scale) for a, b in zip(xs, dense_x)))
+        return float(max(np.max(np.abs(a - b) / scale) for a, b in zip(xs, dense_x, strict=False)))
 
     med = float(np.median(dense_ms))
     out["piqp_dense"] = stats_ms(dense_ms) | {"iterations_median": float(np.median(dense_it)), "cpu": stats_ms(dense_cpu)}

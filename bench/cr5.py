@@ -126,7 +126,8 @@ def main() -> None:
             print(f"{group}.{name}: min {s['min_ms']:.3f} / median {s['median_ms']:.3f} / p95 {s['p95_ms']:.3f} ms{extra}")
     for name in ("rig_physics_only", "rig_with_camera_15hz"):
         v = r[name]
-        print(f"{name}: {v['realtime_factor']:.2f}x real time ({v['sim_s']:.0f} s simulated in {v['wall_s']:.1f} s, {v['frames']} frames), alarms {v['alarms']}")
+        print(f"{name}: {v['realtime_factor']:.2f}x real time ({v['sim_s']:.0f} s simulated in {v['wall_s']:.1f} s, {v['frames']} frames), "
+              f"alarms {v['alarms']}")
 
 
 if __name__ == "__main__":

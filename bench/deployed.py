@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bagit.common.logs import configure_logging
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
 from bagit.common.results import RunResult, provenance
 from bagit.scenarios import list_scenarios
@@ -92,7 +93,7 @@ class Hogs:
     def __init__(self, n: int) -> None:
         self.n, self.procs = n, []
 
-    def __enter__(self) -> "Hogs":
+    def __enter__(self) -> Hogs:
         self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.n)]
         return self
 
@@ -109,7 +110,8 @@ def pair(scenario: str, seed: int, controller: str, speed: float, hogs: int = 0)
     return {"scenario": scenario, "seed": seed, "controller": controller, **compare(run, up),
             "run": run.model_dump(mode="json"), "up": up.model_dump(mode="json"),
             "wall_s": {"run": round(run_wall, 2), "up": round(up_wall, 2)}, "cpu_s_per_service": cpu, "load_avg": [round(v, 2) for v in os.getloadavg()],
-            "effective": {"speed": speed, "clock": "lockstep", "hogs": hogs}, "provenance": provenance(up.provenance.params if up.provenance else {}).model_dump(mode="json")}
+            "effective": {"speed": speed, "clock": "lockstep", "hogs": hogs},
+            "provenance": provenance(up.provenance.params if up.provenance else {}).model_dump(mode="json")}
 
 
 def load(path: Path) -> list[dict[str, Any]]:
@@ -139,7 +141,7 @@ def markdown(records: list[dict[str, Any]]) -> str:
     if not records:
         return "No deployed-stack records.\n"
     commits = sorted({(r["provenance"] or {}).get("commit", "?")[:10] for r in records})
-    lines = [f"# The deployed stack (`bagit up`, lockstep) against `bagit run`\n",
+    lines = ["# The deployed stack (`bagit up`, lockstep) against `bagit run`\n",
              f"{len(records)} pairs; commit(s) {', '.join(commits)}; host {records[0]['provenance'].get('host')} "
              f"({records[0]['provenance'].get('cpu')}, {records[0]['provenance'].get('cores')} cores).\n",
              "| scenario | seed | run: success | run: error cm | run: ticks | up: success | up: error cm | up: ticks | "
@@ -167,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hogs", type=int, default=0, help="busy processes hogging the cores while `bagit up` runs (a loaded machine)")
     p.add_argument("--markdown", type=Path, default=None, help="write the table here (default: beside the JSONL, .md)")
     a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    configure_logging()
     names = a.only.split(",") if a.only else [Path(s).stem for s in list_scenarios()]
     done = {(r["scenario"], r["seed"], r["controller"]) for r in load(a.jsonl)}
     a.jsonl.parent.mkdir(parents=True, exist_ok=True)

@@ -90,7 +90,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     r = run(ap.parse_args().quick)
     print(f"{r['placements']} placements of {r['shapes']} shapes: {r['valid_share']:.1%} valid goals")
-    print(f"mean c1 {r['mean_c1']:.3f} (paper {PAPER['c1']}), c2 {r['mean_c2']:.4f} m (paper {PAPER['c2']}), c3 {r['mean_c3']:.4f} (paper {PAPER['c3']}; over the {r['c3_applied_share']:.0%} with a principal axis)")
+    print(f"mean c1 {r['mean_c1']:.3f} (paper {PAPER['c1']}), c2 {r['mean_c2']:.4f} m (paper {PAPER['c2']}), "
+          f"c3 {r['mean_c3']:.4f} (paper {PAPER['c3']}; over the {r['c3_applied_share']:.0%} with a principal axis)")
     t = r["time"]
     print(f"time per goal: median {t['median_ms']:.2f} ms, p95 {t['p95_ms']:.2f} ms, min {t['min_ms']:.2f} ms")
 

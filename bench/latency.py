@@ -32,8 +32,9 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -90,9 +91,9 @@ def _stage(role: str, connect: str, data: Path) -> int:
 
         keep = Subscriber(s, keys.camera_rgbd, RgbdFrame, _latest_worker(perceive))
     else:
+        from bagit.common.params import MethodParams
         from bagit.services.controller import ShapeServo
         from bagit.services.controller.increment import apply_increment
-        from bagit.common.params import MethodParams
 
         servo = ShapeServo("mpc", MethodParams(), d["path"], int(d["dagger_index"]), float(d["R"]))
         grippers = {"left": d["left"], "right": d["right"]}
@@ -211,7 +212,8 @@ class _RigFeed:
     def __init__(self, session: Any, keys: Any, prep: dict[str, Any]) -> None:
         from bagit.common.bus import Publisher
         from bagit.common.geometry import matrix_to_rpy
-        from bagit.common.messages import ArmState, Goal, Path as PathMsg, RunState
+        from bagit.common.messages import ArmState, Goal, RunState
+        from bagit.common.messages import Path as PathMsg
 
         sc = prep["scenario"]
         self.state = RunState(run_id=RUN_ID, scenario=sc.name, stage="pre-bagging", controller="mpc", planner="cbirrt",
@@ -312,7 +314,8 @@ def _print(res: dict[str, Any]) -> None:
         if k.startswith("frame_to_cmd"):
             lat = r["latency"]
             print(f"{k:<22} {r['frames']:>4} frames -> {r['commands']:>4} commands; latency p50 {lat.get('median_ms', float('nan')):.1f} ms, "
-                  f"p95 {lat.get('p95_ms', float('nan')):.1f}, p99 {lat.get('p99_ms', float('nan')):.1f}, max {lat.get('max_ms', float('nan')):.1f}; modes {r['modes']}")
+                  f"p95 {lat.get('p95_ms', float('nan')):.1f}, p99 {lat.get('p99_ms', float('nan')):.1f}, "
+                  f"max {lat.get('max_ms', float('nan')):.1f}; modes {r['modes']}")
             if r["hold_reasons"]:
                 print(f"{'':<22} holds: {r['hold_reasons']}")
     g = res["rgbd_30hz_cross_process"]["rgbd"]

@@ -72,7 +72,7 @@ def planning_summary(records: list[dict[str, Any]]) -> dict[str, dict[str, dict[
     for rec in records:
         out.setdefault(rec["scenario"], {}).setdefault(rec["planner"], {"runs": []})["runs"].append(rec)
     for row in out.values():
-        for planner, cell in row.items():
+        for cell in row.values():
             runs = cell.pop("runs")
             t = np.array([r["time_s"] for r in runs if r["success"]])
             cell.update(
@@ -234,7 +234,7 @@ def manipulation_summary(runs: list[dict[str, Any]], rows: list[dict[str, Any]])
         if method in out.get(row["scenario"], {}):
             continue
 
-        def num(k: str) -> float | None:
+        def num(k: str, row: dict = row) -> float | None:
             v = row.get(k)
             return None if v is None or not np.isfinite(v) else float(v)
 

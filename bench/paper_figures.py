@@ -128,7 +128,7 @@ def rendered_paths(r: dict[str, Any], path: Path) -> Path | None:
                 rim = np.vstack([res.path[i], res.path[i][:1]])
                 col = pre_cmap(i / max(d, 1)) if i <= d else bag_cmap((i - d) / max(n - 1 - d, 1))
                 ax.plot(*rim.T, color=col, lw=0.8)
-        ax.set_title(f"{_short(p.stem)}: {'%d nodes' % len(res.path) if res.success else 'no path'}", fontsize=8)
+        ax.set_title(f"{_short(p.stem)}: {f'{len(res.path)} nodes' if res.success else 'no path'}", fontsize=8)
         ax.tick_params(labelsize=5)
         ax.view_init(elev=22, azim=-60)
         pts = res.path.reshape(-1, 3) if res.success else v
@@ -176,7 +176,7 @@ def manipulation(r: dict[str, Any], path: Path) -> Path | None:
         ax.bar(x + (j - 1) * 0.27, rate, 0.13, color=colors[ctrl], label=f"{ctrl} (ours)")
         ax.bar(x + (j - 1) * 0.27 + 0.13, [np.nan if p is None else p[0] / p[1] for p in paper], 0.13, color=colors[ctrl], alpha=0.35, hatch="//",
                label=f"{ctrl} (paper)")
-        for xi, c in zip(x + (j - 1) * 0.27, ours):
+        for xi, c in zip(x + (j - 1) * 0.27, ours, strict=False):
             if c is not None:
                 ax.text(xi, 0.02, f"{c['success']}/{c['of']}", rotation=90, fontsize=5, ha="center", va="bottom")
     ax.set_xticks(x, [_short(s) for s in stems], rotation=45, ha="right", fontsize=8)

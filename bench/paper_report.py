@@ -196,7 +196,7 @@ def soi_section(r: dict[str, Any]) -> list[str]:
         f"factor in [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}], tilted up to 20°, turned and moved at random; R = 0.68 m, n_x = 32): "
         f"{s['valid']} valid goals, the other {s['placements'] - s['valid']} too large for the bag (InfeasibleGoal); "
         f"median {f(s['time_ms_median'], 2)} ms per goal. No bag opening g0 is given here, so each goal is the paper's "
-        "tight C1-C3 ellipse; the runs' own g† is the bag-shaped member of the same family (README, Conventions).",
+        "tight C1-C3 ellipse; the runs' own g† is the bag-shaped member of the same family (docs/experiments.md, the bagging ellipse's shape).",
         "",
         "| | mean c1 (max F_e) | mean c2 (m) | mean c3 (abs(d_e·d_v)) | placements |",
         "|---|---|---|---|---|",

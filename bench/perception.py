@@ -96,9 +96,9 @@ def run(quick: bool = False) -> dict:
     for n_points in (12_000, 50_000):
         cloud, rim = _frame(n_points, seed=1)
         soi = extract_soi(cloud, N_X)
-        cold = _timed(lambda: extract_soi(cloud, N_X), repeat)
+        cold = _timed(lambda cloud=cloud: extract_soi(cloud, N_X), repeat)
         cloud2, rim2 = _frame(n_points, seed=2, shift=0.003)  # the next frame: the rim moved 3 mm
-        warm = _timed(lambda: extract_soi(cloud2, N_X, init=soi), repeat)
+        warm = _timed(lambda cloud2=cloud2, soi=soi: extract_soi(cloud2, N_X, init=soi), repeat)
         row = {
             "cold": cold,
             "warm": warm,

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from bagit.bench.common import RESULTS_DIR
+from bagit.common.logs import configure_logging
 from bagit.common.messages import Command
 from bagit.common.results import provenance
 from bagit.common.rig import ARMS
@@ -302,7 +303,7 @@ def main() -> None:
     if args.stand_in:
         stand_in_controller(args.stand_in[0], args.stand_in[1], float(args.stand_in[2]))
         return
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    configure_logging()
     cases = tuple(c for c in args.cases.split(",") if c)
     unknown = sorted(set(cases) - set(CASES))
     if unknown or args.trials < 1:

@@ -31,6 +31,7 @@ import numpy as np
 from bagit.bench.closed_loop import engine
 from bagit.bench.common import RESULTS_DIR, machine, stats_ms
 from bagit.bench.isolated import ONE_THREAD_ENV
+from bagit.common.logs import configure_logging
 from bagit.common.results import provenance
 
 log = logging.getLogger("bagit.bench.sweep_engine")
@@ -116,7 +117,7 @@ def main() -> None:
     ap.add_argument("--baseline", type=Path, default=None, help="another harness script taking closed_loop's flags, timed the same way")
     ap.add_argument("--no-record", action="store_true", help="do not append to bench/results/sweep-engine.jsonl")
     a = ap.parse_args()
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(message)s", stream=sys.stderr)
+    configure_logging(logging.WARNING)
     log.setLevel(logging.INFO)
     import distributed  # noqa: F401 - it sets its loggers' levels when first imported; quieted here
 

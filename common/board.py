@@ -33,7 +33,7 @@ class BoardSpec(BaseModel):
     rpy: Vec3 = Field((np.pi, 0.0, 0.0), description="world orientation of the board frame")
 
     @model_validator(mode="after")
-    def _fits(self) -> "BoardSpec":
+    def _fits(self) -> BoardSpec:
         if self.marker_length >= self.square_length:
             raise ValueError("a marker must be smaller than its square")
         if (self.squares_x * self.squares_y) // 2 > ARUCO_DICTIONARIES[self.dictionary]:

@@ -61,9 +61,9 @@ import codecs
 import math
 import re
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Iterable, Sequence, Union
 
 import numpy as np
 
@@ -313,7 +313,7 @@ class FeedbackAssembler:
 
 # -- commands ------------------------------------------------------------------------------------
 
-Value = Union[int, float, str, tuple[Union[float, str], ...]]
+Value = int | float | str | tuple[float | str, ...]
 
 
 @dataclass

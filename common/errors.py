@@ -72,3 +72,9 @@ class NumericalFailure(BagItError, ArithmeticError):
 class SimulationFailed(BagItError, RuntimeError):
     """The physics simulation went unstable: non-finite state, or MuJoCo warned of bad accelerations,
     positions or velocities (it would otherwise reset the world silently and carry on)."""
+
+
+def first_line(e: BaseException) -> str:
+    """The first line of an exception's text (its type's name if it has none): a one-line reason."""
+    s = str(e).strip()
+    return s.splitlines()[0] if s else type(e).__name__

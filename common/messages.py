@@ -9,7 +9,7 @@ JSON header, never as JSON numbers.
 from __future__ import annotations
 
 import time
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, TypeAlias
 
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
@@ -33,10 +33,16 @@ def _array(dtype: str) -> Any:
     ]
 
 
-ArrayF64 = _array("<f8")
-ArrayF32 = _array("<f4")
-ArrayU8 = _array("u1")
-ArrayU16 = _array("<u2")
+if TYPE_CHECKING:  # to a type checker each is an ndarray; pydantic sees the coercion and the serializer
+    ArrayF64: TypeAlias = np.ndarray
+    ArrayF32: TypeAlias = np.ndarray
+    ArrayU8: TypeAlias = np.ndarray
+    ArrayU16: TypeAlias = np.ndarray
+else:
+    ArrayF64 = _array("<f8")
+    ArrayF32 = _array("<f4")
+    ArrayU8 = _array("u1")
+    ArrayU16 = _array("<u2")
 
 
 def _check_points(a: np.ndarray, what: str) -> np.ndarray:
@@ -391,7 +397,7 @@ class ObjectDetection(Message):
         return v
 
     @model_validator(mode="after")
-    def _complete(self) -> "ObjectDetection":
+    def _complete(self) -> ObjectDetection:
         if self.ok and (self.marker_id is None or self.vertices is None or self.T_world_object is None
                         or self.height is None or not np.isfinite(self.height) or self.height <= 0):
             raise ValueError("a detection with ok=True needs marker_id, vertices, T_world_object and a positive height")

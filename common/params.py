@@ -6,7 +6,8 @@ is validated in one place; unknown keys are rejected so a typo never silently fa
 
 from __future__ import annotations
 
-from typing import Any, Literal, Mapping
+from collections.abc import Mapping
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 

@@ -14,6 +14,7 @@ import os
 import platform
 import socket
 import subprocess
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,7 @@ class Provenance(BaseModel):
     cores: int = 0
     python: str = ""
     params: dict[str, Any] = Field(default_factory=dict, description="every method parameter the run used")
+    date: str | None = Field(None, description="when the result was made: UTC, ISO 8601 (None: a record of before the field)")
 
 
 class RunResult(BaseModel):
@@ -131,7 +133,7 @@ def cpu_model() -> str:
 
 
 def provenance(params: dict[str, Any] | None = None) -> Provenance:
-    """This code's commit (and whether the tree had changes), the host and its CPU, and `params`."""
+    """This code's commit (and whether the tree had changes), the host and its CPU, `params`, and now."""
     if not _PROVENANCE_CACHE:
         root = Path(__file__).resolve().parent.parent
         commit, dirty = None, None
@@ -144,4 +146,5 @@ def provenance(params: dict[str, Any] | None = None) -> Provenance:
             pass
         _PROVENANCE_CACHE.update(commit=commit, dirty=dirty, host=socket.gethostname(), cpu=cpu_model(),
                                  cores=os.cpu_count() or 0, python=platform.python_version())
-    return Provenance(**_PROVENANCE_CACHE, params=dict(params or {}))
+    date = datetime.now(UTC).isoformat(timespec="seconds")
+    return Provenance(**_PROVENANCE_CACHE, params=dict(params or {}), date=date)

@@ -80,7 +80,7 @@ class CameraConfig(BaseModel):
         y = np.cross(z, x)
         return make_transform(np.column_stack([x, y, z]), p)
 
-    def with_pose(self, T_world_camera: np.ndarray) -> "CameraConfig":
+    def with_pose(self, T_world_camera: np.ndarray) -> CameraConfig:
         """A copy placed at `T_world_camera (4, 4)` (e.g. calibrated): position, a look-at point 1 m along
         the optical axis and `up` = the camera's -y, which `T_world_camera()` turns back into exactly T."""
         T = np.asarray(T_world_camera, dtype=float)
@@ -133,7 +133,7 @@ class SafetyLimits(BaseModel):
     servo_period_s: float = Field(0.03, ge=0.03, le=0.2, description="ServoP no faster than every 30 ms")
 
     @model_validator(mode="after")
-    def _watchdog_lets_a_late_command_pass(self) -> "SafetyLimits":
+    def _watchdog_lets_a_late_command_pass(self) -> SafetyLimits:
         """The watchdog acts a servo period ahead of its deadline, so it halts after a gap of watchdog_s -
         servo_period_s; with watchdog_s >= 4 servo periods that gap is at least 3/4 of the watchdog, more
         than two of the controller's keep-alive periods (`bagit.services.controller.session.KEEPALIVE_SHARE`)."""
@@ -160,7 +160,7 @@ class RigConfig(BaseModel):
     board: BoardSpec = Field(default_factory=BoardSpec, description="the calibration board and where it lies (bagit calibrate)")
 
     @classmethod
-    def from_file(cls, path: str | Path) -> "RigConfig":
+    def from_file(cls, path: str | Path) -> RigConfig:
         p = Path(path)
         try:
             data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}

@@ -16,8 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from bagit.common.aruco import ARUCO_DICTIONARIES, ArucoDictionary
 from bagit.common.errors import BadScenario
-from bagit.common.names import MAX_N_X, MIN_N_X
 from bagit.common.geometry import closed_polyline_length, make_transform, pca, pose_to_matrix, resample_closed
+from bagit.common.names import MAX_N_X, MIN_N_X
 from bagit.common.params import DEFAULT_LAMBDA_D_M, MethodParams
 from bagit.common.shapes import MAX_ANGLE_RAD, MAX_SIZE_M, Angles, Length, Position, Shape, Size3, check_coordinates
 
@@ -68,7 +68,7 @@ class MarkerSpec(BaseModel):
     rpy: Angles = (0.0, 0.0, 0.0)
 
     @model_validator(mode="after")
-    def _id_in_dictionary(self) -> "MarkerSpec":
+    def _id_in_dictionary(self) -> MarkerSpec:
         if self.id >= ARUCO_DICTIONARIES[self.dictionary]:
             raise ValueError(f"marker id {self.id} is not in {self.dictionary} (ids 0..{ARUCO_DICTIONARIES[self.dictionary] - 1})")
         return self
@@ -99,7 +99,7 @@ class ObjectSpec(BaseModel):
         return _finite_points(v, "object.vertices", 3)
 
     @model_validator(mode="after")
-    def _derive(self) -> "ObjectSpec":
+    def _derive(self) -> ObjectSpec:
         if self.vertices is None and self.shape is None:
             raise ValueError("object needs `vertices` or a `shape` to derive them from")
         if self.vertices is None and self.shape is not None:
@@ -182,7 +182,7 @@ class BagSpec(BaseModel):
         return _finite_points(v, "bag.initial_rim", 4)
 
     @model_validator(mode="after")
-    def _perimeter(self) -> "BagSpec":
+    def _perimeter(self) -> BagSpec:
         if self.rim_perimeter is None and self.initial_rim is not None:
             self.rim_perimeter = closed_polyline_length(np.asarray(self.initial_rim))
         return self
@@ -258,7 +258,7 @@ class Scenario(BaseModel):
         return DEFAULT_LAMBDA_D_M
 
     @classmethod
-    def from_dict(cls, data: Any, source: str = "scenario") -> "Scenario":
+    def from_dict(cls, data: Any, source: str = "scenario") -> Scenario:
         """Validate a parsed document; errors become one-line `BadScenario`."""
         if not isinstance(data, dict):
             raise BadScenario(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
@@ -277,7 +277,7 @@ class Scenario(BaseModel):
             raise BadScenario(f"{source}: {e}") from None
 
     @classmethod
-    def from_text(cls, text: str, source: str = "scenario") -> "Scenario":
+    def from_text(cls, text: str, source: str = "scenario") -> Scenario:
         """Parse YAML (a superset of JSON) and validate; a document over MAX_SCENARIO_BYTES is refused unread."""
         if len(text) > MAX_SCENARIO_BYTES:
             raise BadScenario(f"{source}: {len(text)} characters, over the {MAX_SCENARIO_BYTES >> 20} MiB a scenario may have")
@@ -292,7 +292,7 @@ class Scenario(BaseModel):
         return cls.from_dict(data, source)
 
     @classmethod
-    def from_file(cls, path: str | Path) -> "Scenario":
+    def from_file(cls, path: str | Path) -> Scenario:
         """Read a `.yaml`, `.yml` or `.json` scenario file."""
         p = Path(path)
         try:

@@ -7,7 +7,7 @@ A bundle's parts are placed in the bundle's frame, as bound objects are strapped
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
@@ -170,7 +170,7 @@ class Bundle(_ShapeBase):
     """Several shapes bound together; V is the outline around the parts' bottoms."""
 
     type: Literal["bundle"] = "bundle"
-    parts: list[Annotated[Union[Box, Cylinder, Sphere, Prism], Field(discriminator="type")]] = Field(..., min_length=1)
+    parts: list[Annotated[Box | Cylinder | Sphere | Prism, Field(discriminator="type")]] = Field(..., min_length=1)
 
     def local_bottom(self) -> np.ndarray:
         bottoms = np.vstack([p.bottom_vertices() for p in self.parts])
@@ -188,4 +188,4 @@ class Bundle(_ShapeBase):
         return np.vstack([p.hull_points() for p in self.parts])
 
 
-Shape = Annotated[Union[Box, Cylinder, Sphere, Prism, Bundle], Field(discriminator="type")]
+Shape = Annotated[Box | Cylinder | Sphere | Prism | Bundle, Field(discriminator="type")]

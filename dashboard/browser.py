@@ -1,7 +1,8 @@
 """A dashboard URL opened in Debian's headless Chromium, driven by Playwright (tests, benchmarks).
 
 Uses the system browser (/usr/bin/chromium, `apt-get install chromium`), never a downloaded one,
-with a fresh profile per page; `max_fps` caps the page's animation frames (see _cap_fps_script). Console errors and uncaught page errors are collected, so a check
+with a fresh profile per page; `max_fps` caps the page's animation frames (see _cap_fps_script). Console errors and uncaught
+page errors are collected, so a check
 can insist on none. Playwright is a development dependency, imported only here.
 """
 
@@ -179,7 +180,7 @@ class BrowserPage:
             if self._launcher is not None:
                 Path(self._launcher).unlink(missing_ok=True)
 
-    def __enter__(self) -> "BrowserPage":
+    def __enter__(self) -> BrowserPage:
         return self
 
     def __exit__(self, *_: Any) -> None:

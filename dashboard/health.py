@@ -11,8 +11,8 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 RATE_WINDOW_S = 2.0
 _MAX_ARRIVALS = 1024  # bounds memory at any rate: 512 Hz over the window

@@ -49,14 +49,14 @@ def triangulate_polygon(xy: np.ndarray) -> np.ndarray:
         guard += 1
         m = len(order)
         for k in range(m):
-            i, j, l = order[k - 1], order[k], order[(k + 1) % m]
-            a, b, c = xy[i], xy[j], xy[l]
+            i, j, n = order[k - 1], order[k], order[(k + 1) % m]
+            a, b, c = xy[i], xy[j], xy[n]
             if (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]) <= 1e-15:
                 continue  # reflex or degenerate corner: not an ear
-            others = [o for o in order if o not in (i, j, l)]
+            others = [o for o in order if o not in (i, j, n)]
             if others and np.any(_inside_triangle(xy[others], a, b, c)):
                 continue
-            faces.append((i, j, l))
+            faces.append((i, j, n))
             order.pop(k)
             break
         else:  # no ear found (self-intersecting input): close with a fan rather than loop forever

@@ -138,7 +138,7 @@ class DashboardNode:
         except Exception as e:  # noqa: BLE001
             raise BusError(f"closing the zenoh session failed: {e}") from None
 
-    def __enter__(self) -> "DashboardNode":
+    def __enter__(self) -> DashboardNode:
         return self
 
     def __exit__(self, *_: Any) -> None:

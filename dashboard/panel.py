@@ -13,8 +13,9 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path as FilePath
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import viser

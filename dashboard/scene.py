@@ -113,7 +113,7 @@ class SceneView:
         cols = np.ascontiguousarray(colors, dtype=np.uint8)
         if not self._refresh(name, pts, cols):
             self._nodes[name] = self.server.scene.add_point_cloud(
-                name, pts, cols, point_size=size, point_shape="circle", precision=precision  # type: ignore[arg-type]
+                name, pts, cols, point_size=size, point_shape="circle", precision=precision
             )
 
     def _segments(self, name: str, segments: np.ndarray, colors: np.ndarray, px: float) -> None:

@@ -19,8 +19,9 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path as FilePath
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import viser
@@ -150,7 +151,7 @@ class Dashboard:
         with contextlib.redirect_stdout(sys.stderr):
             self.server.stop()
 
-    def __enter__(self) -> "Dashboard":
+    def __enter__(self) -> Dashboard:
         return self
 
     def __exit__(self, *_: Any) -> None:

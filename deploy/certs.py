@@ -51,7 +51,7 @@ def make_ca(common_name: str = "BagIt lab CA", days: int = 3650):
     x509, hashes, _, ec, _, NameOID = _x509()
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     cert = (
         x509.CertificateBuilder()
         .subject_name(name)
@@ -73,7 +73,7 @@ def make_cert(ca_key, ca_cert, common_name: str, hosts: list[str], days: int = 8
     """A leaf certificate for `common_name`, usable as TLS server and client, valid for `hosts`."""
     x509, hashes, _, ec, EKU, NameOID = _x509()
     key = ec.generate_private_key(ec.SECP256R1())
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     cert = (
         x509.CertificateBuilder()
         .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)]))

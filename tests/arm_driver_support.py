@@ -46,7 +46,7 @@ class Streamer:
             k += 1
             time.sleep(self.dt)
 
-    def start(self) -> "Streamer":
+    def start(self) -> Streamer:
         self._thread.start()
         return self
 
@@ -56,10 +56,11 @@ class Streamer:
 
 
 @contextlib.contextmanager
-def node_on_bus(rig: str, cfg: "DriverConfig"):
+def node_on_bus(rig: str, cfg: DriverConfig):
     """(sims, node, peer session, keys): an ArmDriverNode for two simulated CR5s on one in-process Zenoh
-    peer, the test's publishers on the other; the node's reports kept in `node.events`."""
+    peer, the test's publishers on the other; the node's log lines kept in `node.events`."""
     from bus_support import session_pair
+    from log_support import LogLines
 
     from bagit.common.bus import Keys
     from bagit.services.arm_driver.driver import ArmDriver
@@ -68,12 +69,13 @@ def node_on_bus(rig: str, cfg: "DriverConfig"):
     sims = start_sims()
     gen = session_pair(rig)
     a, b = next(gen)
-    events: list[str] = []
-    node = ArmDriverNode(a, Keys(rig), ArmDriver(sims.rig, cfg), report=events.append)
-    node.events = events
+    lines = LogLines("bagit.arm_driver")
+    node = ArmDriverNode(a, Keys(rig), ArmDriver(sims.rig, cfg))
+    node.events = lines.messages
     try:
         yield sims, node, b, Keys(rig)
     finally:
         node.close()
+        lines.close()
         gen.close()
         sims.close()

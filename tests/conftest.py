@@ -5,6 +5,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
+from bus_support import pair  # noqa: E402, F401 - the two-session fixture every bus test takes
 from hypothesis import settings  # noqa: E402
 
 # Property tests draw the same examples on every run: CI must not pass or fail by luck.

@@ -10,9 +10,10 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
+from bus_support import wait_until  # noqa: F401  (re-exported for the dashboard tests)
 
 from bagit.common import cr5
 from bagit.common.geometry import matrix_to_rpy
@@ -20,15 +21,12 @@ from bagit.common.messages import (
     ArmState,
     Command,
     ControllerStatus,
-    Goal,
-    Path as PathMsg,
     PointCloud,
     RunControlReply,
     RunState,
     SoiState,
 )
 from bagit.common.rig import RigConfig
-from bus_support import wait_until  # noqa: F401  (re-exported for the dashboard tests)
 
 ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
 CLOUD_RGB = (0, 200, 0)  # the synthetic cloud's colour, so a screenshot can find it

@@ -46,7 +46,7 @@ class FakeController:
             try:
                 c, _ = lst.accept()
                 return c
-            except (socket.timeout, TimeoutError):
+            except TimeoutError:
                 continue
             except OSError:
                 return None

@@ -109,7 +109,7 @@ def test_hold_command_stops_the_arms_and_estop_over_zenoh_latches_both(rigbus):
     t_call = time.monotonic()
     estop.put(EStop(engage=True, source="test", reason="operator"))
     assert wait_until(lambda: all(sims.robots[a].estop_pressed for a in ("left", "right")), 2.0)
-    for a, srv in sims.servers.items():
+    for srv in sims.servers.values():
         got = [t for t, text, _ in srv.log if text == "EmergencyStop(1)"]
         assert len(got) == 1 and got[0] - t_call < 0.5
     assert wait_until(lambda: all(states.get(keys.arm_state(a)).estopped for a in ("left", "right")), 2.0)

@@ -61,7 +61,7 @@ def test_a_step_past_the_wrist_singularity_is_shortened_to_the_joints_speed():
 def test_stepping_on_reaches_the_target_past_the_singularity_at_the_joints_speed():
     frames, offsets, seeds, prev = _setup(Q_NEAR_SINGULAR, Q_EASY)
     cmd = {"left": _tilted(frames, Q_NEAR_SINGULAR, 3.0), "right": prev["right"].copy()}
-    for periods in range(1, 300):
+    for periods in range(1, 300):  # noqa: B007 - the count is read after the loop
         r = solve_within(prev, cmd, joint_solver(frames, seeds, offsets, LIMIT))
         assert r.poses is not None
         for a in ARMS:

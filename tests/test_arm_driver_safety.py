@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from arm_driver_support import home_poses
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -13,8 +14,6 @@ from bagit.services.arm_driver.safety import (
     clip_target,
     violations,
 )
-
-from arm_driver_support import home_poses
 
 DT = 0.03
 RIG = RigConfig()

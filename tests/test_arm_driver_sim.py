@@ -9,12 +9,12 @@ feedback packets, recorded on connections of their own. The machine running thes
 so the servo loop's and the simulators' own jitter is allowed for where the test says so.
 """
 
-import re
 import threading
 import time
 
 import numpy as np
 import pytest
+from arm_driver_support import FeedbackRecorder, Streamer, home_poses, servo_parameter, servo_positions, start_sims
 
 from bagit.common.dobot import Alarm
 from bagit.common.errors import ProtocolError
@@ -23,8 +23,6 @@ from bagit.common.names import ESTOP_SOURCE_CLI
 from bagit.common.rig import ARMS
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
-
-from arm_driver_support import FeedbackRecorder, Streamer, home_poses, servo_parameter, servo_positions, start_sims
 
 # On a loaded CI machine the simulated controllers' feedback threads can stall for a while; only the
 # feedback-loss test uses the (shorter) production default.

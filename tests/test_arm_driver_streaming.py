@@ -3,6 +3,7 @@ composed, smooth stops, and (property test) nothing outside the limits whatever 
 
 import numpy as np
 import pytest
+from arm_driver_support import home_poses
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -12,8 +13,6 @@ from bagit.common.so3 import so3_exp
 from bagit.services.arm_driver.pipeline import MotionPipeline
 from bagit.services.arm_driver.safety import Envelope, violations
 from bagit.services.arm_driver.streaming import Streamer, TargetIntegrator
-
-from arm_driver_support import home_poses
 
 RIG = RigConfig()
 ENV = Envelope.from_rig(RIG)

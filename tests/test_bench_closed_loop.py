@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 
 from bagit.bench import closed_loop
-from bagit.common.results import RunResult
 from bagit.bench.paper import load_closed_loop, manipulation_summary, same_runs_as_mpc
+from bagit.common.results import RunResult
 
 
 def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):

@@ -1,5 +1,5 @@
 """`bagit bench probes`: the probes themselves against a simulated CR5, a probe that breaks is a failed
-row (never a stopped run), and the README's table is the one generated from the newest record."""
+row (never a stopped run), and docs/testing.md's table is the one generated from the newest record."""
 
 from __future__ import annotations
 
@@ -48,23 +48,23 @@ def _record(passed: bool) -> probes.ProbeRecord:
                               seconds=1.0, rows=[row])
 
 
-def test_the_table_is_generated_from_a_record_and_replaces_the_readme_section():
+def test_the_table_is_generated_from_a_record_and_replaces_the_doc_section():
     body = probes.table(_record(False))
     assert "0/1 probes pass" in body and "| `x-1` | a \\| b | e | o | **no** |" in body
-    readme = f"# T\n\nintro\n{probes.BEGIN}\nold table\n{probes.END}\nafter\n"
-    out = probes.readme_with(readme, body)
+    doc = f"# T\n\nintro\n{probes.BEGIN}\nold table\n{probes.END}\nafter\n"
+    out = probes.doc_with(doc, body)
     assert out.startswith("# T\n\nintro\n") and out.endswith(f"{probes.END}\nafter\n") and "old table" not in out and body in out
     with pytest.raises(ValueError, match="no probe section"):
-        probes.readme_with("# no markers\n", body)
+        probes.doc_with("# no markers\n", body)
 
 
-def test_the_readme_and_probes_md_show_the_newest_record_with_every_row_passing():
+def test_the_testing_doc_and_probes_md_show_the_newest_record_with_every_row_passing():
     """The published table is generated from the record, never typed: both copies are what the newest
     record in bench/results/probes.jsonl generates, and every row of it passes."""
     rec = probes.last_record()
     body = probes.table(rec)
-    readme = probes.README.read_text(encoding="utf-8")
-    assert probes.readme_with(readme, body) == readme
+    doc = probes.DOC.read_text(encoding="utf-8")
+    assert probes.doc_with(doc, body) == doc
     assert probes.TABLE.read_text(encoding="utf-8").endswith(body)
     assert {r.id.split("-")[0] for r in rec.rows} == {"v4", "cli", "rec", "arm"}
     assert all(r.passed for r in rec.rows), [(r.id, r.observed) for r in rec.rows if not r.passed]

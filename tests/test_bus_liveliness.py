@@ -10,7 +10,7 @@ import sys
 import textwrap
 import time
 
-from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
 
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, declare_alive, locators, open_session
 

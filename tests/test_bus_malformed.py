@@ -9,7 +9,7 @@ import struct
 
 import numpy as np
 import pytest
-from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
 
 from bagit.common import wire
 from bagit.common.bus import DropCounters, Keys, LatestCache, Publisher, Subscriber, request_run_control, serve_run_control

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from bus_support import assert_same_message, example_message, pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import assert_same_message, example_message, wait_until
 
 from bagit.common.bus import (
     KEY_TABLE,

@@ -26,7 +26,7 @@ def test_help_lists_every_subcommand():
 
 def test_every_subcommand_takes_json():
     parser, modules = build_parser()
-    for name, mod in modules.items():
+    for name in modules:
         sub = parser._subparsers._group_actions[0].choices[name]  # noqa: SLF001 - argparse has no public accessor
         assert any("--json" in a.option_strings for a in sub._actions), name
 

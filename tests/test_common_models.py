@@ -1,4 +1,5 @@
 import json
+from datetime import UTC
 
 import numpy as np
 import pytest
@@ -111,7 +112,8 @@ def test_bundled_scenarios_all_load():
 @given(
     st.recursive(
         st.none() | st.booleans() | st.floats(allow_nan=True) | st.integers() | st.text(max_size=5),
-        lambda c: st.lists(c, max_size=4) | st.dictionaries(st.sampled_from(["name", "object", "bag", "shape", "type", "vertices", "size", "height", "params", "obstacles", "x"]), c, max_size=4),
+        lambda c: st.lists(c, max_size=4) | st.dictionaries(
+            st.sampled_from(["name", "object", "bag", "shape", "type", "vertices", "size", "height", "params", "obstacles", "x"]), c, max_size=4),
         max_leaves=20,
     )
 )
@@ -222,10 +224,20 @@ def test_object_detection_failure_round_trips_and_incomplete_success_is_refused(
 
 def test_every_name_is_defined_once_and_the_registries_follow_it():
     """The controllers and planners the code can run are exactly the names the CLI, the coordinator and the benchmark offer."""
-    from bagit.common.names import CONTROLLER_NAMES, PLANNER_NAMES, STAGES
     from bagit.common.messages import RunState
+    from bagit.common.names import CONTROLLER_NAMES, PLANNER_NAMES, STAGES
     from bagit.services.controller.controller import CONTROLLERS
     from bagit.services.planner.rrt import PLANNERS
 
     assert tuple(CONTROLLERS) == CONTROLLER_NAMES and tuple(PLANNERS) == PLANNER_NAMES
     assert set(STAGES) == set(RunState.model_fields["stage"].annotation.__args__)
+
+
+def test_a_fresh_provenance_names_the_commit_host_date_and_parameters():
+    from datetime import datetime, timedelta
+
+    from bagit.common.results import provenance
+
+    p = provenance({"horizon": 10})
+    assert p.commit and p.host and p.params == {"horizon": 10}
+    assert p.date is not None and abs(datetime.now(UTC) - datetime.fromisoformat(p.date)) < timedelta(minutes=1)

@@ -10,8 +10,8 @@ from bagit.common.errors import BadControlInput
 from bagit.common.messages import Path
 from bagit.common.params import MethodParams
 from bagit.services.controller import ShapeServo, c7_limits, make_controller
-from bagit.services.controller.mpc import separation_gradient
 from bagit.services.controller.increment import apply_increment
+from bagit.services.controller.mpc import separation_gradient
 from bagit.services.controller.synthetic import SyntheticRim
 
 P = MethodParams()

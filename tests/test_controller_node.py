@@ -10,14 +10,15 @@ import time
 import numpy as np
 import pytest
 from bus_support import session_pair, wait_until
+from log_support import LogLines
 
 from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.geometry import matrix_to_rpy
 from bagit.common.messages import ArmState, Command, ControllerStatus, EllipseParams, Goal, Path, RunState, SoiState
 from bagit.common.rig import SafetyLimits
+from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
 from bagit.services.controller.session import KEEPALIVE
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.synthetic import SyntheticRim
 
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
@@ -111,9 +112,9 @@ def loop(request):
     def make(cfg=None, n_x=16, n_nodes=6, dagger=4, with_goal=False):
         m = SyntheticRim(n_x)
         nodes = np.stack([m.rim(apply_increment(m.home(), U_GOAL * s)) for s in np.linspace(0, 1, n_nodes)])
-        reports: list[str] = []
-        node = ControllerNode(a, keys, cfg or ControllerServiceConfig(), report=reports.append)
-        node.reports = reports
+        lines = LogLines("bagit.controller")
+        node = ControllerNode(a, keys, cfg or ControllerServiceConfig())
+        node.log_lines = lines
         plant = Plant(b, keys, m)
         statuses: list[ControllerStatus] = []
         Subscriber(b, keys.controller_status, ControllerStatus, statuses.append)
@@ -141,6 +142,7 @@ def loop(request):
         run.close()
         node.close()
         plant.close()
+        node.log_lines.close()
     gen.close()
 
 
@@ -165,14 +167,14 @@ def test_the_controller_service_servos_a_synthetic_rim_to_the_goal_over_zenoh(lo
     time.sleep(0.3)
     assert len(plant.cmds) == n  # done: servoing stopped
     assert node.status()["runs_done"][0]["run_id"] == "r1"
-    assert any("no enclosure rule" in r for r in node.reports), node.reports  # no goal was published
+    assert any("no enclosure rule" in r for r in node.log_lines.messages), node.log_lines.messages  # no goal was published
 
 
 def test_the_planners_goal_gives_the_controller_the_objects_outline_for_the_enclosure_rule(loop):
     node, plant, run, statuses, nodes = loop(with_goal=True)
     assert wait_until(lambda: any(s.done for s in statuses), 60.0), (node.status(), statuses[-1:])
-    assert any("must go round the object's 3 bottom vertices by 5 mm" in r for r in node.reports), node.reports
-    assert not any("no enclosure rule" in r for r in node.reports)
+    assert any("must go round the object's 3 bottom vertices by 5 mm" in r for r in node.log_lines.messages), node.log_lines.messages
+    assert not any("no enclosure rule" in r for r in node.log_lines.messages)
 
 
 def test_stale_soi_holds_within_a_tick_of_the_age_limit_and_the_run_end_stops_servoing(loop):

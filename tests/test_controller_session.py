@@ -7,7 +7,13 @@ from bagit.common.rig import SafetyLimits
 from bagit.common.so3 import matrix_to_rpy
 from bagit.services.controller.increment import apply_increment, pose_increment
 from bagit.services.controller.session import (
-    KEEPALIVE, KEEPALIVE_SHARE, SOI_MAX_AGE_S, ServoSession, arms_slowed, gripper_poses, pending_motion,
+    KEEPALIVE,
+    KEEPALIVE_SHARE,
+    SOI_MAX_AGE_S,
+    ServoSession,
+    arms_slowed,
+    gripper_poses,
+    pending_motion,
 )
 from bagit.services.controller.synthetic import SyntheticRim
 

@@ -18,7 +18,7 @@ def _urdf_chain(q: np.ndarray) -> np.ndarray:
         ((0, 0.105, 0), (-np.pi / 2, 0, 0)),
     ]
     T = np.eye(4)
-    for (xyz, rpy), qi in zip(joints, q):
+    for (xyz, rpy), qi in zip(joints, q, strict=False):
         J = np.eye(4)
         J[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix() @ Rotation.from_euler("z", qi).as_matrix()
         J[:3, 3] = xyz
@@ -113,6 +113,6 @@ def test_pose6_convention_round_trip():
     T = cr5.pose6_to_matrix(pose)
     assert np.allclose(T[:3, 3], [0.35, -0.12, 0.42])
     # fixed-axis X-Y-Z: R = Rz(rz) Ry(ry) Rx(rx)
-    Rx, Ry, Rz = (Rotation.from_euler(a, np.radians(v)).as_matrix() for a, v in zip("xyz", pose[3:]))
+    Rx, Ry, Rz = (Rotation.from_euler(a, np.radians(v)).as_matrix() for a, v in zip("xyz", pose[3:], strict=False))
     assert np.allclose(T[:3, :3], Rz @ Ry @ Rx)
     assert np.allclose(cr5.matrix_to_pose6(T), pose)

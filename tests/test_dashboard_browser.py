@@ -15,12 +15,11 @@ import time
 
 import numpy as np
 import pytest
+from dashboard_support import ARTIFACTS, CLOUD_RGB, FakeRunLink, arm_state, feed_run, feed_scene, wait_until
 
 from bagit.common.messages import RunState
-from bagit.dashboard import Dashboard, DashboardConfig
-from bagit.dashboard import style
+from bagit.dashboard import Dashboard, DashboardConfig, style
 from bagit.dashboard.browser import BrowserPage, chromium_available, count_color
-from dashboard_support import ARTIFACTS, CLOUD_RGB, FakeRunLink, arm_state, feed_run, feed_scene, wait_until
 
 pytestmark = [
     pytest.mark.browser,

@@ -6,17 +6,16 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
+from dashboard_support import scene_messages, wait_until
 
 from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, declare_alive, locators, open_session, serve_run_control
 from bagit.common.messages import ArmState, ControllerStatus, EStop, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.names import ESTOP_RELEASE_SOURCES, ESTOP_SOURCE_DASHBOARD
 from bagit.dashboard.node import DashboardNode
 from bagit.dashboard.server import DashboardConfig
-from dashboard_support import scene_messages, wait_until
 
 
 @pytest.fixture

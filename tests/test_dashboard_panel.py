@@ -9,13 +9,13 @@ import time
 
 import numpy as np
 import pytest
+from dashboard_support import FakeRunLink, arm_state, feed_run, wait_until
 
 from bagit.common.errors import BusError
 from bagit.common.messages import ControllerStatus, EStop, RunState
 from bagit.dashboard import Dashboard, DashboardConfig
 from bagit.dashboard.panel import ESTOP_REASON, UPLOAD_PREFIX
 from bagit.scenarios import find_scenario
-from dashboard_support import FakeRunLink, arm_state, feed_run, wait_until
 
 
 @pytest.fixture
@@ -159,6 +159,7 @@ def test_estop_is_not_blocked_by_a_slow_render_or_a_hung_request(dash, link):
 
     dash.scene.draw_soi = stuck
     from dashboard_support import planned_exp01
+
     from bagit.common.messages import SoiState
 
     dash.on_soi(SoiState(rim=planned_exp01().path[0]))

@@ -8,10 +8,10 @@ from scipy.spatial.transform import Rotation
 
 from bagit.common import cr5
 from bagit.common.errors import BadScenario, BadVertices, SafetyViolation
-from bagit.common.results import RunResult
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import RunState
 from bagit.common.params import MethodParams
+from bagit.common.results import RunResult
 from bagit.common.scenario import Obstacle, Scenario
 from bagit.common.shapes import Box, Bundle, Cylinder, Prism, Sphere
 from bagit.dashboard import style

@@ -6,15 +6,14 @@ import time
 
 import numpy as np
 import pytest
+from dashboard_support import FakeRunLink, arm_state, feed_scene, planned_exp01, synthetic_cloud, wait_until
 
 from bagit.common.messages import ArmState, CameraInfo, Command, ControllerStatus, Path, PointCloud, SoiState
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
-from bagit.dashboard import Dashboard, DashboardConfig
-from bagit.dashboard import style
+from bagit.dashboard import Dashboard, DashboardConfig, style
 from bagit.dashboard.scene import LAYERS, MAX_FAN_RIMS
 from bagit.scenarios import find_scenario
-from dashboard_support import FakeRunLink, arm_state, feed_scene, planned_exp01, synthetic_cloud, wait_until
 
 
 @pytest.fixture

@@ -305,7 +305,7 @@ def test_two_controllers_on_distinct_ports():
         b.stop()
 
 
-# -- the V4 manual's rules that a vendor client exercised (README, "Dobot V4 conformance") --------
+# -- the V4 manual's rules that a vendor client exercised (docs/architecture.md, "Dobot V4 conformance") --------
 
 
 def test_named_optional_parameter_errors_are_numbered_1_whatever_their_position(client):

@@ -3,12 +3,14 @@ frames) played back through the `realsense-file` source gives SoiState on percep
 true rim; frames published on camera/rgbd do too; a bad frame is counted, never a crash; no camera
 is a one-line error."""
 
+import logging
 import threading
 import time
 
 import numpy as np
 import pytest
 from bus_support import session_pair, wait_until
+from log_support import LogLines
 
 from bagit.cli import main
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
@@ -79,8 +81,8 @@ def test_frames_on_camera_rgbd_give_the_soi_and_a_bad_frame_is_counted(sim):
     frames, true_rim, _ = sim
     for a, b in session_pair("pnzenoh"):
         keys = Keys("pnzenoh")
-        reports: list[str] = []
-        node = PerceptionNode(a, keys, PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), n_x=24), report=reports.append)
+        lines = LogLines("bagit.perception")
+        node = PerceptionNode(a, keys, PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), n_x=24))
         try:
             sois: list[SoiState] = []
             Subscriber(b, keys.perception_soi, SoiState, sois.append)
@@ -89,7 +91,7 @@ def test_frames_on_camera_rgbd_give_the_soi_and_a_bad_frame_is_counted(sim):
             bad = frames[0].model_copy(update={"color": frames[0].color[:, :-1]})  # colour and depth disagree
             pub.put(bad)
             assert wait_until(lambda: node.counters["bad"] == 1, 10.0)
-            assert "does not match" in node.last_bad and reports
+            assert "does not match" in node.last_bad and any("bad frame" in m for m in lines.at(logging.WARNING))
             sent = []
             for k, f in enumerate(frames):
                 f = f.model_copy(update={"stamp": time.time(), "seq": 100 + k})

@@ -2,11 +2,13 @@
 frame that arrives on camera/rgbd and publishes the object's V on perception/object; a frame without
 a marker is a reported, counted failure (ok=False), never a crash, and the SOI path goes on."""
 
+import logging
 import time
 
 import numpy as np
 import pytest
 from bus_support import session_pair, wait_until
+from log_support import LogLines
 
 from bagit.common.bus import Keys, Publisher, Subscriber
 from bagit.common.messages import ObjectDetection, RgbdFrame, RunState, SoiState
@@ -29,8 +31,8 @@ def test_a_simulated_frame_on_camera_rgbd_gives_the_object_on_perception_object(
     s, frame = scene
     for a, b in session_pair("probj"):
         keys = Keys("probj")
-        reports: list[str] = []
-        node = PerceptionNode(a, keys, PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), n_x=24), report=reports.append)
+        lines = LogLines("bagit.perception")
+        node = PerceptionNode(a, keys, PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), n_x=24))
         try:
             got: list[ObjectDetection] = []
             sois: list[SoiState] = []
@@ -45,7 +47,7 @@ def test_a_simulated_frame_on_camera_rgbd_gives_the_object_on_perception_object(
             pub.put(blank)
             assert wait_until(lambda: len(got) >= 1, 20.0)
             assert got[0].ok is False and "no ArUco marker" in got[0].error and got[0].vertices is None
-            assert node.counters["object_failures"] == 1 and any("no object" in r for r in reports)
+            assert node.counters["object_failures"] == 1 and any("no object" in r for r in lines.at(logging.WARNING))
             # a new run in perceiving: its first frame after start + settle is looked at at once
             t0 = time.time()
             run_pub.put(RunState(run_id="r-obj", stage="perceiving", stamp=t0, elapsed_s=0.0,
@@ -71,7 +73,7 @@ def test_a_simulated_frame_on_camera_rgbd_gives_the_object_on_perception_object(
 
 
 def test_object_source_off_publishes_nothing_and_no_library_marker_is_reported(tmp_path):
-    for a, b in session_pair("probjoff"):
+    for a, _b in session_pair("probjoff"):
         node = PerceptionNode(a, Keys("probjoff"), PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), object_source="off"))
         try:
             assert node._library is None and node._object_pub is None
@@ -80,10 +82,10 @@ def test_object_source_off_publishes_nothing_and_no_library_marker_is_reported(t
         doc = tmp_path / "nomarker.yaml"
         doc.write_text("name: nomarker\nobject:\n  vertices: [[0.4, -0.05, 0.0], [0.5, -0.05, 0.0], [0.5, 0.05, 0.0], [0.4, 0.05, 0.0]]\n"
                        "  height: 0.1\nbag:\n  rim_perimeter: 0.7\n")
-        reports: list[str] = []
-        node = PerceptionNode(a, Keys("probjoff"), PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), object_source="marker",
-                                                                         object_library=[str(doc)]), report=reports.append)
-        try:
-            assert node._library is None and any("no object in the library has a marker" in r for r in reports)
-        finally:
-            node.close()
+        with LogLines("bagit.perception") as lines:
+            node = PerceptionNode(a, Keys("probjoff"), PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), object_source="marker",
+                                                                             object_library=[str(doc)]))
+            try:
+                assert node._library is None and any("no object in the library has a marker" in r for r in lines.messages)
+            finally:
+                node.close()

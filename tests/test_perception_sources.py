@@ -49,7 +49,7 @@ def test_playback_gives_back_the_written_frames_and_the_soi(sim, recording):
         assert src.serial == "BAGIT-SIM"
         got = list(src)
     assert len(got) == N_FRAMES
-    for a, b in zip(frames, got):
+    for a, b in zip(frames, got, strict=False):
         assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
         # intrinsics and depth scale come from the recording (stored as float32)
         for k in ("width", "height", "fx", "fy", "cx", "cy", "depth_scale"):

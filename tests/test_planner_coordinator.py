@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bagit.common.results import RunResult
-
 from bagit.common.messages import ControllerStatus, Goal, RunControl, SoiState
+from bagit.common.results import RunResult
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, PlanOutcome, compute_plan

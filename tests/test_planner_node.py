@@ -11,8 +11,7 @@ import time
 
 import numpy as np
 import pytest
-
-from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
 from test_planner_coordinator import sample_g0
 
 from bagit.common.bus import Keys, LatestCache, Publisher, declare_alive, request_run_control

@@ -8,28 +8,39 @@ i.e. a message of every published model, in the order a run produces them."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from bus_support import assert_same_message, pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
+from log_support import LogLines
+from test_recorder_files import FullDisk
 
 from bagit.cli import main
 from bagit.common import wire
 from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, locators, open_session
 from bagit.common.errors import BusError
+from bagit.common.logs import configure_logging
 from bagit.common.messages import (
-    ArmState, CameraInfo, Command, ControllerStatus, EStop, Message, PointCloud, RgbdFrame, RunState, SoiState,
+    ArmState,
+    CameraInfo,
+    Command,
+    ControllerStatus,
+    EStop,
+    Message,
+    PointCloud,
+    RgbdFrame,
+    RunState,
+    SoiState,
 )
 from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messages
 from bagit.services.recorder.node import RecorderNode, Replayer
-from test_recorder_files import FullDisk
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -142,7 +153,7 @@ def test_recorder_killed_mid_run_keeps_every_message_up_to_its_last_chunk(tmp_pa
     assert set(got_by_key) <= set(by_key)
     for key, msgs in got_by_key.items():  # every key's recovered messages: exactly what was sent, in order
         assert len(msgs) <= len(by_key[key])
-        for m, s in zip(msgs, by_key[key]):
+        for m, s in zip(msgs, by_key[key], strict=False):
             assert wire.encode(m) == wire.encode(s), key
     # everything sent well before the kill (flush 0.2 s + margin) is in a complete chunk
     settled = [k for k, _, t in sent if t < killed_t - 1.0]
@@ -205,7 +216,7 @@ def test_replay_publishes_the_same_soi_sequence_with_its_timing(tmp_path, plan):
     res = json.loads(out)
     assert res["sent"] == len(rows) - sum(1 for k, _, _ in rows if k.endswith(("/controller/cmd", "/estop")))
     assert [m.seq for m, _ in got] == [m.seq for m in sois]
-    for (m, _), s in zip(got, sois):
+    for (m, _), s in zip(got, sois, strict=False):
         assert np.array_equal(m.rim, s.rim)
     arrived = got[-1][1] - got[0][1]
     soi_span = (sum(1 for _ in sois) - 1) * 0.04 / 2
@@ -230,11 +241,10 @@ def test_disk_full_is_reported_on_stderr_and_run_state(tmp_path, pair, capfd):
     a, b = pair
     rig = "diskfull"
     keys = Keys(rig)
-    reports: list = []
+    configure_logging()  # as the CLI does: the one format, on stderr
+    lines = LogLines("bagit.recorder")
     w = RecordingWriter(RecorderConfig(dir=tmp_path, chunk_bytes=1024), rig, opener=lambda p: FullDisk(p, 5000))
-    from bagit.services.recorder.node import stderr_report
-
-    node = RecorderNode(b, keys, w, report=lambda lvl, txt: (reports.append((lvl, txt)), stderr_report(lvl, txt)))
+    node = RecorderNode(b, keys, w)
     states: list[RunState] = []
     Subscriber(a, keys.run_state, RunState, states.append)
     pub_state = Publisher(a, keys.run_state, RunState)
@@ -249,8 +259,9 @@ def test_disk_full_is_reported_on_stderr_and_run_state(tmp_path, pair, capfd):
     assert flagged.run_id == "df1" and flagged.stage == "bagging"
     status = node.close()
     assert status["errors"] >= 1 and status["lost"] > 0 and "ENOSPC" in status["error"]
-    assert any(lvl == "error" and "disk full" in t for lvl, t in reports)
-    assert "bagit recorder: ERROR: recording stopped: disk full (ENOSPC)" in capfd.readouterr().err
+    lines.close()
+    assert any("disk full" in t for t in lines.at(logging.ERROR))
+    assert "ERROR bagit.recorder: recording stopped: disk full (ENOSPC)" in capfd.readouterr().err
 
 
 def test_recorder_stopped_by_sigterm_closes_its_files_with_the_result(tmp_path, plan):

@@ -122,7 +122,7 @@ def test_rotation_by_size_and_idle_files_pruned(tmp_path):
     w = _writer(tmp_path, max_bytes=1 << 16, chunk_bytes=4096, compression="none", keep_idle=2)
     rng = np.random.default_rng(0)
     t = T0
-    for i in range(30):  # ~20 kB each: ~600 kB of idle data -> >= 5 files of 64 kB
+    for _i in range(30):  # ~20 kB each: ~600 kB of idle data -> >= 5 files of 64 kB
         t += 1_000_000
         cloud = PointCloud(points=rng.normal(size=(1000, 3)), colors=rng.integers(0, 255, (1000, 3)))
         w.write("bagit/lab/perception/cloud", cloud, t)
@@ -164,7 +164,7 @@ def test_truncated_file_reads_back_every_message_of_its_complete_chunks(tmp_path
         got, rec = read_messages(p)
         assert not rec.complete and rec.truncated
         assert len(got) == expected, (cut, rec.truncated)
-        for (ra, ma), (rb, mb) in zip(got, full):
+        for (ra, ma), (rb, mb) in zip(got, full, strict=False):
             assert ra.topic == rb.topic and ra.log_time_ns == rb.log_time_ns
             assert_same_message(ma, mb)
     (cut_dir / "c0.mcap").write_bytes(data[:3])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 import signal
 import threading
@@ -18,7 +19,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
+from log_support import LogLines
 from mcap.reader import make_reader
 from test_recorder_files import T0, Clock, FullDisk
 
@@ -98,8 +100,8 @@ def test_a_dead_writer_takes_the_token_down_and_reports_the_loss(tmp_path, pair)
     states: list[RunState] = []
     Subscriber(a, keys.run_state, RunState, states.append)
     w = RecordingWriter(RecorderConfig(dir=tmp_path, chunk_bytes=1024), rig, opener=lambda p: BrokenFile(p, 6000))
-    reports: list[tuple[str, str]] = []
-    node = RecorderNode(b, keys, w, report=lambda lvl, txt: reports.append((lvl, txt)))
+    lines = LogLines("bagit.recorder")
+    node = RecorderNode(b, keys, w)
     try:
         assert watcher.wait_for("recorder", True, 5.0)
         pub_state = Publisher(a, keys.run_state, RunState)
@@ -119,10 +121,11 @@ def test_a_dead_writer_takes_the_token_down_and_reports_the_loss(tmp_path, pair)
     finally:
         status = node.close()
         watcher.close()
+        lines.close()
     ok, reason = outcome(status)
     assert not ok and status["lost"] >= 10 and "writer died: ValueError: I/O operation on closed file" in (reason or "")
     assert status["messages"] + status["lost"] == status["received"]  # nothing unaccounted for
-    assert any(lvl == "error" and "writer died" in t for lvl, t in reports)
+    assert any("writer died" in t for t in lines.at(logging.ERROR))
 
 
 def test_bagit_recorder_with_a_dead_writer_exits_1_with_the_loss_in_its_summary(tmp_path, monkeypatch, capsys):

@@ -73,7 +73,7 @@ def test_servo_tracking_lags_and_respects_the_joint_speed_limit():
         a.enable()
         p = a.get_pose6()
         lags = []
-        for k in range(40):
+        for _k in range(40):
             p[1] += 3.0  # 100 mm/s
             assert a.servo_p(p.copy(), t=0.03, gain=gain) == 0
             run(a, 0.03)
@@ -134,7 +134,7 @@ def test_same_commands_same_motion():
         a.enable()
         p = a.get_pose6()
         out = []
-        for k in range(30):
+        for _k in range(30):
             p[0] -= 2.0
             p[2] += 1.0
             a.servo_p(p.copy(), t=0.03)

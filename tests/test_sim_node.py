@@ -7,8 +7,7 @@ import threading
 import time
 
 import numpy as np
-
-from bus_support import pair, wait_until  # noqa: F401 - pair is a fixture
+from bus_support import wait_until
 
 from bagit.common.bus import Keys, LatestCache, Publisher
 from bagit.common.messages import RgbdFrame, RunState, SimTruth

@@ -45,7 +45,7 @@ def test_object_geometry_matches_the_scenario(name):
     parts = object_parts(s.object)
     names = object_mjcf(s.object, round_as_mesh=IPC)[2]
     assert len(names) == len(parts)
-    for gname, part in zip(names, parts):
+    for gname, part in zip(names, parts, strict=False):
         g = mujoco.mj_name2id(w.model, mujoco.mjtObj.mjOBJ_GEOM, gname)
         pts = geom_points(w.model, w.data, g)
         if part.kind == "sphere":

@@ -9,10 +9,10 @@ from bagit.common.errors import BadScenario, BagItError, SafetyViolation
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.controller.increment import apply_increment
+from bagit.services.sim.judge import inside_polygon
 from bagit.services.sim.objects import ConvexPart
 from bagit.services.sim.truth import PENETRATION_TOL_M, PenetrationMonitor
 from bagit.services.sim.world import MAX_MOUNT_SPEED_MPS, SimWorld
-from bagit.services.sim.judge import inside_polygon
 
 
 @pytest.fixture(scope="module")

@@ -16,10 +16,14 @@ import time
 
 import numpy as np
 import pytest
-
 from bus_support import wait_until
+from up_support import ENV, rig_up
+from up_support import alive as _alive
+from up_support import start_up as _up
+from up_support import up_log as _log
+from up_support import wait_status as _status
+
 from bagit.common.results import RunResult
-from up_support import ENV, alive as _alive, rig_up, start_up as _up, up_log as _log, wait_status as _status
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # whole runs: the simulator slows down under load
 
@@ -147,7 +151,8 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         assert rep.accepted, rep.reason
         run1 = rep.run_id
         # mid-run: servoing, the arms moving
-        assert wait_until(lambda: (s := state.get()) is not None and s.run_id == run1 and s.stage in ("pre-bagging", "bagging") and s.progress > 0.05, 120, 0.1), state.get()
+        assert wait_until(lambda: (s := state.get()) is not None and s.run_id == run1 and s.stage in ("pre-bagging", "bagging")
+                          and s.progress > 0.05, 120, 0.1), state.get()
         assert wait_until(lambda: len(cmds) > 10, 30, 0.05)
         os.kill(d["children"]["controller"], signal.SIGKILL)
         t_kill = time.monotonic()
@@ -158,7 +163,7 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         qs: dict[str, list[tuple[float, np.ndarray, float]]] = {"left": [], "right": []}
         deadline = time.monotonic() + 1.5
         while time.monotonic() < deadline:
-            for k, (m, t) in arms.items().items():
+            for m, t in arms.items().values():
                 qs[m.arm].append((t, m.q.copy(), m.tool_speed))
             time.sleep(0.02)
         for arm, samples in qs.items():

@@ -14,18 +14,17 @@ picked and started in the panel to `done`, then a second run e-stopped while the
 from __future__ import annotations
 
 import os
-
 import signal
 import time
 
 import numpy as np
 import pytest
-
-from bagit.dashboard import style
-from bagit.dashboard.browser import BrowserPage, changed_pixels, chromium_available, color_mask, count_color
 from bus_support import wait_until
 from dashboard_support import ARTIFACTS
 from up_support import ALL, start_up, up_log, wait_status
+
+from bagit.dashboard import style
+from bagit.dashboard.browser import BrowserPage, changed_pixels, chromium_available, color_mask, count_color
 
 pytestmark = [
     pytest.mark.browser,

@@ -11,7 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from bagit.common.names import MAX_N_X, MIN_N_X
 

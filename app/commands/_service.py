@@ -17,12 +17,13 @@ that order, and returns the node's final status.
 
 from __future__ import annotations
 
+import logging
 import signal
-import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
@@ -131,8 +132,7 @@ def run_service(
             node = start(session, keys)
             try:
                 token = declare_alive(session, keys, name)
-                print(f"bagit {name}: {banner(node) if banner else 'running'} (rig {bus.rig}); Ctrl-C to stop",
-                      file=sys.stderr, flush=True)
+                logging.getLogger(f"bagit.{name.replace('-', '_')}").info("%s (rig %s); Ctrl-C to stop", banner(node) if banner else "running", bus.rig)
                 node_stop = getattr(node, "stopped", None)
                 deadline = None if duration is None else t0 + duration
                 while not stop.is_set():

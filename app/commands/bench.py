@@ -1,20 +1,24 @@
 """`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
-(`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings (`probes`), compare runs (`compare`)."""
+(`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings
+(`probes`), compare runs (`compare`)."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 import json
-import sys
+import logging
 import time
 from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
 
+log = logging.getLogger("bagit.bench")
+
 NAME = "bench"
-HELP = "run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), `probes` (issue 25's findings re-run), or `compare OLD NEW`"
+HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), "
+        "`probes` (issue 25's findings re-run), or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency"]
@@ -26,10 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "compare"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
-    p.add_argument("--only", action="append", default=None, help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; for `probes`: group(s), v4 cli recorder arm")
-    p.add_argument("--no-readme", action="store_true", help="for `probes`: leave the README's probe section as it is")
+    p.add_argument("--only", action="append", default=None,
+                   help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; "
+                   "for `probes`: group(s), v4 cli recorder arm")
+    p.add_argument("--no-doc", action="store_true", help="for `probes`: leave the probe section of docs/testing.md as it is")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
-    p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); for `sweep`: seeds per scenario, controller, planner and arms (default 8; --quick 1)")
+    p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); "
+                   "for `sweep`: seeds per scenario, controller, planner and arms (default 8; --quick 1)")
     p.add_argument("--reuse", type=Path, default=None, help="for `paper`: take planning and placements from this paper.json")
     p.add_argument(
         "--closed-loop", type=Path, action="append", default=None,
@@ -60,7 +67,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         unknown = sorted(set(args.only or []) - set(probes.RUNNERS))
         if unknown:
             raise ValueError(f"unknown probe group(s) {unknown}; choose from {list(probes.RUNNERS)}")
-        return probes.run(args.only, readme=not args.no_readme)
+        return probes.run(args.only, doc=not args.no_doc)
     if args.what == "paper":
         from bagit.bench import paper
 
@@ -75,11 +82,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"unknown stage(s) {unknown}; choose from {STAGES}")
     results: dict[str, Any] = {"machine": machine(), "quick": args.quick, "stages": {}}
     for name in stages:
-        print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+        log.info("%s ...", name)
         t0 = time.perf_counter()
         mod = importlib.import_module(f"bagit.bench.{name}")
         results["stages"][name] = mod.run(quick=args.quick)
-        print(f"[bench] {name} done in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+        log.info("%s done in %.1f s", name, time.perf_counter() - t0)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     jp, mp = write_results(f"stages-{stamp}", results, stages_markdown(results), args.out)
     results["files"] = {"json": str(jp), "markdown": str(mp)}

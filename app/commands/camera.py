@@ -10,9 +10,12 @@ attached: a one-line error naming what was looked for. Ctrl-C or SIGTERM stops c
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.camera")
 
 NAME = "camera"
 HELP = "publish a RealSense's (or a RealSense recording's) RGB-D frames on camera/rgbd"
@@ -36,7 +39,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import signal
-    import sys
     import threading
     import time
 
@@ -67,7 +69,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         args.rig = rig.name
     bus = bus_config_from_args(args)
     keys = Keys(bus.rig)
-    out = sys.stderr
 
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 pub = Publisher(session, keys.camera_rgbd, RgbdFrame)
                 token = declare_alive(session, keys, "camera")
                 what = f"recording {cfg.path}" if args.file else f"RealSense {source.serial}"
-                print(f"bagit camera: {what} {source.info.width}x{source.info.height} -> {keys.camera_rgbd}", file=out, flush=True)
+                log.info("%s %dx%d -> %s", what, source.info.width, source.info.height, keys.camera_rgbd)
                 while not stop.is_set():
                     if args.duration is not None and time.monotonic() - t0 >= args.duration:
                         break

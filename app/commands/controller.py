@@ -11,9 +11,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from bagit.common.names import CONTROLLER_NAMES
-
 from bagit.commands import _args
+from bagit.common.names import CONTROLLER_NAMES
 
 NAME = "controller"
 HELP = "servo the current run: SOI and arm states in, arm increments out (mpc, ibvs, ssvs)"

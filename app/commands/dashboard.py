@@ -9,9 +9,12 @@ those of every service (`--rig`, `--connect`, ...). Stops on Ctrl-C or SIGTERM, 
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.dashboard")
 
 NAME = "dashboard"
 HELP = "serve the web dashboard: live scene, plots and health; start, stop and E-STOP the rig"
@@ -32,7 +35,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import signal
-    import sys
     import threading
     import time
 
@@ -64,7 +66,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise BusError(f"cannot serve on {args.host}:{args.port}: {e}") from None
         with node:
             url = node.url
-            print(f"bagit dashboard: {url} (rig {bus.rig}); Ctrl-C to stop", file=sys.stderr, flush=True)
+            log.info("%s (rig %s); Ctrl-C to stop", url, bus.rig)
             stop.wait(args.duration)
             stats = node.dashboard.stats()
             runs = [r.run_id for r in node.dashboard.history.records()]

@@ -11,10 +11,13 @@ Stops on Ctrl-C or SIGTERM, or after --duration seconds.
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.planner")
 
 NAME = "planner"
 HELP = "run the planner service: the run coordinator (run/control, run/state), goal and SOI path"
@@ -52,9 +55,7 @@ def load_config(path: Path | None, model: Any) -> Any:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import logging
     import signal
-    import sys
     import threading
     import time
 
@@ -77,7 +78,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise BusError(f"--run-time-limit: {e.errors()[0]['msg']}") from None
         cfg = cfg.model_copy(update={"coordinator": coord})
     bus = bus_config_from_args(args, parse_bus_config(cfg.bus))
-    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         try:
             node = PlannerNode(session, Keys(bus.rig), cfg, on_state=lambda s: runs.__setitem__(s.run_id, s.stage) if s.run_id else None,
                                clock=bus.clock)
-            print(f"bagit planner: coordinating rig {bus.rig} (run/control, run/state); Ctrl-C to stop", file=sys.stderr, flush=True)
+            log.info("coordinating rig %s (run/control, run/state); Ctrl-C to stop", bus.rig)
             stop.wait(args.duration)
             last = node.state
             node.close()
@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-    return {"success": True, "rig": bus.rig, "uptime_s": time.monotonic() - t0, "runs": runs, "last_state": last.model_dump(mode="json", exclude={"scenario_doc"})}
+    return {"success": True, "rig": bus.rig, "uptime_s": time.monotonic() - t0, "runs": runs,
+            "last_state": last.model_dump(mode="json", exclude={"scenario_doc"})}
 
 
 def human(r: dict[str, Any]) -> str:

@@ -9,11 +9,14 @@ status 1, the loss and the reason in its summary) after taking its liveliness to
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.recorder")
 
 NAME = "recorder"
 HELP = "record every message of a rig to MCAP files (one per run, rolling while idle)"
@@ -24,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_bus_arguments(p)
     p.add_argument("--dir", type=Path, default=Path("recordings"), help="folder of the recordings (default ./recordings)")
-    p.add_argument("--max-mb", type=_args.positive_number, default=1024.0, help="close a file before it would exceed this size in MB, and continue in the next part (default 1024)")
+    p.add_argument("--max-mb", type=_args.positive_number, default=1024.0,
+                   help="close a file before it would exceed this size in MB, and continue in the next part (default 1024)")
     p.add_argument("--chunk-kb", type=_args.positive_number, default=1024.0, help="MCAP chunk size in KB (default 1024)")
     p.add_argument("--flush-s", type=_args.positive_seconds, default=1.0, help="close a chunk at most this long after its first message")
     p.add_argument("--linger-s", type=_args.non_negative_seconds, default=2.0, help="keep a finished run's file open this long (its last states)")
@@ -49,7 +53,6 @@ def _bytes(value: float, unit: float) -> int:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import signal
-    import sys
     import threading
     import time
 
@@ -80,7 +83,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         session = open_session(bus)
         try:
             node = RecorderNode(session, keys, writer, exclude=args.exclude)
-            print(f"bagit recorder: recording {keys.all} into {cfg.dir}; Ctrl-C to stop", file=sys.stderr, flush=True)
+            log.info("recording %s into %s; Ctrl-C to stop", keys.all, cfg.dir)
             deadline = None if args.duration is None else time.monotonic() + args.duration
             while not stop.is_set() and not node.stopped.is_set():  # stopped: the writer died
                 left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())

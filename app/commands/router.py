@@ -8,9 +8,12 @@ otherwise: `--listen tcp/0.0.0.0:7447` for a multi-host rig), or any other confi
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.router")
 
 NAME = "router"
 HELP = "run the Zenoh router of a multi-host rig (zenoh-python in router mode)"
@@ -36,7 +39,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import signal
-    import sys
     import threading
     import time
 
@@ -61,14 +63,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up = ev.kind == zenoh.SampleKind.PUT
             if up:
                 joined.append(str(ev.transport.zid))
-            print(f"bagit router: {ev.transport.whatami} {ev.transport.zid} {'joined' if up else 'left'}", file=sys.stderr, flush=True)
+            log.info("%s %s %s", ev.transport.whatami, ev.transport.zid, "joined" if up else "left")
 
         try:
             listener = session.info.declare_transport_events_listener(on_transport)
         except Exception:  # noqa: BLE001 - an optional, unstable zenoh-python API: the router works without it
             listener = None
-        print(f"bagit router: {session.zid()} listening on {', '.join(listen) if listen else '(nothing)'}; Ctrl-C to stop",
-              file=sys.stderr, flush=True)
+        log.info("%s listening on %s; Ctrl-C to stop", session.zid(), ", ".join(listen) if listen else "(nothing)")
         try:
             stop.wait(args.duration)
         finally:

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from typing import Any
 
 from bagit.commands import _args
 from bagit.common.names import ARMS_MODES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES
+
+log = logging.getLogger("bagit.run")
 
 NAME = "run"
 HELP = "run a whole simulated bagging in one process: camera -> SOI -> goal -> plan -> MPC -> arm driver -> CR5s"
@@ -41,12 +42,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     s = Scenario.from_file(path)
     # bad parameters, a goal too large for the bag or out of the arms' reach: one line, before the world is built
     check_scenario_goal(s.model_copy(update={"params": merge_params(s.params, args.params)}))
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
-    stream = sys.stderr if args.json else sys.stdout
-    say = lambda m: print(f"[run] {m}", file=stream, flush=True)  # noqa: E731
     opts = RunOptions(scenario=s, name=path.stem, controller=args.controller, planner=args.planner, seed=args.seed, arms=args.arms,
                       overrides=args.params or {}, time_limit_s=args.time_limit, wall_limit_s=args.wall_limit, fps=args.fps)
-    return run_inprocess(opts, progress=say).model_dump(mode="json")
+    return run_inprocess(opts, progress=log.info).model_dump(mode="json")
 
 
 def human(r: dict[str, Any]) -> str:

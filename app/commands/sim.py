@@ -13,12 +13,14 @@ Ctrl-C or SIGTERM stops cleanly.
 from __future__ import annotations
 
 import argparse
+import logging
 import signal
-import sys
 import threading
 from typing import Any
 
 from bagit.commands import _args
+
+log = logging.getLogger("bagit.sim")
 
 NAME = "sim"
 HELP = "run the simulated rig: bag, object, camera and two CR5 controllers speaking Dobot's protocol"
@@ -41,15 +43,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from pydantic import ValidationError
+
     from bagit.common.errors import BadScenario
     from bagit.common.rig import RigConfig
     from bagit.common.scenario import Scenario
     from bagit.scenarios import find_scenario
-    from bagit.services.sim.rig_sim import RealtimeStats, SimRig
-
-    from pydantic import ValidationError
-
     from bagit.services.sim.node import SimNodeConfig
+    from bagit.services.sim.rig_sim import RealtimeStats, SimRig
 
     try:  # the node's bounds on the flags, before the world is built
         SimNodeConfig(speed=args.speed, fps=args.fps, truth_hz=args.truth_hz)
@@ -58,10 +59,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadScenario(f"--{str(first['loc'][0]).replace('_', '-')}: {first['msg']}") from None
     scenario = Scenario.from_file(find_scenario(args.scenario))
     rig_cfg = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
-    out = sys.stderr if args.json else sys.stdout
-
-    def say(msg: str) -> None:
-        print(f"[sim] {msg}", file=out, flush=True)
+    say = log.info
 
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()

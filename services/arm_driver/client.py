@@ -16,7 +16,8 @@ fails is counted and reported, and the reader re-synchronises on the next header
 Connections: `connect()` opens both sockets; any socket error, EOF or `drop()` closes both and fails
 the requests in flight with `ConnectionLost`. `reconnect_if_due()` tries again with exponential
 back-off, which only resets once a feedback packet has arrived (a controller that accepts the
-connection but stays silent is retried ever less often, not four times a second). `epoch` counts successful connects, so the driver can tell that the controller it
+connection but stays silent is retried ever less often, not four times a second). `epoch` counts successful connects, so the
+driver can tell that the controller it
 talks to may have changed state in between (it then takes a fresh target from the current pose).
 """
 
@@ -26,7 +27,7 @@ import socket
 import threading
 import time
 from collections import deque
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -57,7 +57,8 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter, deque
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -158,7 +159,7 @@ class ArmDriver:
         self.clock, self.on_tick = clock, on_tick
         self._now = clock.now if clock.simulated else time.monotonic
 
-    def start(self) -> "ArmDriver":
+    def start(self) -> ArmDriver:
         """Connect to both controllers, bring them up as on the real rig, and start streaming.
 
         Raises ProtocolError (unreachable controller, refused command, arm that never reports
@@ -257,7 +258,7 @@ class ArmDriver:
         self.started = False
         self._event("closed", "both arms disabled" if not self._estop else "closed with the e-stop latched")
 
-    def __enter__(self) -> "ArmDriver":
+    def __enter__(self) -> ArmDriver:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

@@ -53,7 +53,7 @@ class ArmFrames:
     T_mount_flange: np.ndarray
 
     @classmethod
-    def from_config(cls, arm: ArmConfig) -> "ArmFrames":
+    def from_config(cls, arm: ArmConfig) -> ArmFrames:
         Twb, Tfm = arm.T_world_base(), arm.T_flange_mount()
         return cls(Twb, invert_transform(Twb), Tfm, invert_transform(Tfm))
 

@@ -18,8 +18,8 @@ Every event (clip, slow-down, watchdog stop) is counted in `counters` and told t
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 

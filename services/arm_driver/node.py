@@ -30,10 +30,10 @@ enabled are never queued. When commands stop arriving the driver's watchdog hold
 
 from __future__ import annotations
 
-import sys
+import logging
 import threading
 import time
-from typing import Any, Callable
+from typing import Any
 
 import zenoh  # noqa: F401 - the node is where the service meets the bus
 
@@ -47,12 +47,12 @@ from bagit.common.rig import ARMS
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import NO_ACTIVE_RUN, Refusal, command_refusal, stream_end
 
+log = logging.getLogger("bagit.arm_driver")
+
 REPEAT_S = 5.0  # the same event is printed again at most this often
+# Events that are the driver going about its work: logged at INFO and not shown on ArmState.
+ROUTINE_EVENTS = frozenset({"started", "closed", "estop_reset", "fault_cleared", "reconnected"})
 LOCKSTEP_PARK_S = 1.0  # lockstep: a run's first command waits this long (wall) for the run/state that lets it through
-
-
-def stderr_report(text: str) -> None:
-    print(f"bagit arm-driver: {text}", file=sys.stderr, flush=True)
 
 
 class ArmDriverNode:
@@ -65,12 +65,10 @@ class ArmDriverNode:
         driver: ArmDriver,
         state_rate_hz: float | None = None,
         notice_s: float = 1.0,
-        report: Callable[[str], None] = stderr_report,
         clock: ClockKind = "wall",
     ) -> None:
         self.keys = keys
         self.driver = driver
-        self.report = report
         self.notice_s = notice_s
         self.min_interval = 0.0 if not state_rate_hz else 1.0 / state_rate_hz
         self._last_pub = {a: -1e9 for a in ARMS}
@@ -222,14 +220,14 @@ class ArmDriverNode:
         text = f"{kind}: {detail}"
         key = repeat_key or text
         with self._lock:
-            if kind not in ("started", "closed", "estop_reset", "fault_cleared", "reconnected"):
+            if kind not in ROUTINE_EVENTS:
                 self._notice = (now, text)
             last = self._printed.get(kind)
             due = last is None or last[1] != key or now - last[0] >= REPEAT_S
             if due:
                 self._printed[kind] = (now, key)
         if due:
-            self.report(text)
+            log.log(logging.INFO if kind in ROUTINE_EVENTS else logging.WARNING, "%s", text)
 
     def _on_state(self, state: ArmState) -> None:
         now = time.monotonic()
@@ -291,7 +289,7 @@ class ArmDriverNode:
         try:
             self.driver.close()
         except Exception as e:  # noqa: BLE001 - report, and still close the publishers
-            self.report(f"shutdown: {type(e).__name__}: {e}")
+            log.error(f"shutdown: {type(e).__name__}: {e}")
         out = self.status()
         self.driver.on_state = None
         self.driver.on_tick = None

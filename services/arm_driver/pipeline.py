@@ -24,7 +24,7 @@ from bagit.common.rig import ARMS
 from bagit.common.so3 import rotvec_between, so3_exp
 from bagit.services.arm_driver.frames import Poses
 from bagit.services.arm_driver.safety import MEASURED_TOL_M, Envelope, Violation, check_and_clip, clip_target, violations
-from bagit.services.arm_driver.streaming import StreamStep, Streamer, TargetIntegrator
+from bagit.services.arm_driver.streaming import Streamer, StreamStep, TargetIntegrator
 
 
 @dataclass

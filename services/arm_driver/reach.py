@@ -15,8 +15,8 @@ short of a target out of reach; only a command that cannot be followed at all is
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

@@ -25,10 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from bagit.common.rig import ARMS, RigConfig, SafetyLimits
 from bagit.common.so3 import so3_exp, so3_log
 from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
-
 
 # Slack on the final check: clipping lands exactly on a limit and floating point may miss by ulps.
 TOL_M = 1e-9
@@ -66,7 +66,7 @@ class Envelope:
     limits: SafetyLimits
 
     @classmethod
-    def from_rig(cls, rig: RigConfig) -> "Envelope":
+    def from_rig(cls, rig: RigConfig) -> Envelope:
         lo = np.array([rig.arms[a].workspace_min for a in ARMS], dtype=float)
         hi = np.array([rig.arms[a].workspace_max for a in ARMS], dtype=float)
         if np.any(lo >= hi):

@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 from bagit.common.errors import NumericalFailure
-
 from bagit.common.params import MethodParams
 from bagit.services.controller.servo import ServoBase, scale_into_box
 

@@ -29,16 +29,15 @@ rate when the camera runs at it, as in `bagit run`.
 
 from __future__ import annotations
 
-import sys
+import logging
 import threading
 import time
-from typing import Any, Callable
+from collections import deque
+from typing import Any
 
 import numpy as np
 import zenoh  # noqa: F401 - the node is where the service meets the bus
 from pydantic import BaseModel, ConfigDict, Field
-
-from collections import deque
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.clock import ClockKind
@@ -48,8 +47,18 @@ from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS
 from bagit.services.controller.controller import CONTROLLERS
 from bagit.services.controller.session import (
-    ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, arms_slowed, gripper_poses, pending_motion,
+    ARM_MAX_AGE_S,
+    DRIVER_WATCHDOG_S,
+    SOI_MAX_AGE_S,
+    Outbox,
+    ServoSession,
+    arm_fault,
+    arms_slowed,
+    gripper_poses,
+    pending_motion,
 )
+
+log = logging.getLogger("bagit.controller")
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
@@ -70,10 +79,6 @@ class ControllerServiceConfig(BaseModel):
                                      "a command goes out at least every third of it (keep-alives)")
 
 
-def stderr_report(text: str) -> None:
-    print(f"bagit controller: {text}", file=sys.stderr, flush=True)
-
-
 class ControllerNode:
     """Servoes the current run (see the module doc)."""
 
@@ -82,7 +87,6 @@ class ControllerNode:
         session: zenoh.Session,
         keys: Keys,
         cfg: ControllerServiceConfig | None = None,
-        report: Callable[[str], None] = stderr_report,
         clock: ClockKind = "wall",
     ) -> None:
         self.cfg = cfg or ControllerServiceConfig()
@@ -92,7 +96,6 @@ class ControllerNode:
 
             raise BadControlInput(f"unknown controller {self.cfg.controller!r}; choose from {', '.join(CONTROLLERS)}")
         self.keys = keys
-        self.report = report
         self.rig_watchdog_s = self.cfg.driver_watchdog_s
         self._lock = threading.Lock()
         self._run_state: RunState | None = None
@@ -142,7 +145,7 @@ class ControllerNode:
 
     def _on_estop(self, msg: EStop) -> None:
         if not msg.may_act():
-            self.report(f"e-stop release from {msg.source!r} ignored: only the dashboard or the CLI may release it")
+            log.warning(f"e-stop release from {msg.source!r} ignored: only the dashboard or the CLI may release it")
             return
         with self._lock:
             self._estop = bool(msg.engage)
@@ -201,7 +204,7 @@ class ControllerNode:
         if not self._stop.is_set():  # a message lost on the way: this tick may differ from `bagit run`'s
             missing = [w for w, ok in (("run/state", state_ok), ("its SOI", soi_ok), ("the arms' states", arms_ok)) if not ok]
             self.counters["lockstep_late"] = self.counters.get("lockstep_late", 0) + 1
-            self.report(f"lockstep: frame {t:.3f} ticked without {', '.join(missing)} after {LOCKSTEP_WAIT_S:g} s")
+            log.warning(f"lockstep: frame {t:.3f} ticked without {', '.join(missing)} after {LOCKSTEP_WAIT_S:g} s")
 
     def _loop(self) -> None:
         next_t = time.monotonic()
@@ -319,7 +322,7 @@ class ControllerNode:
         if out.status is not None:
             self._publish_status_msg(out.status)
         if out.report:
-            self.report(out.report)
+            log.info("%s", out.report)
 
     # -- out ---------------------------------------------------------------------------------------
 
@@ -337,7 +340,7 @@ class ControllerNode:
         self._put(Command(u=np.zeros(12), dt=1 / 30, seq=self._next_seq(), mode="hold", reason=reason, stamp=now))
         self.counters["hold"] += 1
         if reason != self.last_reason:
-            self.report(f"hold: {reason}")
+            log.warning("hold: %s", reason)
         self.last_reason = reason
         self._publish_status(None, controller=DEFAULT_CONTROLLER, mode="hold", reason=reason)
 
@@ -352,7 +355,7 @@ class ControllerNode:
             self._status.put(st)
             self._status_sent = st.seq
         except Exception as e:  # noqa: BLE001
-            self.report(f"cannot publish the status: {type(e).__name__}: {e}")
+            log.warning(f"cannot publish the status: {type(e).__name__}: {e}")
 
     def status(self) -> dict[str, Any]:
         return {"counters": dict(self.counters), "last_reason": self.last_reason, "runs_done": list(self.runs_done)}

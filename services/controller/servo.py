@@ -10,7 +10,6 @@ tracker picks g_next on the path; the law (MPC, IBVS, SSVS) gives u (12,), which
 from __future__ import annotations
 
 import time
-
 from dataclasses import dataclass
 from typing import Any
 

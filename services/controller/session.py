@@ -20,8 +20,9 @@ controller -> hold with the reason.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -137,7 +138,7 @@ class ServoSession:
     @classmethod
     def build(cls, state: RunState, path: Path, goal: Goal | None, overrides: dict[str, Any], next_seq: Callable[[], int],
               controller: str | None = None, rate_hz: float | None = None,
-              watchdog_s: float = DRIVER_WATCHDOG_S) -> tuple["ServoSession", Outbox]:
+              watchdog_s: float = DRIVER_WATCHDOG_S) -> tuple[ServoSession, Outbox]:
         """The run's session from its run state and path (params: the scenario's, the run's overrides,
         then `overrides`); a finished one whose outbox says why when it cannot be built."""
         if not path.success:
@@ -166,7 +167,7 @@ class ServoSession:
         return cls(state.run_id, name, ctrl, params, rate, next_seq, watchdog_s), Outbox(report=note)
 
     @classmethod
-    def _finished(cls, run_id: str | None, why: str, next_seq: Callable[[], int]) -> "ServoSession":
+    def _finished(cls, run_id: str | None, why: str, next_seq: Callable[[], int]) -> ServoSession:
         """A run that is never servoed (no path, or no controller): the reason is told once, not every tick."""
         s = cls(run_id, "none", None, MethodParams(), MethodParams().control_rate_hz, next_seq)
         s.finished = why

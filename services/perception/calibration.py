@@ -9,8 +9,8 @@ Several frames: the poses are averaged (rotations by their quaternion mean).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import cv2
 import numpy as np

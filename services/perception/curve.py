@@ -32,7 +32,7 @@ class ClosedCurve:
         return float(self.arc[-1])
 
     @classmethod
-    def through(cls, mu: np.ndarray, keep: np.ndarray | None = None) -> "ClosedCurve":
+    def through(cls, mu: np.ndarray, keep: np.ndarray | None = None) -> ClosedCurve:
         """The periodic cubic spline through the closed chain `mu (k, 3)`, in chain order.
 
         With `keep (k,)`, only the kept means are knots; each run of dropped ones (a hidden
@@ -166,7 +166,7 @@ def polar_fill(mu: np.ndarray, keep: np.ndarray, normal: np.ndarray, per_gap_mea
     gaps = np.flatnonzero(runs > 0)
     pieces = np.split(mu[idx], gaps + 1)  # kept knots up to and including each gap's start
     out = [pieces[0]]
-    for g, after in zip(gaps, pieces[1:]):
+    for g, after in zip(gaps, pieces[1:], strict=False):
         g1 = (g + 1) % m
         a1 = a[g1] + (2 * np.pi if g1 == 0 else 0.0)
         frac = np.linspace(0.0, 1.0, per_gap_mean * runs[g] + 4)[1:-1]

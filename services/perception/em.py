@@ -87,7 +87,7 @@ def chain_em(
     support = np.zeros(k)
     b = np.zeros((k, 3))
     it = 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 - the count is read after the loop
         # E-step in float32 densities, laid out (k, n) so the sums run along contiguous rows and
         # every (k, n) step is in place: far points' Gaussian terms underflow to 0 and the uniform
         # term keeps every denominator positive, so no log-sum-exp is needed.

@@ -119,7 +119,7 @@ def _check_pcd_header(p: Path, head: bytes, size: int) -> None:
     declared = max(points, width * height)
     sizes = ints("SIZE", [])
     counts = ints("COUNT", [1] * len(sizes))
-    point_bytes = sum(s * c for s, c in zip(sizes, counts))
+    point_bytes = sum(s * c for s, c in zip(sizes, counts, strict=False))
     mode = (fields.get("DATA") or ["ascii"])[0].lower()
     if mode == "binary":
         need = declared * point_bytes

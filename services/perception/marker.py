@@ -21,9 +21,9 @@ that plane). The in-plane rotation stays the corners'.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
 
 import cv2
 import numpy as np
@@ -80,7 +80,7 @@ class ObjectLibrary:
         self._by_id[obj.marker.id] = obj
 
     @classmethod
-    def from_scenarios(cls, paths: Iterable[str | Path] | None = None) -> "ObjectLibrary":
+    def from_scenarios(cls, paths: Iterable[str | Path] | None = None) -> ObjectLibrary:
         """The library of every object with a marker in these scenario files (default: the bundled ones)."""
         if paths is None:
             from bagit.scenarios import list_scenarios
@@ -175,7 +175,7 @@ def detect_markers(color: np.ndarray, dictionary: str = "DICT_4X4_50", refine: b
         return []
     cells = det.getDictionary().markerSize + 2
     out = []
-    for i, c in zip(ids.ravel(), corners):
+    for i, c in zip(ids.ravel(), corners, strict=False):
         c = np.asarray(c, dtype=float).reshape(4, 2)
         out.append((int(i), refine_corners_by_edges(gray, c, cells) if refine else c))
     return out
@@ -307,7 +307,7 @@ def estimate_marker_pose(
     n_sol, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
     if n_sol == 0:
         raise MarkerNotFound(f"no pose for marker {marker_id} from its corners")
-    cands = [make_transform(cv2.Rodrigues(r)[0], np.ravel(t)) for r, t in zip(rvecs, tvecs)]
+    cands = [make_transform(cv2.Rodrigues(r)[0], np.ravel(t)) for r, t in zip(rvecs, tvecs, strict=False)]
     plane = _marker_plane(np.asarray(corners, dtype=float), depth, info) if depth is not None else None
     if plane is None:
         T = cands[0]  # IPPE's best by reprojection error

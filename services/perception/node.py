@@ -35,10 +35,10 @@ The marker's rate is counted on the frames' stamps, i.e. the camera's clock, in 
 
 from __future__ import annotations
 
-import sys
+import logging
 import threading
 import time
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 import numpy as np
 import zenoh  # noqa: F401 - the node is where the service meets the bus
@@ -54,8 +54,10 @@ from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import back_project
 from bagit.services.perception.soi import SoiParams
-from bagit.services.perception.tracker import RimTracker
 from bagit.services.perception.sources import SourceConfig, open_source
+from bagit.services.perception.tracker import RimTracker
+
+log = logging.getLogger("bagit.perception")
 
 REPORT_EVERY_S = 5.0
 LOCKSTEP_HINT_WAIT_S = 0.5  # lockstep: how long (wall) a frame waits for the left arm's state of its step
@@ -84,10 +86,6 @@ class PerceptionServiceConfig(BaseModel):
     marker_settle_s: float = Field(0.5, ge=0.0, le=30.0, description="a new run's first detection: on a frame this much newer than its start")
 
 
-def stderr_report(text: str) -> None:
-    print(f"bagit perception: {text}", file=sys.stderr, flush=True)
-
-
 def scene_cloud(frame: RgbdFrame, max_points: int) -> tuple[np.ndarray, np.ndarray]:
     """A down-sampled coloured cloud of the whole frame: points `(n, 3)` float32 world, colours `(n, 3)` uint8."""
     h, w = frame.depth.shape
@@ -111,14 +109,12 @@ class PerceptionNode:
         keys: Keys,
         cfg: PerceptionServiceConfig | None = None,
         T_world_camera: np.ndarray | None = None,
-        report: Callable[[str], None] = stderr_report,
         clock: ClockKind = "wall",
     ) -> None:
         self.cfg = cfg or PerceptionServiceConfig()
         self.lockstep = clock == "sim"
         self._answered: tuple[float, int | None, bool] | None = None  # lockstep: the last frame's stamp, SOI, detection
         self.keys = keys
-        self.report = report
         self._cond = threading.Condition()
         self._pending: RgbdFrame | None = None
         self._stop = threading.Event()
@@ -179,7 +175,7 @@ class PerceptionNode:
         lib = ObjectLibrary.from_scenarios(self.cfg.object_library)  # a bad library file is a config error
         if len(lib) == 0:
             if self.cfg.object_source == "marker":
-                self.report("object_source is marker but no object in the library has a marker: no detection")
+                log.warning("object_source is marker but no object in the library has a marker: no detection")
             return None
         return lib
 
@@ -224,7 +220,7 @@ class PerceptionNode:
         try:
             self._object_pub.put(det)
         except Exception as e:  # noqa: BLE001 - a closing session
-            self.report(f"could not publish perception/object: {e}")
+            log.warning(f"could not publish perception/object: {e}")
         if det.ok:
             self.counters["objects"] += 1
             return
@@ -240,7 +236,7 @@ class PerceptionNode:
         try:
             self._library = with_run_object(self._library, scen)  # swapped whole: the marker thread never sees a half-built one
         except BagItError as e:
-            self.report(f"the run's object is not added to the library: {e}")
+            log.warning(f"the run's object is not added to the library: {e}")
 
     def _read(self) -> None:
         src = self._source
@@ -263,7 +259,7 @@ class PerceptionNode:
                     break
             time.sleep(0.01)
         self.stop_ok, self.stop_reason = ok, reason
-        self.report(reason)
+        (log.info if ok else log.error)("%s", reason)
         self.stopped.set()
 
     _busy = False
@@ -276,7 +272,7 @@ class PerceptionNode:
             try:
                 scen = Scenario.model_validate(msg.scenario_doc)
             except Exception as e:  # noqa: BLE001
-                self.report(f"run {msg.run_id}: scenario not readable, using the config's bag: {str(e).splitlines()[0]}")
+                log.warning(f"run {msg.run_id}: scenario not readable, using the config's bag: {str(e).splitlines()[0]}")
         with self._cond:
             self._run_id, self._scenario = msg.run_id, scen
             if self._rim is not None:
@@ -409,7 +405,7 @@ class PerceptionNode:
         now = time.monotonic()
         if now - self._last_report[kind] >= REPORT_EVERY_S:
             self._last_report[kind] = now
-            self.report(text)
+            log.warning("%s", text)
 
     # -- out ---------------------------------------------------------------------------------------
 

@@ -6,7 +6,8 @@ red-rim colour threshold -- a solid-colour bag's local top, a learned segmenter,
 
 from __future__ import annotations
 
-from typing import Protocol, Sequence
+from collections.abc import Sequence
+from typing import Protocol
 
 import cv2
 import numpy as np

@@ -23,7 +23,7 @@ Gaussian that covers a long arc lies inside the rim; the SOI points are then tak
 
 from __future__ import annotations
 
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field

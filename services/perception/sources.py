@@ -20,8 +20,9 @@ registered to the colour pixels.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator, Literal, Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -50,7 +51,7 @@ class SourceConfig(BaseModel):
     timeout_s: float = Field(5.0, gt=0, le=120, description="no frame for this long: CameraError")
 
     @model_validator(mode="after")
-    def _needs(self) -> "SourceConfig":
+    def _needs(self) -> SourceConfig:
         if self.kind == "realsense-file":
             if self.path is None:
                 raise ValueError("a realsense-file source needs `path`, the recording to play")
@@ -67,7 +68,7 @@ class FrameSource(Protocol):
     def close(self) -> None: ...
 
 
-def open_source(cfg: SourceConfig, T_world_camera: np.ndarray | None = None) -> "RealSenseSource | None":
+def open_source(cfg: SourceConfig, T_world_camera: np.ndarray | None = None) -> RealSenseSource | None:
     """The frame source `cfg` names; None for kind `zenoh` (the node subscribes to camera/rgbd).
     `T_world_camera (4, 4)`: the rig's camera-to-world extrinsics, stamped on every frame."""
     if cfg.kind == "zenoh":
@@ -374,7 +375,7 @@ class RealSenseSource:
                     self._start_sensors()
                     deadline = time.monotonic() + self.cfg.timeout_s
                 elif time.monotonic() > deadline:
-                    raise CameraError(f"no frame from recording {self.cfg.path} for {self.cfg.timeout_s:.1f} s")
+                    raise CameraError(f"no frame from recording {self.cfg.path} for {self.cfg.timeout_s:.1f} s") from None
                 continue
             other = "color" if kind == "depth" else "depth"
             self._pending[kind] = (t_ms, data)
@@ -419,7 +420,7 @@ class RealSenseSource:
         else:
             self._stop_sensors()
 
-    def __enter__(self) -> "RealSenseSource":
+    def __enter__(self) -> RealSenseSource:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -9,8 +9,9 @@ grippers. Each of those is a knob here. Everything is seeded, so a cloud is repr
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -108,7 +109,7 @@ def make_rim_cloud(
     occlusion, occlusion_at, seed, margin_m).
     """
     rim = true_rim(kind, perimeter=perimeter, center=center, rpy=rpy, aspect=aspect)
-    cloud, _ = rim_cloud(rim, **cloud_options)  # type: ignore[arg-type]
+    cloud, _ = rim_cloud(rim, **cloud_options)
     return cloud, rim
 
 

@@ -68,13 +68,13 @@ class RimCollision:
         p0 = rims
         p1 = np.roll(rims, -1, axis=1)
         hit = np.zeros(rims.shape[0], dtype=bool)
-        for poly, m in zip(self.polytopes, self.margins):
+        for poly, m in zip(self.polytopes, self.margins, strict=False):
             hit |= segments_hit(p0, p1, poly, m).any(axis=-1)
         return hit
 
     def first_hit(self, rim: np.ndarray) -> str | None:
         """Name of the first thing a single rim `(n_x, 3)` touches, or None."""
-        for poly, m in zip(self.polytopes, self.margins):
+        for poly, m in zip(self.polytopes, self.margins, strict=False):
             if segments_hit(rim, np.roll(rim, -1, axis=0), poly, m).any():
                 return poly.name
         return None

@@ -23,20 +23,20 @@ from __future__ import annotations
 
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from bagit.common.errors import BagItError, BadScenario
+from bagit.common.errors import BadScenario, BagItError
 from bagit.common.messages import ControllerStatus, EStop, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES, SERVO_STAGES
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, axis_error_cm, points_list
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
-
 
 SIM_TIME_LIMIT_S = 40.0  # a simulated run's servoing limit (`bagit run`, `bagit up` in lockstep): runs take 10-30 s
 
@@ -374,7 +374,7 @@ class Coordinator:
         job = PlanJob(r.run_id, scenario, np.array(soi.rim, dtype=float), r.planner, r.seed, self.cfg.plan_time_budget_s, self.rig)
         return [Effect("plan", job=job)]
 
-    def _object_for_plan(self, r: "_Run") -> tuple[Scenario, dict[str, Any]]:
+    def _object_for_plan(self, r: _Run) -> tuple[Scenario, dict[str, Any]]:
         """The scenario the plan job uses (its object's V and height from the marker when usable) and the
         run-result fields saying where the object came from."""
         det = r.detection

@@ -3,7 +3,8 @@
 It answers run/control, takes g0 from perception/soi and the object from perception/object, plans in a background thread (so a long
 search never holds up run/control or run/state), publishes planner/goal and planner/path, follows
 controller/status, the e-stop (which aborts the run and refuses starts until released) and the
-services' liveliness, and publishes run/state on every change and at `publish_hz`. All coordinator calls are serialised by one lock; publishing happens outside it.
+services' liveliness, and publishes run/state on every change and at `publish_hz`. All coordinator calls are serialised by
+one lock; publishing happens outside it.
 
 With `clock="sim"` (a lockstep simulator) the coordinator's time is the simulator's: it ticks on each
 sim/clock message (limits, the marker wait), and answers each frame on sim/ack once perception has
@@ -16,7 +17,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
@@ -303,7 +305,7 @@ class PlannerNode:
         except zenoh.ZError:
             pass
 
-    def __enter__(self) -> "PlannerNode":
+    def __enter__(self) -> PlannerNode:
         return self
 
     def __exit__(self, *_: Any) -> None:

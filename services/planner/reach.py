@@ -41,7 +41,7 @@ def rim_mount_poses(rim: np.ndarray) -> Poses:
 
 def _box(arm: ArmConfig) -> str:
     lo, hi = arm.workspace_min, arm.workspace_max
-    return " x ".join(f"[{a:g}, {b:g}]" for a, b in zip(lo, hi)) + " m"
+    return " x ".join(f"[{a:g}, {b:g}]" for a, b in zip(lo, hi, strict=False)) + " m"
 
 
 def mount_reach_problem(arm_name: str, arm: ArmConfig, T_world_mount: np.ndarray) -> str | None:

@@ -99,7 +99,9 @@ def cbirrt(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max
     return None, max_iter
 
 
-def _forward_search(space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max_iter: int, deadline: float, extend) -> tuple[list[np.ndarray] | None, int]:
+def _forward_search(
+    space: SoiSpace, start: np.ndarray, goal: np.ndarray, eps: float, max_iter: int, deadline: float, extend
+) -> tuple[list[np.ndarray] | None, int]:
     """One tree from the start, grown by `extend(tree, target)` toward the goal (with probability
     GOAL_BIAS) or a regularised random SOI, until a node can be joined to the goal."""
     tree = Tree(start)
@@ -174,7 +176,7 @@ def postprocess(space: SoiSpace, path: list[np.ndarray], shortcuts: int = 40, sm
 def densify(space: SoiSpace, path: list[np.ndarray], step: float) -> list[np.ndarray]:
     """Insert projected intermediate rims so consecutive nodes differ by at most `step` per point."""
     out = [path[0]]
-    for a, b in zip(path[:-1], path[1:]):
+    for a, b in zip(path[:-1], path[1:], strict=False):
         k = int(np.ceil(max_step(a, b) / step - 1e-9))
         for s in np.linspace(0.0, 1.0, max(k, 1) + 1)[1:-1]:
             out.append(space.project(a + s * (b - a)))

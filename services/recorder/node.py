@@ -25,12 +25,12 @@ controller/cmd on the target rig (an arm driver would move the arms).
 
 from __future__ import annotations
 
+import logging
 import queue
-import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import zenoh
 
@@ -42,15 +42,14 @@ from bagit.common.names import FINAL_STAGES
 from bagit.services.recorder.reading import Recording
 from bagit.services.recorder.writer import RecordingWriter, record_bytes
 
+log = logging.getLogger("bagit.recorder")
+LEVELS = {"info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}  # the writer's event levels
+
 COMMAND_KEYS = ("controller/cmd", "estop")
 # At start, messages wait this long at most for the first run/state (the coordinator republishes
 # it at 2 Hz), so a recorder restarted in the middle of a run files them under that run.
 START_HOLD_S = 1.0
 _STOP = object()
-
-
-def stderr_report(level: str, text: str) -> None:
-    print(f"bagit recorder: {'ERROR: ' if level == 'error' else ''}{text}", file=sys.stderr, flush=True)
 
 
 class RecorderNode:
@@ -63,13 +62,11 @@ class RecorderNode:
         writer: RecordingWriter,
         exclude: list[str] | tuple[str, ...] = (),
         max_queue_bytes: int = 256 << 20,
-        report: Callable[[str, str], None] = stderr_report,
         tick_s: float = 0.05,
         hold_s: float = START_HOLD_S,
     ) -> None:
         self.keys = keys
         self.writer = writer
-        self.report = report
         self.tick_s = tick_s
         self.max_queue_bytes = max_queue_bytes
         self.exclude = [zenoh.KeyExpr(f"{keys.prefix}/{e.strip('/')}") for e in exclude]
@@ -226,10 +223,7 @@ class RecorderNode:
                 pass
 
     def _say(self, level: str, text: str) -> None:
-        try:
-            self.report(level, text)
-        except Exception:  # noqa: BLE001 - a closed stderr must not take the writer down
-            pass
+        log.log(LEVELS.get(level, logging.WARNING), "%s", text)
 
     def _on_event(self, level: str, text: str) -> None:
         self._say(level, text)

@@ -13,13 +13,15 @@ from __future__ import annotations
 import json
 import struct
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Footer, Message as McapMessage, Metadata, Schema
+from mcap.records import Channel, Footer, Metadata, Schema
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 
 from bagit.common.errors import BadRecording

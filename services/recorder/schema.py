@@ -17,7 +17,7 @@ from __future__ import annotations
 import base64
 import binascii
 import json
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -61,7 +61,7 @@ def schema_name(cls: type[Message]) -> str:
     return f"{SCHEMA_PREFIX}{cls.__name__}"
 
 
-@lru_cache(maxsize=None)
+@cache
 def json_schema_bytes(cls: type[Message]) -> bytes:
     """The JSON Schema (draft 2020-12) of a message model's MCAP record, as UTF-8 bytes."""
     s = cls.model_json_schema(schema_generator=_WithArrays, mode="validation")
@@ -70,7 +70,7 @@ def json_schema_bytes(cls: type[Message]) -> bytes:
     return json.dumps(s, sort_keys=True).encode()
 
 
-@lru_cache(maxsize=None)
+@cache
 def array_fields(cls: type[Message]) -> frozenset[str]:
     """Names of a model's numpy-array fields (those its schema gives as NdArray)."""
     props = json.loads(json_schema_bytes(cls))["properties"]

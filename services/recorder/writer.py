@@ -34,10 +34,11 @@ import os
 import re
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, DataEnd, Footer, Metadata, Schema
@@ -517,7 +518,7 @@ def channel_metadata(cls: type[Message]) -> dict[str, str]:
     return {"kind": cls.KIND, "schema_version": str(SCHEMA_VERSION)}
 
 
-@lru_cache(maxsize=None)
+@cache
 def schema_record_bytes(cls: type[Message]) -> int:
     return len(_record_bytes(Schema(id=0, name=schema_name(cls), encoding=SCHEMA_ENCODING, data=json_schema_bytes(cls))))
 

@@ -33,9 +33,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from bagit.common import cr5
-from bagit.common.so3 import matrix_to_quat_wxyz, so3_log
 from bagit.common.dobot import Alarm, ErrorId, RobotMode, joint_limit_alarm, new_feedback, overspeed_alarm
 from bagit.common.rig import ArmConfig
+from bagit.common.so3 import matrix_to_quat_wxyz, so3_log
 
 SUBSTEP_S = 0.002
 MOVL_IK_PERIOD_S = 0.005  # the Cartesian line is solved at this rate and joint-interpolated between

@@ -30,7 +30,7 @@ import math
 import socket
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -40,8 +40,8 @@ from bagit.common.dobot import (
     DASHBOARD_PORT,
     FEEDBACK_PERIOD_S,
     FEEDBACK_PORT,
-    CommandSplitter,
     Command,
+    CommandSplitter,
     ErrorId,
     format_error_ids,
     format_reply,
@@ -131,7 +131,7 @@ def _named_options(named: dict[str, object], spec: Spec, out: dict | None = None
 def _positional_options(args: list, names: list[str], spec: Spec) -> dict[str, float]:
     """Optional parameters given by position (`names` in order): the k-th one's errors are -5000k / -6000k."""
     out = {}
-    for k, (name, v) in enumerate(zip(names, args), start=1):
+    for k, (name, v) in enumerate(zip(names, args, strict=False), start=1):
         lo, hi, integer = spec[name]
         out[name] = _in(_num(v, param_error(ErrorId.OPTIONAL_TYPE, k), integer), lo, hi, param_error(ErrorId.OPTIONAL_RANGE, k))
     return out
@@ -212,7 +212,7 @@ class DobotControllerServer:
         s.settimeout(0.1)
         return s
 
-    def start(self) -> "DobotControllerServer":
+    def start(self) -> DobotControllerServer:
         self._dash_sock = self._listen(self._ports[0])
         try:
             self._fb_sock = self._listen(self._ports[1])
@@ -255,7 +255,7 @@ class DobotControllerServer:
             if t is not threading.current_thread():
                 t.join(timeout=2.0)
 
-    def __enter__(self) -> "DobotControllerServer":
+    def __enter__(self) -> DobotControllerServer:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -267,7 +267,7 @@ class DobotControllerServer:
         while not self._stop.is_set():
             try:
                 conn, _ = listener.accept()
-            except (socket.timeout, TimeoutError):
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -287,7 +287,7 @@ class DobotControllerServer:
             while not self._stop.is_set():
                 try:
                     data = conn.recv(65536)
-                except (socket.timeout, TimeoutError):
+                except TimeoutError:
                     data = None
                 if data == b"":
                     return

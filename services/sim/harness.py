@@ -12,8 +12,8 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -97,7 +97,7 @@ class TcpProxy:
         while not self._stop.is_set():
             try:
                 client, _ = listener.accept()
-            except (socket.timeout, TimeoutError):
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -252,7 +252,7 @@ class DashboardText:
             while time.monotonic() < end and (until is None or self.buf.count(";") < until):
                 try:
                     chunk = self.sock.recv(65536)
-                except (socket.timeout, TimeoutError):
+                except TimeoutError:
                     continue
                 if not chunk:
                     raise ConnectionError("the controller closed the connection")
@@ -292,7 +292,7 @@ class FeedbackRecorder:
         while not self._stop.is_set():
             try:
                 data = self.sock.recv(65536)
-            except (socket.timeout, TimeoutError):
+            except TimeoutError:
                 continue
             except OSError:
                 return

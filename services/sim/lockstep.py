@@ -41,7 +41,7 @@ class Schedule:
     ticks: int = 0  # servo ticks so far
 
     @classmethod
-    def starting(cls, now: float, frame_dt: float, period: float | None, ticks: int = 0) -> "Schedule":
+    def starting(cls, now: float, frame_dt: float, period: float | None, ticks: int = 0) -> Schedule:
         """Both events due at `now`; servo ticks numbered on from `ticks` (their numbers never repeat)."""
         return cls(frame_dt, period, now, now, ticks)
 

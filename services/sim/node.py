@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field

@@ -45,7 +45,7 @@ class ConvexPart:
     half_height: float = 0.0
 
     @classmethod
-    def from_points(cls, points: np.ndarray, **round_shape) -> "ConvexPart":
+    def from_points(cls, points: np.ndarray, **round_shape) -> ConvexPart:
         hull = ConvexHull(points)
         tri = hull.simplices.copy()
         p = points[tri]

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -31,7 +32,6 @@ from bagit.common.rig import ARMS, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
-
 from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S  # noqa: E402  (pure Python, no MuJoCo)
 
 SETTLE_S = 1.0  # simulated seconds the bag hangs still after a (re)set before the camera's first frame
@@ -294,7 +294,7 @@ class SimRig:
         self.stop_servers()
         self.world.close()
 
-    def __enter__(self) -> "SimRig":
+    def __enter__(self) -> SimRig:
         return self
 
     def __exit__(self, *exc: object) -> None:

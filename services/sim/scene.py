@@ -84,7 +84,7 @@ def _mount_body(name: str, T_home: np.ndarray, rim_local: np.ndarray, T_flange_m
     arc_pts = rim_local + [0.0, MOUNT_ARC_DROP_M, 0.0]
     arc = "".join(
         f'<geom type="capsule" fromto="{_v(a)} {_v(b)}" size="0.005" contype="0" conaffinity="0" rgba="{MOUNT_RGBA}"/>'
-        for a, b in zip(arc_pts[:-1], arc_pts[1:])
+        for a, b in zip(arc_pts[:-1], arc_pts[1:], strict=False)
     )
     mid = arc_pts[len(arc_pts) // 2]
     T_mount_flange = np.linalg.inv(T_flange_mount)
@@ -92,7 +92,8 @@ def _mount_body(name: str, T_home: np.ndarray, rim_local: np.ndarray, T_flange_m
     axis = T_mount_flange[:3, 2]  # the tool axis, pointing from the flange to the mount
     stem = f'<geom type="capsule" fromto="{_v(mid)} {_v(flange)}" size="0.006" contype="0" conaffinity="0" rgba="{MOUNT_RGBA}"/>'
     disc = f'<geom type="cylinder" fromto="{_v(flange - 0.008 * axis)} {_v(flange)}" size="0.032" contype="0" conaffinity="0" rgba="{FLANGE_RGBA}"/>'
-    wrist = f'<geom type="cylinder" fromto="{_v(flange - 0.09 * axis)} {_v(flange - 0.008 * axis)}" size="0.045" contype="0" conaffinity="0" rgba="{FLANGE_RGBA}"/>'
+    wrist = (f'<geom type="cylinder" fromto="{_v(flange - 0.09 * axis)} {_v(flange - 0.008 * axis)}" size="0.045" '
+             f'contype="0" conaffinity="0" rgba="{FLANGE_RGBA}"/>')
     return f'<body name="mount_{name}" mocap="true" pos="{_v(T_home[:3, 3])}" quat="{_v(_quat(T_home[:3, :3]))}">{arc}{stem}{disc}{wrist}</body>'
 
 

@@ -56,7 +56,7 @@ class PenetrationMonitor:
         self.tol = tol
         self._elements = np.asarray(elements, dtype=int)
         self._centres = [p.points.mean(axis=0) for p in parts]
-        self._radii = [float(np.linalg.norm(p.points - c, axis=1).max()) for p, c in zip(parts, self._centres)]
+        self._radii = [float(np.linalg.norm(p.points - c, axis=1).max()) for p, c in zip(parts, self._centres, strict=False)]
         self.max_depth = 0.0
         self.passed = False
 
@@ -66,7 +66,7 @@ class PenetrationMonitor:
         centre = tri.mean(axis=1)
         reach = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)  # (m,)
         deepest = -np.inf
-        for part, c, r in zip(self.parts, self._centres, self._radii):
+        for part, c, r in zip(self.parts, self._centres, self._radii, strict=False):
             near = np.linalg.norm(centre - c, axis=1) <= r + reach
             if not near.any():
                 continue

@@ -21,9 +21,9 @@ import numpy as np  # noqa: E402
 from bagit.common.errors import BadControlInput, BadScenario, SimulationFailed  # noqa: E402
 from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed  # noqa: E402
 from bagit.common.messages import RgbdFrame  # noqa: E402
+from bagit.common.mounts import rim_frame  # noqa: E402
 from bagit.common.rig import ARMS, RigConfig  # noqa: E402
 from bagit.common.scenario import Scenario  # noqa: E402
-from bagit.common.mounts import rim_frame  # noqa: E402
 from bagit.services.sim.bag import BagLayout, bag_layout  # noqa: E402
 from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise  # noqa: E402
 from bagit.services.sim.objects import object_mesh, object_parts, object_pose  # noqa: E402
@@ -169,7 +169,7 @@ class SimWorld:
         return tuple(int(self.data.warning[w].number) for w in INSTABILITY_WARNINGS)
 
     def _describe_failure(self, before: tuple[int, ...], now: tuple[int, ...]) -> str:
-        fired = [w.name.removeprefix("mjWARN_") for w, a, b in zip(INSTABILITY_WARNINGS, before, now) if b != a]
+        fired = [w.name.removeprefix("mjWARN_") for w, a, b in zip(INSTABILITY_WARNINGS, before, now, strict=False) if b != a]
         verts = self.bag_vertices()
         if fired:
             what = f"MuJoCo warned of {', '.join(fired)}"
@@ -193,7 +193,7 @@ class SimWorld:
                 turn = min(ang / remaining, MAX_MOUNT_SPEED_RPS * TIMESTEP)
                 self.data.mocap_quat[i] = self._target_quat[name] if turn >= ang else _slerp(quat.copy(), self._target_quat[name], turn / ang)
 
-    def save_state(self) -> "WorldState":
+    def save_state(self) -> WorldState:
         """A snapshot to branch from (e.g. to try several mount moves from one bag state)."""
         data = mujoco.MjData(self.model)
         mujoco.mj_copyData(data, self.model, self.data)
@@ -205,7 +205,7 @@ class SimWorld:
             self._monitor.passed,
         )
 
-    def restore_state(self, state: "WorldState") -> None:
+    def restore_state(self, state: WorldState) -> None:
         """Go back to a snapshot from `save_state` of this world; stepping on replays exactly."""
         mujoco.mj_copyData(self.data, self.model, state.data)
         self._target_pos = {k: v.copy() for k, v in state.target_pos.items()}
@@ -302,7 +302,7 @@ class SimWorld:
             self._renderer.close()
             self._renderer = None
 
-    def __enter__(self) -> "SimWorld":
+    def __enter__(self) -> SimWorld:
         return self
 
     def __exit__(self, *exc: object) -> None:
