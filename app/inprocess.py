@@ -88,7 +88,7 @@ def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: 
     t_wall = time.perf_counter()
     sc = opts.scenario
     params = merge_params(sc.params, opts.overrides)
-    rate = params.control_rate_hz
+    rate = params.controller.control_rate_hz
     fps = opts.fps or rate
     if not 0 < fps <= 120:
         raise BagItError(f"fps must be in (0, 120], got {fps}")
@@ -287,5 +287,5 @@ class _Run:
             arms=opts.arms, success=success, reason=reason, error_cm=truth.error_cm, truth=truth,
             final_rim=points_list(self.sim.world.true_rim(sc.bag.n_x)), wall_s=round(time.perf_counter() - self.t_wall, 3),
             solve_ms_median=float(np.median(solve)) if solve.size else None, arm_events=self.arms.events(),
-            lift_margin_cm=self.trace.lift_margin_cm, provenance=provenance(params.model_dump(mode="json")),
+            lift_margin_cm=self.trace.lift_margin_cm, provenance=provenance(params.flat()),
         ))

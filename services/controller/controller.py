@@ -50,13 +50,11 @@ def make_controller(name: str, params: MethodParams, n_x: int, **kwargs: Any) ->
 
 def ShapeServo(  # noqa: N802
     kind: str, params: MethodParams, path: np.ndarray, dagger_index: int, perimeter: float,
-    outline: np.ndarray | None = None, frame: np.ndarray | None = None,
 ) -> Controller:
-    """A controller already reset on `path (n_nodes, n_x, 3)`: the one-call form of make_controller + reset
-    (outline `(m, 3)`, frame `(4, 4)`: the object's bottom V and frame, for the enclosure rule)."""
+    """A controller already reset on `path (n_nodes, n_x, 3)`: the one-call form of make_controller + reset."""
     nodes = np.asarray(path, dtype=float)
     if nodes.ndim != 3:
         raise BadControlInput(f"path must have shape (n_nodes, n_x, 3), got {nodes.shape}")
     c = make_controller(kind, params, nodes.shape[1])
-    c.reset(None, nodes, None, dagger_index=dagger_index, perimeter=perimeter, outline=outline, frame=frame)
+    c.reset(None, nodes, None, dagger_index=dagger_index, perimeter=perimeter)
     return c
