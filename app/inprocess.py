@@ -28,7 +28,7 @@ import numpy as np
 from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
 from bagit.common.messages import ArmState, Goal, ObjectDetection, Path, RunControl, RunState, SoiState
-from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, SERVO_STAGES, ArmsMode
+from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, PERCEIVE_STAGES, SERVO_STAGES, ArmsMode
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import RigConfig
@@ -191,7 +191,7 @@ class _Run:
         frame = self.sim.render_rgbd(self.frames)
         self.frames += 1
         effects: list[Effect] = []
-        if self.library is not None and now >= self.marker_due - 1e-9 and self.coord.state.stage in ("perceiving", "goal"):
+        if self.library is not None and now >= self.marker_due - 1e-9 and self.coord.state.stage in PERCEIVE_STAGES:
             self.marker_due = now + 1.0 / MARKER_RATE_HZ
             try:
                 det = detect_object(frame, self.library, self.coord.state.run_id)
