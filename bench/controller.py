@@ -19,10 +19,10 @@ import piqp
 import scipy.sparse as sp
 
 from bagit.bench.common import stats_ms
+from bagit.common.dual_arm import apply_increment
 from bagit.common.names import CONTROLLER_NAMES
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits, make_controller
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.mpc import separation_bounds, separation_gradient, uncondensed_qp
 from bagit.services.controller.subgoal import rms_error, slide_to
 from bagit.services.controller.synthetic import SyntheticRim

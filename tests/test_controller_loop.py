@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from test_controller_broyden import _synthetic_jacobian
 
+from bagit.common.dual_arm import apply_increment
 from bagit.common.errors import BadControlInput
 from bagit.common.messages import Path
 from bagit.common.params import MethodParams
 from bagit.services.controller import ShapeServo, c7_limits, make_controller
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.mpc import separation_gradient
 from bagit.services.controller.synthetic import SyntheticRim
 

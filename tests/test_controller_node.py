@@ -13,10 +13,10 @@ from bus_support import session_pair, wait_until
 from log_support import LogLines
 
 from bagit.common.bus import Keys, Publisher, Subscriber
+from bagit.common.dual_arm import apply_increment
 from bagit.common.geometry import matrix_to_rpy
 from bagit.common.messages import ArmState, Command, ControllerStatus, EllipseParams, Goal, Path, RunState, SoiState
 from bagit.common.rig import SafetyLimits
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
 from bagit.services.controller.session import KEEPALIVE
 from bagit.services.controller.synthetic import SyntheticRim

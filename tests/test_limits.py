@@ -8,7 +8,7 @@ import pytest
 
 from bagit.common.messages import Path, RunState, SoiState
 from bagit.common.rig import RigConfig, SafetyLimits
-from bagit.services.controller.increment import apply_increment
+from bagit.common.dual_arm import apply_increment
 from bagit.services.controller.node import ControllerServiceConfig
 from bagit.services.controller.session import DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, ServoSession
 from bagit.services.controller.synthetic import SyntheticRim

@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from bagit.common.dual_arm import Poses
 from bagit.common.errors import BadControlInput
 from bagit.common.params import MethodParams
 from bagit.services.controller.baselines import IbvsController, SsvsController
@@ -22,21 +23,25 @@ CONTROLLERS: dict[str, type[ServoBase]] = {"mpc": MpcController, "ibvs": IbvsCon
 
 
 class Controller(Protocol):
+    """What a host (`ServoSession`, the benchmarks) drives; `ServoBase` and its laws satisfy it
+    (`make_controller`'s return is checked against it by the type checker)."""
+
     name: str
     u_max: np.ndarray  # (12,) C7 per tick
     dt: float
+    ticks: int
 
     def reset(
         self,
         x0: np.ndarray | None,
         path: Any,
-        gripper_poses: dict[str, np.ndarray] | None,
+        gripper_poses: Poses | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
     ) -> None: ...
 
     def step(
-        self, x: np.ndarray | None, now: float, gripper_poses: dict[str, np.ndarray], source_stamp: float | None = None,
+        self, x: np.ndarray | None, now: float, gripper_poses: Poses, source_stamp: float | None = None,
         pending: np.ndarray | None = None, slowed: bool = False,
     ) -> ControlOutput: ...
 

@@ -35,12 +35,13 @@ import numpy as np
 import piqp
 import scipy.sparse as sp
 
+from bagit.common.dual_arm import INCREMENT_SIZE, POSITION_COLUMNS, ROTATION, TRANSLATION
 from bagit.common.params import MethodParams
+from bagit.common.rig import ARMS
 from bagit.services.controller import servo as servo_mod
 from bagit.services.controller.servo import ServoBase
 
 ROTATION_COST_FACTOR = 10.0  # a mount's turn moves the rim little: spend it only where it pays
-POSITION_COLUMNS = (0, 1, 2, 6, 7, 8)  # left and right gripper translation inside u (12,)
 
 
 @dataclass
@@ -65,13 +66,15 @@ def prediction_matrices(J: np.ndarray, horizon: int) -> tuple[np.ndarray, np.nda
 
 def rotation_weighted_r(r: float, horizon: int) -> np.ndarray:
     """Diagonal of R `(12 T,)`: r per unit of translation, ROTATION_COST_FACTOR r per radian."""
-    per_tick = np.array([1.0] * 3 + [ROTATION_COST_FACTOR] * 3 + [1.0] * 3 + [ROTATION_COST_FACTOR] * 3)
+    per_tick = np.ones(INCREMENT_SIZE)
+    for arm in ARMS:
+        per_tick[ROTATION[arm]] = ROTATION_COST_FACTOR
     return r * np.tile(per_tick, horizon)
 
 
 def input_weight(r: float, horizon: int, twist: float = 0.0) -> np.ndarray:
     """R `(12T, 12T)`: `rotation_weighted_r` on the diagonal plus, per tick, twist |ω_L - ω_R|², the
-    cost of the two grippers turning differently (ω: each gripper's rotation increment, u[3:6], u[9:12]).
+    cost of the two grippers turning differently (ω: each gripper's rotation increment, `dual_arm.ROTATION`).
 
     Why: each mount clamps a rigid quarter of the rim, so turning both alike moves the rim as a body,
     while turning them differently bends the free fabric between the clamps, which buckles into a fold
@@ -79,18 +82,18 @@ def input_weight(r: float, horizon: int, twist: float = 0.0) -> np.ndarray:
     in the simulator, the MPC yawed the mounts apart to widen the rim's near side and creased it instead."""
     R = np.diag(rotation_weighted_r(r, horizon))
     if twist > 0:
-        D = np.zeros((3, 12))
-        D[:, 3:6] = np.eye(3)
-        D[:, 9:12] = -np.eye(3)
+        D = np.zeros((3, INCREMENT_SIZE))
+        D[:, ROTATION["left"]] = np.eye(3)
+        D[:, ROTATION["right"]] = -np.eye(3)
         R += twist * np.kron(np.eye(horizon), D.T @ D)
     return R
 
 
 def separation_gradient(axis: np.ndarray) -> np.ndarray:
     """d(separation)/du `(12,)`: the change of the grippers' distance along the unit `axis (3,)` (left -> right)."""
-    a = np.zeros(12)
-    a[0:3] = -axis
-    a[6:9] = axis
+    a = np.zeros(INCREMENT_SIZE)
+    a[TRANSLATION["left"]] = -axis
+    a[TRANSLATION["right"]] = axis
     return a
 
 

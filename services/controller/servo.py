@@ -21,7 +21,7 @@ from bagit.common.messages import Command
 from bagit.common.params import MethodParams
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
-from bagit.services.controller.increment import apply_increment, pose_increment
+from bagit.common.dual_arm import DualArmIncrement, apply_increment, pose_increment
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
 
 EXPLORE_PUSH_TICKS = 4  # ticks each exploratory push lasts (at the C7 limit)
@@ -75,9 +75,10 @@ class ControlOutput:
 
 def c7_limits(params: MethodParams) -> np.ndarray:
     """C7: the largest |u| per component per tick `(12,)` from the arms' speed limits."""
-    dt = 1.0 / params.controller.control_rate_hz
-    lin, ang = params.controller.max_linear_speed_mps * dt, params.controller.max_angular_speed_rps * dt
-    return np.array([lin] * 3 + [ang] * 3 + [lin] * 3 + [ang] * 3)
+    c = params.controller
+    dt = 1.0 / c.control_rate_hz
+    per_arm = np.array([c.max_linear_speed_mps * dt] * 3 + [c.max_angular_speed_rps * dt] * 3)
+    return DualArmIncrement(per_arm, per_arm).to_array()
 
 
 def project_box_halfspace(v: np.ndarray, d: np.ndarray, limit: float, iterations: int = 60) -> np.ndarray:

@@ -33,7 +33,7 @@ from bagit.common.params import MethodParams, merge_params
 from bagit.common.rig import ARMS, SafetyLimits
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
-from bagit.services.controller.increment import pose_increment
+from bagit.common.dual_arm import pose_increment
 
 # A command's dt (the time the driver spreads its increment over) stays this far under the arm
 # driver's watchdog (`SafetyLimits.watchdog_s`), so a slow SOI gives slower motion, never a stop.
