@@ -8,7 +8,7 @@ import pytest
 from bagit.common.dual_arm import apply_increment
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits
-from bagit.services.controller.mpc import prediction_matrices, rotation_weighted_r, separation_gradient, uncondensed_qp
+from bagit.services.controller.mpc import prediction_matrices, separation_gradient, uncondensed_qp
 from bagit.services.controller.synthetic import SyntheticRim
 
 U_MAX = c7_limits(MethodParams())
