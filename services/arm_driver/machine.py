@@ -291,6 +291,7 @@ def _with_failed(s: DriverState, arm: str, n: int) -> DriverState:
 
 def step(s: DriverState, ev: Event) -> tuple[DriverState, list[Effect]]:
     """The next state and the effects, in the order they are to be carried out."""
+    eff: list[Effect]
     if isinstance(ev, Started):  # `closing` stays as it was: a driver once closed is not reopened
         return replace(s, started=True), [Restart(), Note("started", "both arms enabled")]
     if isinstance(ev, Closing):
@@ -323,7 +324,7 @@ def step(s: DriverState, ev: Event) -> tuple[DriverState, list[Effect]]:
                 [Note("fault_cleared", "arms enabled")])
     if isinstance(ev, LinkLost):
         s2 = replace(s, stale=s.stale | {ev.arm}, needs_reset=True)
-        eff: list[Effect] = []
+        eff = []
         if ev.arm not in s.links:
             s2 = replace(s2, links_down=s.links_down + ((ev.arm, ev.why),))
             eff = [Count("links_lost"), Note("link_lost", f"{ev.arm}: {ev.why}"), ClearInFlight(ev.arm)]
