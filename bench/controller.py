@@ -166,9 +166,10 @@ def run(quick: bool = False) -> dict:
     u_max = c7_limits(p)
     scale = np.tile(u_max, p.controller.horizon)
     out: dict = {"horizon": p.controller.horizon, "n_x": N_X, "variables": 12 * p.controller.horizon, "qps": len(qps)}
-    dense_ms, dense_cpu, dense_x, dense_it = _time_solver(MpcSolver(p.controller.horizon, p.controller.q_weight, p.controller.r_weight, "dense", twist=p.controller.experimental.twist_weight), qps)
-    sparse_ms, sparse_cpu, sparse_x, _ = _time_solver(MpcSolver(p.controller.horizon, p.controller.q_weight, p.controller.r_weight, "sparse", twist=p.controller.experimental.twist_weight), qps)
-    ref = MpcSolver(p.controller.horizon, p.controller.q_weight, p.controller.r_weight, twist=p.controller.experimental.twist_weight)
+    c = p.controller
+    dense_ms, dense_cpu, dense_x, dense_it = _time_solver(MpcSolver(c.horizon, c.q_weight, c.r_weight, "dense", twist=c.experimental.twist_weight), qps)
+    sparse_ms, sparse_cpu, sparse_x, _ = _time_solver(MpcSolver(c.horizon, c.q_weight, c.r_weight, "sparse", twist=c.experimental.twist_weight), qps)
+    ref = MpcSolver(c.horizon, c.q_weight, c.r_weight, twist=c.experimental.twist_weight)
     cold_ms, cold_cpu, cold_x, cold_it = _osqp(qps, p, warm=False, ref=ref)
     warm_ms, warm_cpu, warm_x, warm_it = _osqp(qps, p, warm=True, ref=ref)
     loose_ms, loose_cpu, loose_x, loose_it = _osqp(qps, p, warm=True, ref=ref, eps=1e-4)

@@ -10,8 +10,8 @@ increment moves poses (the controller's prediction, the arm driver's target, the
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -61,13 +61,13 @@ class DualArmIncrement:
             object.__setattr__(self, name, v)
 
     @classmethod
-    def from_array(cls, u: np.ndarray) -> "DualArmIncrement":
+    def from_array(cls, u: np.ndarray) -> DualArmIncrement:
         """From the flat input `u (12,)`."""
         a = check_increment(u)
         return cls(a[ARM_SLICE["left"]].copy(), a[ARM_SLICE["right"]].copy())
 
     @classmethod
-    def zero(cls) -> "DualArmIncrement":
+    def zero(cls) -> DualArmIncrement:
         return cls(np.zeros(ARM_SIZE), np.zeros(ARM_SIZE))
 
     def to_array(self) -> np.ndarray:

@@ -60,7 +60,8 @@ def test_closed_loop_reaches_the_goal_on_a_synthetic_rim(kind):
         assert all(o.subgoal_index <= 5 for o in outs[:first_bagging])  # never past g† before reaching it
         # at g† the grippers keep still for dagger_settle_s, sent as servo commands of zero, then lift
         settle = [i for i, o in enumerate(outs) if o.mode == "settle"]
-        assert len(settle) == round(P.controller.experimental.dagger_settle_s * P.controller.control_rate_hz) and settle == list(range(settle[0], settle[-1] + 1))
+        c_p = P.controller
+        assert len(settle) == round(c_p.experimental.dagger_settle_s * c_p.control_rate_hz) and settle == list(range(settle[0], settle[-1] + 1))
         assert all(outs[i].subgoal_index == 5 and outs[i].stage == "pre-bagging" and not outs[i].u.any() for i in settle)
         cmd = outs[settle[0]].to_command(c.dt)
         assert cmd.mode == "servo" and not np.any(cmd.u)

@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from bagit.common.dual_arm import (
-    ROTATION, TRANSLATION, DualArmIncrement, apply_increment, check_increment, pose_increment,
+    ROTATION,
+    TRANSLATION,
+    DualArmIncrement,
+    apply_increment,
+    check_increment,
+    pose_increment,
 )
 from bagit.common.so3 import rpy_to_matrix
 from bagit.services.arm_driver.streaming import TargetIntegrator

@@ -6,9 +6,9 @@ driver brake the arms in the middle of a run."""
 import numpy as np
 import pytest
 
+from bagit.common.dual_arm import apply_increment
 from bagit.common.messages import Path, RunState, SoiState
 from bagit.common.rig import RigConfig, SafetyLimits
-from bagit.common.dual_arm import apply_increment
 from bagit.services.controller.node import ControllerServiceConfig
 from bagit.services.controller.session import DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, ServoSession
 from bagit.services.controller.synthetic import SyntheticRim

@@ -69,11 +69,11 @@ from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
 from bagit.common.messages import ArmState, Command, EStop
 from bagit.common.rig import ARMS, RigConfig
 from bagit.common.so3 import matrix_to_rpy
+from bagit.services.arm_driver import machine as m
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
 from bagit.services.arm_driver.gate import Refusal, estop_refusal, stale_refusal
-from bagit.services.arm_driver import machine as m
 from bagit.services.arm_driver.machine import SETTLE_TIMEOUT_S, DriverState  # noqa: F401 - SETTLE_TIMEOUT_S: where it was
 from bagit.services.arm_driver.motion import ArmMotion
 

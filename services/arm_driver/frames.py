@@ -24,7 +24,6 @@ from bagit.common.messages import ArmState
 from bagit.common.rig import ARMS, ArmConfig
 
 
-
 def poses_to_arrays(poses: Poses) -> tuple[np.ndarray, np.ndarray]:
     """Positions `(2, 3)` and rotations `(2, 3, 3)` in ARMS order."""
     p = np.stack([poses[a][:3, 3] for a in ARMS]).astype(float)

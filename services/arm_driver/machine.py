@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Literal, Union
+from typing import Literal
 
 from bagit.common.rig import ARMS
 
@@ -106,7 +106,7 @@ class Note:
     detail: str
 
 
-Effect = Union[StopPipe, HaltPipe, Restart, ClearInFlight, ResendEstop, AskAlarms, Count, Note]
+Effect = StopPipe | HaltPipe | Restart | ClearInFlight | ResendEstop | AskAlarms | Count | Note
 
 
 # ---- events ----------------------------------------------------------------------------------------
@@ -231,10 +231,10 @@ class AlarmsFound:
     text: str  # '' : none found
 
 
-Event = Union[
-    Started, Closing, Closed, EstopEngaged, EstopSent, EstopReleased, EstopResent, FaultRaised, ArmAlarm, FaultCleared,
-    LinkLost, LinkBack, Restarted, Cycle, ReplyOk, ReplyRejected, ReplyFailed, AlarmsDue, AlarmsFound,
-]
+Event = (
+    Started | Closing | Closed | EstopEngaged | EstopSent | EstopReleased | EstopResent | FaultRaised | ArmAlarm | FaultCleared
+    | LinkLost | LinkBack | Restarted | Cycle | ReplyOk | ReplyRejected | ReplyFailed | AlarmsDue | AlarmsFound
+)
 
 
 # ---- queries ---------------------------------------------------------------------------------------

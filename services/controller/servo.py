@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from bagit.common.dual_arm import DualArmIncrement, apply_increment, pose_increment
 from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import Command
 from bagit.common.params import MethodParams
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
-from bagit.common.dual_arm import DualArmIncrement, apply_increment, pose_increment
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
 
 EXPLORE_PUSH_TICKS = 4  # ticks each exploratory push lasts (at the C7 limit)

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from bagit.common.dual_arm import pose_increment
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, Goal, Path, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER
@@ -33,7 +34,6 @@ from bagit.common.params import MethodParams, merge_params
 from bagit.common.rig import ARMS, SafetyLimits
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
-from bagit.common.dual_arm import pose_increment
 
 # A command's dt (the time the driver spreads its increment over) stays this far under the arm
 # driver's watchdog (`SafetyLimits.watchdog_s`), so a slow SOI gives slower motion, never a stop.
