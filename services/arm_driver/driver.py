@@ -700,6 +700,8 @@ class ArmDriver:
                 c = self.clients[a]
                 try:
                     c.check(c.wait(p, timeout=0.0))
+                    if not self.state.failed(a):
+                        continue  # a good reply with no tally to reset: no need to take the lock
                     event: m.Event = m.ReplyOk(a)
                 except CommandRejected as e:
                     event = m.ReplyRejected(str(e))  # refused across the e-stop on the wire: expected, no fault
@@ -789,6 +791,8 @@ class ArmDriver:
                 c = self.clients[a]
                 if not c.connected and not self.state.closing:
                     c.reconnect_if_due()
+            if self.state.fault is None or self.state.fault_alarms_asked:
+                continue  # read without the lock, as before the machine: this thread must not contend with the servo loop
             with self._lock:
                 later = self._dispatch(m.AlarmsDue())
             if any(isinstance(e, m.AskAlarms) for e in later):
