@@ -28,7 +28,7 @@ import numpy as np
 from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
 from bagit.common.messages import ArmState, Goal, ObjectDetection, Path, RunControl, RunState, SoiState
-from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, SERVO_STAGES, ArmsMode
+from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, PERCEIVE_STAGES, SERVO_STAGES, ArmsMode
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import RigConfig
@@ -88,7 +88,7 @@ def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: 
     t_wall = time.perf_counter()
     sc = opts.scenario
     params = merge_params(sc.params, opts.overrides)
-    rate = params.control_rate_hz
+    rate = params.controller.control_rate_hz
     fps = opts.fps or rate
     if not 0 < fps <= 120:
         raise BagItError(f"fps must be in (0, 120], got {fps}")
@@ -191,7 +191,7 @@ class _Run:
         frame = self.sim.render_rgbd(self.frames)
         self.frames += 1
         effects: list[Effect] = []
-        if self.library is not None and now >= self.marker_due - 1e-9 and self.coord.state.stage in ("perceiving", "goal"):
+        if self.library is not None and now >= self.marker_due - 1e-9 and self.coord.state.stage in PERCEIVE_STAGES:
             self.marker_due = now + 1.0 / MARKER_RATE_HZ
             try:
                 det = detect_object(frame, self.library, self.coord.state.run_id)
@@ -287,5 +287,5 @@ class _Run:
             arms=opts.arms, success=success, reason=reason, error_cm=truth.error_cm, truth=truth,
             final_rim=points_list(self.sim.world.true_rim(sc.bag.n_x)), wall_s=round(time.perf_counter() - self.t_wall, 3),
             solve_ms_median=float(np.median(solve)) if solve.size else None, arm_events=self.arms.events(),
-            lift_margin_cm=self.trace.lift_margin_cm, provenance=provenance(params.model_dump(mode="json")),
+            lift_margin_cm=self.trace.lift_margin_cm, provenance=provenance(params.flat()),
         ))

@@ -22,6 +22,7 @@ import numpy as np
 
 from bagit.common import cr5
 from bagit.common.dobot import describe_alarm
+from bagit.common.dual_arm import apply_increment
 from bagit.common.messages import ArmState, Command
 from bagit.common.results import ARM_EVENT_KINDS
 from bagit.common.rig import ARMS, RigConfig
@@ -29,7 +30,6 @@ from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import controller_fault, feedback_state
 from bagit.services.arm_driver.motion import ArmMotion
-from bagit.services.controller.increment import apply_increment
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.rig_sim import SimRig
 

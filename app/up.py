@@ -117,7 +117,7 @@ class UpOptions:
     run_time_limit_s: float | None = None
 
     def camera_fps(self) -> float:
-        return self.fps or (MethodParams().control_rate_hz if self.clock == "lockstep" else WALL_FPS)
+        return self.fps or (MethodParams().controller.control_rate_hz if self.clock == "lockstep" else WALL_FPS)
 
     def time_limit_s(self) -> float:
         return self.run_time_limit_s or (SIM_TIME_LIMIT_S if self.clock == "lockstep" else WALL_TIME_LIMIT_S)

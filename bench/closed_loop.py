@@ -38,6 +38,7 @@ from bagit.bench.isolated import Key, WrongCommit, failed_record, run_isolated, 
 from bagit.common.errors import BagItError
 from bagit.common.logs import configure_logging
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
+from bagit.common.params import MethodParams, merge_params
 from bagit.common.results import provenance
 from bagit.scenarios import list_scenarios
 
@@ -275,6 +276,8 @@ def run(
     arms: list[str] | None = None,
     cluster: str | None = None,
 ) -> dict:
+    if params:
+        merge_params(MethodParams(), params)  # BadScenario naming an unknown or bad key, before any run starts
     n = seeds or (1 if quick else 8)
     ctrls = controllers or ([DEFAULT_CONTROLLER] if quick else list(CONTROLLER_NAMES))
     scen = [p.stem for p in list_scenarios() if not only or any(p.stem.startswith(o) for o in only)]
@@ -299,7 +302,7 @@ def add_sweep_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout-s", type=_args.positive_seconds, default=RUN_TIMEOUT_S,
                    help="for `sweep`: wall seconds a run may take before it is killed and recorded failed")
     p.add_argument("--params", type=_args.json_object, default=None,
-                   help='for `sweep`: method parameters for every run, JSON, e.g. \'{"du_weight": 100}\'')
+                   help='for `sweep`: method parameters for every run, JSON, flat names or nested by stage, e.g. \'{"twist_weight": 0}\'')
     p.add_argument("--cluster", default=None, metavar="tcp://HOST:PORT",
                    help="for `sweep`: a running Dask scheduler to run on (deploy/cluster.md); default: a local cluster of --workers")
     p.add_argument("--workers", type=_args.positive_int, default=1, help="for `sweep`: processes of the local cluster (one run each)")

@@ -19,10 +19,10 @@ import piqp
 import scipy.sparse as sp
 
 from bagit.bench.common import stats_ms
+from bagit.common.dual_arm import apply_increment
 from bagit.common.names import CONTROLLER_NAMES
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits, make_controller
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.mpc import separation_bounds, separation_gradient, uncondensed_qp
 from bagit.services.controller.subgoal import rms_error, slide_to
 from bagit.services.controller.synthetic import SyntheticRim
@@ -91,10 +91,10 @@ def _time_solver(solver: MpcSolver, qps: list[tuple]) -> tuple[list[float], list
 
 
 def _unpack(args: tuple) -> tuple:
-    """A recorded MpcSolver.solve call as (J, x, target, u_max, axis, sep, limits, recover, W, u_prev)."""
-    full = list(args) + [None] * (10 - len(args))
-    J, x, target, u_max, axis, sep, lim, recover, W, u_prev = full
-    return J, x, target, u_max, axis, 0.0 if sep is None else sep, (0.0, np.inf) if lim is None else lim, recover or 0.0, W, u_prev
+    """A recorded MpcSolver.solve call as (J, x, target, u_max, axis, sep, limits, recover)."""
+    full = list(args) + [None] * (8 - len(args))
+    J, x, target, u_max, axis, sep, lim, recover = full
+    return J, x, target, u_max, axis, 0.0 if sep is None else sep, (0.0, np.inf) if lim is None else lim, recover or 0.0
 
 
 def _stacked_constraints(ref: MpcSolver, axis: np.ndarray) -> sp.csc_matrix:
@@ -111,11 +111,11 @@ def _osqp(qps: list[tuple], p: MethodParams, warm: bool, ref: MpcSolver, eps: fl
     warm: set up once, then update the data and warm start from last tick's plan shifted by one.
     Timed: the solver's calls only (the data are built outside the clock, in PIQP's favour not)."""
     ms, cpu, sols, its = [], [], [], []
-    T = p.horizon
+    T = p.controller.horizon
     prob, prev = None, None
     for args in qps:
-        J, x, target, u_max, axis, sep, lim, recover, W, u_prev = _unpack(args)
-        H, c = ref.condensed(J, x, target, W, u_prev)
+        J, x, target, u_max, axis, sep, lim, recover = _unpack(args)
+        H, c = ref.condensed(J, x, target)
         A = _stacked_constraints(ref, axis)
         h_l, h_u = separation_bounds(sep, lim, recover, T)
         lo = np.concatenate([-np.tile(u_max, T), h_l])
@@ -144,8 +144,8 @@ def _sparse_uncondensed(qps: list[tuple], p: MethodParams, R: np.ndarray) -> tup
     formulation a sparse solver would usually get, 1080 variables at n_x = 32. Solver calls timed."""
     ms, cpu, solver = [], [], None
     for args in qps:
-        J, x, target, u_max, axis, sep, lim, recover, W, _ = _unpack(args)  # no move suppression here (du_weight 0 by default)
-        qp = uncondensed_qp(J, x, target, u_max, p.horizon, p.q_weight, R, axis, sep, lim, recover, W)
+        J, x, target, u_max, axis, sep, lim, recover = _unpack(args)
+        qp = uncondensed_qp(J, x, target, u_max, p.controller.horizon, p.controller.q_weight, R, axis, sep, lim, recover)
         t0, c0 = time.perf_counter(), time.thread_time()
         if solver is None:
             solver = piqp.SparseSolver()
@@ -164,11 +164,12 @@ def run(quick: bool = False) -> dict:
     p = MethodParams()
     qps = _recorded_qps(p, quick)
     u_max = c7_limits(p)
-    scale = np.tile(u_max, p.horizon)
-    out: dict = {"horizon": p.horizon, "n_x": N_X, "variables": 12 * p.horizon, "qps": len(qps)}
-    dense_ms, dense_cpu, dense_x, dense_it = _time_solver(MpcSolver(p.horizon, p.q_weight, p.r_weight, "dense", twist=p.twist_weight), qps)
-    sparse_ms, sparse_cpu, sparse_x, _ = _time_solver(MpcSolver(p.horizon, p.q_weight, p.r_weight, "sparse", twist=p.twist_weight), qps)
-    ref = MpcSolver(p.horizon, p.q_weight, p.r_weight, twist=p.twist_weight)
+    scale = np.tile(u_max, p.controller.horizon)
+    out: dict = {"horizon": p.controller.horizon, "n_x": N_X, "variables": 12 * p.controller.horizon, "qps": len(qps)}
+    c = p.controller
+    dense_ms, dense_cpu, dense_x, dense_it = _time_solver(MpcSolver(c.horizon, c.q_weight, c.r_weight, "dense", twist=c.experimental.twist_weight), qps)
+    sparse_ms, sparse_cpu, sparse_x, _ = _time_solver(MpcSolver(c.horizon, c.q_weight, c.r_weight, "sparse", twist=c.experimental.twist_weight), qps)
+    ref = MpcSolver(c.horizon, c.q_weight, c.r_weight, twist=c.experimental.twist_weight)
     cold_ms, cold_cpu, cold_x, cold_it = _osqp(qps, p, warm=False, ref=ref)
     warm_ms, warm_cpu, warm_x, warm_it = _osqp(qps, p, warm=True, ref=ref)
     loose_ms, loose_cpu, loose_x, loose_it = _osqp(qps, p, warm=True, ref=ref, eps=1e-4)

@@ -91,9 +91,9 @@ def _stage(role: str, connect: str, data: Path) -> int:
 
         keep = Subscriber(s, keys.camera_rgbd, RgbdFrame, _latest_worker(perceive))
     else:
+        from bagit.common.dual_arm import apply_increment
         from bagit.common.params import MethodParams
         from bagit.services.controller import ShapeServo
-        from bagit.services.controller.increment import apply_increment
 
         servo = ShapeServo("mpc", MethodParams(), d["path"], int(d["dagger_index"]), float(d["R"]))
         grippers = {"left": d["left"], "right": d["right"]}

@@ -12,6 +12,7 @@ Stage = Literal["idle", "perceiving", "goal", "planning", "pre-bagging", "baggin
 STAGES: tuple[str, ...] = get_args(Stage)
 ACTIVE_STAGES: tuple[str, ...] = ("perceiving", "goal", "planning", "pre-bagging", "bagging")
 SERVO_STAGES: tuple[str, ...] = ("pre-bagging", "bagging")  # the controller moves the arms
+PERCEIVE_STAGES: tuple[str, ...] = ("perceiving", "goal")  # the object's marker is still looked for
 FINAL_STAGES: tuple[str, ...] = ("done", "failed", "aborted")
 
 # Who may release the e-stop (EStop(engage=False) with this `source`): the operator's own tools, the

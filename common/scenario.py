@@ -251,8 +251,8 @@ class Scenario(BaseModel):
 
     def lambda_d(self) -> float:
         """The goal lift λd: the parameter when set, else half the object's height."""
-        if self.params.lambda_d is not None:
-            return self.params.lambda_d
+        if self.params.goal.lambda_d is not None:
+            return self.params.goal.lambda_d
         if self.object.height is not None:
             return self.object.height / 2
         return DEFAULT_LAMBDA_D_M

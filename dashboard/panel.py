@@ -168,7 +168,7 @@ class Panel:
                 if f.name == "lambda_d":
                     self.lambda_d_auto = gui.add_checkbox("λd auto", True, hint="half the object height")
                     self.lambda_d_auto.on_update(lambda _e: self._params_changed())
-                value = getattr(self._base, f.name)
+                value = self._base.get(f.name)
                 h = gui.add_number(f.label, LAMBDA_D_AUTO_VALUE if value is None else value, step=f.step, hint=f.hint)
                 h.on_update(lambda _e: self._params_changed())
                 self.param_inputs[f.name] = h
@@ -370,7 +370,7 @@ class Panel:
         self._filling = True
         try:
             for f in FIELDS:
-                v = getattr(p, f.name)
+                v = p.get(f.name)
                 if f.name == "lambda_d":
                     self.lambda_d_auto.value = v is None
                     v = LAMBDA_D_AUTO_VALUE if v is None else v

@@ -1,4 +1,5 @@
-"""The parameter form: which MethodParams fields the panel edits, and how edits become overrides.
+"""The parameter form: which MethodParams fields (by flat name, `PARAM_PATHS`) the panel edits, and how
+edits become overrides.
 
 The next run is started with the scenario's own parameters plus the fields the operator changed
 (RunControl.params holds only those), so a scenario's tuned values are never silently replaced by
@@ -10,10 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from pydantic import ValidationError
-
 from bagit.common.errors import BadScenario
-from bagit.common.params import MethodParams
+from bagit.common.params import DEFAULT_LAMBDA_D_M, PARAM_PATHS, MethodParams, merge_params
 
 
 @dataclass(frozen=True)
@@ -24,7 +23,7 @@ class FieldSpec:
     hint: str
 
 
-# λ1-λ5, λd, g†'s depth and margin share, the MPC's horizon and weights (R, its twist term and the move suppression), the speed
+# λ1-λ5, λd, g†'s depth and margin share, the MPC's horizon and weights (R and its twist term), the speed
 # limits (C7), the tolerances and the settle at g†.
 FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("lambda_1", "λ1 C1 margin", 0.001, "max F_e of any vertex inside the ellipse (< 1)"),
@@ -38,7 +37,6 @@ FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("horizon", "MPC horizon T", 1, "steps the MPC looks ahead"),
     FieldSpec("q_weight", "MPC Q weight", 0.05, "weight of the SOI error"),
     FieldSpec("r_weight", "MPC R weight", 0.01, "weight of the command size"),
-    FieldSpec("du_weight", "MPC Δu weight", 1.0, "weight of the command's change per tick"),
     FieldSpec("twist_weight", "MPC twist weight", 10.0, "weight of the two grippers turning differently"),
     FieldSpec("epsilon", "Broyden ε", 0.05, "Jacobian update rate"),
     FieldSpec("control_rate_hz", "control rate (Hz)", 1, "controller ticks per second"),
@@ -49,20 +47,15 @@ FIELDS: tuple[FieldSpec, ...] = (
     FieldSpec("dagger_settle_s", "g† settle (s)", 0.1, "grippers still at g† this long before the lift"),
 )
 FIELD_NAMES = tuple(f.name for f in FIELDS)
-LAMBDA_D_AUTO_VALUE = 0.04  # what the λd box shows while λd is automatic
+LAMBDA_D_AUTO_VALUE = DEFAULT_LAMBDA_D_M  # what the λd box shows while λd is automatic
 
 
 def validate_params(base: MethodParams, values: dict[str, Any]) -> MethodParams:
-    """`base` with `values` applied, validated; BadScenario naming the first bad field otherwise."""
-    unknown = sorted(set(values) - set(MethodParams.model_fields))
+    """`base` with `values` (flat names) applied, validated; BadScenario naming the first bad field otherwise."""
+    unknown = sorted(set(values) - set(PARAM_PATHS))
     if unknown:
         raise BadScenario(f"params: unknown parameter {unknown[0]!r}")
-    try:
-        return MethodParams.model_validate({**base.model_dump(), **values})
-    except ValidationError as e:
-        first = e.errors()[0]
-        field = ".".join(str(p) for p in first["loc"]) or "params"
-        raise BadScenario(f"params: {field}: {first['msg'].removeprefix('Value error, ')} (got {first.get('input')!r})") from None
+    return merge_params(base, values)
 
 
 def overrides(base: MethodParams, values: dict[str, Any]) -> dict[str, Any]:
@@ -70,7 +63,7 @@ def overrides(base: MethodParams, values: dict[str, Any]) -> dict[str, Any]:
     merged = validate_params(base, values)
     out: dict[str, Any] = {}
     for name in values:
-        new, old = getattr(merged, name), getattr(base, name)
+        new, old = merged.get(name), base.get(name)
         if new != old and not (isinstance(new, float) and isinstance(old, float) and abs(new - old) <= 1e-12 * max(1.0, abs(old))):
             out[name] = new
     return out

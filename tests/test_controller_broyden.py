@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
+from bagit.common.dual_arm import apply_increment
 from bagit.common.params import MethodParams
 from bagit.services.controller import BroydenJacobian, Exploration, c7_limits
 from bagit.services.controller.broyden import exploration_inputs, jacobian_from_exploration
-from bagit.services.controller.increment import apply_increment
 from bagit.services.controller.synthetic import SyntheticRim
 
 

@@ -5,10 +5,10 @@ import numpy as np
 import piqp
 import pytest
 
+from bagit.common.dual_arm import apply_increment
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits
-from bagit.services.controller.increment import apply_increment
-from bagit.services.controller.mpc import prediction_matrices, rotation_weighted_r, separation_gradient, uncondensed_qp
+from bagit.services.controller.mpc import prediction_matrices, separation_gradient, uncondensed_qp
 from bagit.services.controller.synthetic import SyntheticRim
 
 U_MAX = c7_limits(MethodParams())
@@ -50,49 +50,6 @@ def test_condensed_cost_is_the_papers_cost(twist):
         const = q * (A @ x - np.tile(k, T)) @ (A @ x - np.tile(k, T))
         assert np.isclose(paper, u @ H @ u + 2 * c @ u + const)
         assert np.allclose(s.predicted(J, x, u).ravel(), xb)
-
-
-def test_move_suppression_is_the_cost_of_the_input_change():
-    """du Σ_k |u_k - u_{k-1}|²_W (u_{-1} the last applied input, W weighing rotations like R) is added
-    exactly: the condensed H and c give the paper's cost plus it, for every ū."""
-    rng = np.random.default_rng(5)
-    T, q, r, du = 4, 2.0, 0.1, 30.0
-    J = rng.normal(size=(18, 12))
-    x, k, u_prev = rng.normal(size=18), rng.normal(size=18), rng.normal(size=12)
-    s = MpcSolver(T, q, r, du=du)
-    H, c = s.condensed(J, x, k, u_prev=u_prev)
-    H0, c0 = MpcSolver(T, q, r).condensed(J, x, k)
-    W = np.diag(rotation_weighted_r(1.0, 1))  # rotations weighed like R
-    for _ in range(5):
-        u = rng.normal(size=12 * T)
-        steps = np.diff(np.vstack([u_prev, u.reshape(T, 12)]), axis=0)
-        change = du * sum(d @ W @ d for d in steps)
-        const = du * u_prev @ W @ u_prev
-        assert np.isclose(u @ H0 @ u + 2 * c0 @ u + change, u @ H @ u + 2 * c @ u + const)
-    with pytest.raises(ValueError, match="du"):
-        MpcSolver(T, q, r, du=-1.0)
-
-
-def test_move_suppression_stops_the_input_flipping_on_a_noisy_soi():
-    """A few millimetres of noise on the SOI flip a saturated input from tick to tick without it
-    (the error's direction is lost in the noise); with it the input changes gently."""
-    rng = np.random.default_rng(6)
-    J, x, target, _ = _problem(rng)
-    target = x + (target - x) * 0.2  # a cm or so away: within the noise's reach of the optimum's corner
-    noise = rng.normal(size=(60, x.size)) * 0.004
-
-    def input_changes(du: float) -> float:
-        s = MpcSolver(10, 1.0, 0.05, du=du)
-        u_prev, total = np.zeros(12), 0.0
-        for n in noise:
-            sol = s.solve(J, x + n, target, U_MAX, u_prev=u_prev)
-            assert sol.ok and np.all(np.abs(sol.u) <= U_MAX + 1e-12)  # C7 whatever du
-            total += float(np.linalg.norm((sol.u - u_prev) / U_MAX))
-            u_prev = sol.u
-        return total / len(noise)
-
-    flippy, smooth = input_changes(0.0), input_changes(100.0)
-    assert smooth < 0.5 * flippy, (smooth, flippy)
 
 
 def test_unconstrained_solution_is_the_least_squares_one():
@@ -158,19 +115,16 @@ def test_dense_sparse_and_uncondensed_agree():
     rng = np.random.default_rng(2)
     dense, sparse = MpcSolver(10, 1.0, 0.05, "dense"), MpcSolver(10, 1.0, 0.05, "sparse")
     tol = 1e-3 * np.tile(U_MAX, 10)  # a thousandth of each input's range (the solver's eps is 1e-7)
-    from bagit.services.controller.mpc import plane_weight
-
     for i in range(6):
         J, x, target, _ = _problem(rng)
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
-        # half the cases: 3 cm short of the C6 band with a recovery rate, and an in-plane weight
+        # half the cases: 3 cm short of the C6 band with a recovery rate
         sep, recover = (0.28, 0.0) if i % 2 == 0 else (0.15, 0.001)
-        W = None if i % 2 == 0 else plane_weight(target, 0.5)
-        args = (J, x, target, U_MAX, axis, sep, (0.18, 0.285), recover, W)
+        args = (J, x, target, U_MAX, axis, sep, (0.18, 0.285), recover)
         a, b = dense.solve(*args), sparse.solve(*args)
         assert a.ok and b.ok and np.all(np.abs(a.u_bar - b.u_bar) <= tol)
-        qp = uncondensed_qp(J, x, target, U_MAX, 10, 1.0, dense.R, axis, sep, (0.18, 0.285), recover, W)
+        qp = uncondensed_qp(J, x, target, U_MAX, 10, 1.0, dense.R, axis, sep, (0.18, 0.285), recover)
         solver = piqp.SparseSolver()
         solver.settings.verbose = False
         solver.settings.eps_abs = solver.settings.eps_rel = 1e-9
@@ -203,21 +157,3 @@ def test_outside_the_c6_band_the_plan_heads_back_at_the_asked_rate():
     assert sol.ok and np.all(d_sep >= 0.001 * np.arange(1, 11) - 1e-7)
 
 
-def test_point_weight_is_q_kron_w_in_the_papers_cost():
-    from bagit.services.controller.mpc import plane_weight
-
-    rng = np.random.default_rng(10)
-    T, q = 3, 1.5
-    t = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    ring = np.stack([0.1 * np.cos(t), 0.1 * np.sin(t), np.zeros(8)], 1) @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    W = plane_weight(ring.ravel(), 0.2)
-    n = np.linalg.svd(ring - ring.mean(0))[2][-1]
-    assert np.allclose(W @ n, 0.2 * n) and np.allclose(W @ np.cross(n, ring[0]), np.cross(n, ring[0]))
-    J = rng.normal(size=(24, 12))
-    x, k = rng.normal(size=24), rng.normal(size=24)
-    s = MpcSolver(T, q, 0.1)
-    H, c = s.condensed(J, x, k, W)
-    A, B = prediction_matrices(J, T)
-    Q = q * np.kron(np.eye(8 * T), W)
-    assert np.allclose(H, B.T @ Q @ B + s.R)
-    assert np.allclose(c, B.T @ Q @ (A @ x - np.tile(k, T)))

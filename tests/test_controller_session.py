@@ -2,10 +2,10 @@
 
 import numpy as np
 
+from bagit.common.dual_arm import apply_increment, pose_increment
 from bagit.common.messages import ArmState, Path, RunState, SoiState
 from bagit.common.rig import SafetyLimits
 from bagit.common.so3 import matrix_to_rpy
-from bagit.services.controller.increment import apply_increment, pose_increment
 from bagit.services.controller.session import (
     KEEPALIVE,
     KEEPALIVE_SHARE,

@@ -10,7 +10,7 @@ from bagit.common import cr5
 from bagit.common.errors import BadScenario, BadVertices, SafetyViolation
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import RunState
-from bagit.common.params import MethodParams
+from bagit.common.params import PARAM_PATHS, MethodParams
 from bagit.common.results import RunResult
 from bagit.common.scenario import Obstacle, Scenario
 from bagit.common.shapes import Box, Bundle, Cylinder, Prism, Sphere
@@ -274,7 +274,7 @@ def test_history_records_params_and_final_results():
 
 def test_parameter_overrides_are_only_the_changed_valid_fields():
     base = MethodParams(lambda_d=0.05, horizon=8)
-    values = {name: getattr(base, name) for name in FIELD_NAMES}
+    values = {name: base.get(name) for name in FIELD_NAMES}
     assert overrides(base, values) == {}
     values.update(horizon=12, lambda_1=0.9)
     assert overrides(base, values) == {"horizon": 12, "lambda_1": 0.9}
@@ -287,7 +287,7 @@ def test_parameter_overrides_are_only_the_changed_valid_fields():
     with pytest.raises(BadScenario, match="unknown parameter"):
         validate_params(base, {"lambda_9": 1})
     # every editable field exists on MethodParams
-    assert set(FIELD_NAMES) <= set(MethodParams.model_fields)
+    assert set(FIELD_NAMES) <= set(PARAM_PATHS)
     # a scenario's own params are the base: its tuned value is not an override
     s = Scenario.from_text("name: t\nobject: {vertices: [[0,0,0],[1,0,0],[0,1,0]]}\nparams: {horizon: 20}")
     assert overrides(s.params, {"horizon": 20}) == {}

@@ -26,13 +26,13 @@ def check_goal(g, v, R, n_x=32):
     xy = transform_points(invert_transform(g.frame), v)
     assert np.allclose(xy[:, 2], 0, atol=1e-6)  # V lies in F_m's xy-plane
     e = g.ellipse
-    assert f_e(xy[:, :2], e.a, e.b, e.alpha, e.center).max() <= P.lambda_1 + 1e-9  # C1
-    assert np.hypot(*e.center) <= P.lambda_2  # C2
+    assert f_e(xy[:, :2], e.a, e.b, e.alpha, e.center).max() <= P.goal.lambda_1 + 1e-9  # C1
+    assert np.hypot(*e.center) <= P.goal.lambda_2  # C2
     assert g.c2 == pytest.approx(np.hypot(*e.center))
     if g.c3_applied:  # the major axis (a >= b) against V's principal axis, computed here from V
         assert e.a >= e.b
         d_v = pca(xy[:, :2])[2][0]
-        assert abs(np.dot([np.cos(e.alpha), np.sin(e.alpha)], d_v)) >= P.lambda_3 - 1e-12
+        assert abs(np.dot([np.cos(e.alpha), np.sin(e.alpha)], d_v)) >= P.goal.lambda_3 - 1e-12
     assert g.perimeter == pytest.approx(R, rel=1e-6)
     assert closed_polyline_length(g.g_dagger) == pytest.approx(R, rel=0.02)  # 32-gon on the ellipse
     lift = g.g_star - g.g_dagger
@@ -130,7 +130,7 @@ def test_bag_opening_keeps_the_bags_shape_across_an_elongated_base():
     for g in (tight, bag):
         e = g.ellipse
         xy = transform_points(invert_transform(g.frame), v)[:, :2]
-        assert f_e(xy, e.a, e.b, e.alpha).max() <= P.lambda_1 + 1e-9  # C1
+        assert f_e(xy, e.a, e.b, e.alpha).max() <= P.goal.lambda_1 + 1e-9  # C1
         assert g.perimeter == pytest.approx(R, rel=1e-6)
     assert margin(bag, v) >= 0.6 * margin(tight, v) - 1e-3
     # a stricter share buys margin back with a rounder opening
@@ -243,8 +243,8 @@ def test_named_perimeter_is_the_smallest(xy):
     g = bagging_soi(v, needed, 32)
     check_goal(g, v, needed)
     local = transform_points(invert_transform(g.frame), v)[:, :2]
-    max_angle = np.arccos(P.lambda_3) if g.c3_applied else np.pi / 2
-    grid = _shortest_by_grid(local, P.lambda_1, P.lambda_2, max_angle)
+    max_angle = np.arccos(P.goal.lambda_3) if g.c3_applied else np.pi / 2
+    grid = _shortest_by_grid(local, P.goal.lambda_1, P.goal.lambda_2, max_angle)
     # rounded up to the millimetre, and no grid ellipse is shorter than what was named (less the rounding)
     assert grid >= needed - 0.001 - 1e-4
     assert needed <= grid + 0.001 + 1e-4  # and it is not much worse than the grid's best either

@@ -61,7 +61,7 @@ def test_start_publishes_what_the_run_was_started_with():
     assert s.stage == "perceiving" and s.run_id and s.scenario == "exp02-canned-pineapple"
     assert (s.controller, s.planner, s.seed, s.params) == ("ibvs", "ffg-rrt", 3, {"horizon": 5})
     sc = Scenario.from_dict(s.scenario_doc)  # services rebuild the scenario from run/state alone
-    assert sc.params.horizon == 5 and sc.name == Scenario.from_file(find_scenario("exp02")).name
+    assert sc.params.controller.horizon == 5 and sc.name == Scenario.from_file(find_scenario("exp02")).name
 
 
 def test_a_start_while_running_is_refused_with_the_reason():

@@ -29,7 +29,7 @@ def test_a_short_run_goes_through_the_coordinators_stages_with_the_cr5s():
     assert r.object_from == "marker" and r.marker["marker_id"] == 2  # V from the object's marker, as deployed
     assert np.asarray(r.final_rim).shape == (s.bag.n_x, 3) and r.truth is not None and not r.truth.passed_through
     assert r.arm_events["faults"] == 0 and r.arm_events["alarms"] == 0 and r.arm_events["watchdog_stops"] == 0
-    assert r.provenance.commit and r.provenance.params["control_rate_hz"] == s.params.control_rate_hz
+    assert r.provenance.commit and r.provenance.params["control_rate_hz"] == s.params.controller.control_rate_hz
 
 
 @pytest.mark.slow

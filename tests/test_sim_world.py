@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from bagit.common.dual_arm import apply_increment
 from bagit.common.errors import BadScenario, BagItError, SafetyViolation
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
-from bagit.services.controller.increment import apply_increment
 from bagit.services.sim.judge import inside_polygon
 from bagit.services.sim.objects import ConvexPart
 from bagit.services.sim.truth import PENETRATION_TOL_M, PenetrationMonitor

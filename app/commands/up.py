@@ -136,11 +136,11 @@ def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argpars
     reason = res.reason if not res.success else (None if truth is None else truth.reason)
     params = {}
     if state.scenario_doc is not None:
-        from bagit.common.params import MethodParams
+        from bagit.common.params import merge_params
         from bagit.common.scenario import Scenario
 
         sc = Scenario.model_validate(state.scenario_doc)
-        params = MethodParams.model_validate({**sc.params.model_dump(exclude_unset=True), **(state.params or {})}).model_dump(mode="json")
+        params = merge_params(sc.params, state.params).flat()
     return res.model_copy(update=dict(
         arms="cr5", success=ok, reason=reason, truth=truth, error_cm=truth.error_cm if truth is not None else res.error_cm,
         final_rim=points_list(final_rim) if final_rim is not None else res.final_rim, wall_s=round(wall_s, 3), arm_events=events,

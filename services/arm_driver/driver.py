@@ -69,15 +69,16 @@ from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
 from bagit.common.messages import ArmState, Command, EStop
 from bagit.common.rig import ARMS, RigConfig
 from bagit.common.so3 import matrix_to_rpy
+from bagit.services.arm_driver import machine as m
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
 from bagit.services.arm_driver.gate import Refusal, estop_refusal, stale_refusal
+from bagit.services.arm_driver.machine import SETTLE_TIMEOUT_S, DriverState  # noqa: F401 - SETTLE_TIMEOUT_S: where it was
 from bagit.services.arm_driver.motion import ArmMotion
 
 _RUNNING_MODES = (int(RobotMode.ENABLE), int(RobotMode.RUNNING))
 _MAX_EVENTS = 200
-SETTLE_TIMEOUT_S = 1.0  # a restart waits at most this long for the arms to report idle
 SETTLED_MM_S = 1.0
 
 
@@ -126,22 +127,13 @@ class ArmDriver:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self.started = False
-        self._closing = False
-        self._estop = False
-        self._estop_reason: str | None = None
-        self._estop_unconfirmed: set[str] = set()
-        self._fault: str | None = None
-        self._fault_alarms_asked = False  # GetErrorID asked since the fault latched (once per fault)
-        self._links_down: dict[str, str] = {}
+        # the latches, the links, the restart and the replies' tally: a pure machine (machine.py), stepped
+        # under the lock by `_dispatch`; an immutable state, so readers without the lock see it whole
+        self.state = DriverState()
         self._seen_epoch = {a: 0 for a in ARMS}
-        self._needs_reset = False
-        self._stale: set[str] = set()  # arms not to command until the pipeline restarts from the measured poses
-        self._reset_asked = -np.inf  # when the restart was first possible (it waits for the arms to settle)
         self._last_seq: int | None = None
         self._in_flight: dict[str, deque[PendingReply]] = {a: deque() for a in ARMS}
         self._last_send = -np.inf
-        self._failed_requests = {a: 0 for a in ARMS}
         self.violation_counts = self.motion.violation_counts
         self.rejections: Counter[str] = Counter()
         self.last_refusal: Refusal | None = None  # the last command refused, and why
@@ -167,8 +159,8 @@ class ArmDriver:
         """
         if self.started:
             return self
-        if self._estop:
-            raise SafetyViolation(f"the e-stop is latched ({self._estop_reason}); reset_estop() first")
+        if self.state.estop:
+            raise SafetyViolation(f"the e-stop is latched ({self.state.estop_reason}); reset_estop() first")
         try:
             for a in ARMS:
                 self.clients[a].connect()
@@ -197,10 +189,8 @@ class ArmDriver:
                 self.clients[a].close()
             raise
         with self._lock:
-            self._restart_from_measured()
             self._last_cycle = self._now()
-            self._event("started", "both arms enabled")
-        self.started = True
+            self._dispatch(m.Started())
         self._stop.clear()
         for target, name in ((self._loop, "servo-loop"), (self._supervise, "supervisor")):
             t = threading.Thread(target=target, name=f"arm-driver-{name}", daemon=True)
@@ -237,8 +227,7 @@ class ArmDriver:
                 c.close()
             return
         with self._lock:
-            self._closing = True
-            self.pipe.stop()
+            self._dispatch(m.Closing())
         deadline = time.monotonic() + self.cfg.stop_timeout_s
         while self.pipe.moving and time.monotonic() < deadline and self._threads[0].is_alive():
             time.sleep(self.period / 3)
@@ -249,14 +238,14 @@ class ArmDriver:
         self._threads.clear()
         for a in ARMS:
             c = self.clients[a]
-            if c.connected and not self._estop:
+            if c.connected and not self.state.estop:
                 try:
                     c.disable()
                 except ProtocolError as e:
                     self._event("shutdown", f"{a}: DisableRobot failed: {e}")
             c.close()
-        self.started = False
-        self._event("closed", "both arms disabled" if not self._estop else "closed with the e-stop latched")
+        with self._lock:
+            self._dispatch(m.Closed())
 
     def __enter__(self) -> ArmDriver:
         return self.start()
@@ -306,7 +295,7 @@ class ArmDriver:
                 # another route): a lockstep run times the command at its own stamp, never at arrival
                 now = stamp
             self.counters["commands"] += 1
-            why = self._refusal()
+            why = m.refusal(self.state)
             if why is not None:
                 self._count_refusal(Refusal(why, f"command {seq}: the driver is {why.replace('_', ' ')}"))
                 return False
@@ -323,8 +312,8 @@ class ArmDriver:
                 if not self._restart_from_measured():
                     self._count_refusal(Refusal("no_feedback", f"command {seq}: no feedback to start a stream from"))
                     return False
-                if self._fault is not None:
-                    self._count_refusal(Refusal("fault", f"command {seq}: {self._fault}"))
+                if self.state.fault is not None:
+                    self._count_refusal(Refusal("fault", f"command {seq}: {self.state.fault}"))
                     return False
                 self.counters["reseeds"] += 1
             if seq is not None and self._last_seq is not None and seq <= self._last_seq:
@@ -336,23 +325,6 @@ class ArmDriver:
                 self.last_refusal = Refusal("non_finite", f"command {seq}: not 12 finite numbers over 0 < dt <= 10 s")
                 return False
             return True
-
-    def _refusal(self) -> str | None:
-        if not self.started or self._closing:
-            return "not_running"
-        return self._blocker()
-
-    def _blocker(self) -> str | None:
-        """Why streaming is blocked while running (the latched states first), or None."""
-        if self._estop:
-            return "estopped"
-        if self._fault is not None:
-            return "fault"
-        if self._links_down:
-            return "link_down"
-        if self._needs_reset:
-            return "restarting"
-        return None
 
     def handle_estop(self, msg: EStop) -> None:
         """An `EStop` message: engage (from anyone) latches the e-stop; `engage=False` resets it if its
@@ -375,11 +347,7 @@ class ArmDriver:
         Returns, per arm, whether its controller confirmed. The latch holds whatever the answer.
         """
         with self._lock:
-            self._estop = True
-            self._estop_reason = reason
-            self.pipe.halt()  # the controllers stop the arms; nothing more is streamed
-            self.counters["estops"] += 1
-            self._event("estop", reason)
+            self._dispatch(m.EstopEngaged(reason))  # the pipeline halts: the controllers stop the arms; nothing more is streamed
         text = self.clients[ARMS[0]].emergency_stop_text(True)
         pending: dict[str, PendingReply] = {}
         reached = {a: False for a in ARMS}
@@ -395,7 +363,7 @@ class ArmDriver:
             except ProtocolError as e:
                 self._event("estop", f"{a}: not confirmed: {e}")
         with self._lock:
-            self._estop_unconfirmed = {a for a in ARMS if not reached[a]}
+            self._dispatch(m.EstopSent(frozenset(a for a in ARMS if not reached[a])))
         return reached
 
     def reset_estop(self) -> None:
@@ -404,9 +372,8 @@ class ArmDriver:
         Motion resumes only with a new command stream, from the measured poses. Raises
         ProtocolError (and stays latched) if a controller refuses or cannot be reached.
         """
-        with self._lock:
-            if not self._estop:
-                return
+        if not self.state.estop:
+            return
         for a in ARMS:
             c = self.clients[a]
             if not c.connected:
@@ -416,20 +383,14 @@ class ArmDriver:
             self._bring_up(a)
         self._wait_enabled(ARMS)
         with self._lock:
-            self._estop = False
-            self._estop_reason = None
-            self._estop_unconfirmed.clear()
-            self._fault = None
-            self._needs_reset = True
-            self._event("estop_reset", "controllers released and enabled")
+            self._dispatch(m.EstopReleased())
 
     def clear_fault(self) -> None:
         """Clear a latched fault: ClearError and re-enable the arms that need it, restart from the measured poses."""
-        with self._lock:
-            if self._estop:
-                raise SafetyViolation("the e-stop is latched: reset_estop() first")
-            if self._fault is None:
-                return
+        if self.state.estop:
+            raise SafetyViolation("the e-stop is latched: reset_estop() first")
+        if self.state.fault is None:
+            return
         for a in ARMS:
             rec, _ = self.clients[a].latest()
             if rec is None:
@@ -438,10 +399,7 @@ class ArmDriver:
                 self._bring_up(a)
         self._wait_enabled(ARMS)
         with self._lock:
-            self._fault = None
-            self._needs_reset = True
-            self._failed_requests = {a: 0 for a in ARMS}
-            self._event("fault_cleared", "arms enabled")
+            self._dispatch(m.FaultCleared())
 
     # -- state -----------------------------------------------------------------------------------
 
@@ -449,7 +407,7 @@ class ArmDriver:
         def on_packet(rec: np.ndarray, t: float) -> None:
             cb = self.on_state
             if cb is not None:
-                cb(self._with_aim(feedback_state(arm, rec, self.frames[arm], estopped=self._estop, stamp=self._stamp(rec))))
+                cb(self._with_aim(feedback_state(arm, rec, self.frames[arm], estopped=self.state.estop, stamp=self._stamp(rec))))
 
         return on_packet
 
@@ -476,7 +434,7 @@ class ArmDriver:
         for a in ARMS:
             rec, _ = self.clients[a].latest()
             if rec is not None:
-                out[a] = feedback_state(a, rec, self.frames[a], estopped=self._estop)
+                out[a] = feedback_state(a, rec, self.frames[a], estopped=self.state.estop)
         return out
 
     def measured_poses(self) -> Poses | None:
@@ -493,11 +451,7 @@ class ArmDriver:
     def mode(self) -> str:
         """off | estopped | fault | link_down | restarting | streaming | stopping | holding."""
         with self._lock:
-            if not self.started:
-                return "off"
-            if (blocked := self._blocker()) is not None:
-                return blocked
-            return {"position": "streaming", "stopping": "stopping"}.get(self.pipe.mode, "holding")
+            return m.mode(self.state, self.pipe.mode)
 
     def status(self) -> dict:
         """Mode, latches, counters (commands, clipped, rejected and why, violations by kind), links."""
@@ -508,9 +462,9 @@ class ArmDriver:
             sends = np.diff(np.array(self.send_times)) * 1000.0 if len(self.send_times) > 1 else np.zeros(1)
             return {
                 "mode": self.mode,
-                "estop": {"latched": self._estop, "reason": self._estop_reason, "unconfirmed": sorted(self._estop_unconfirmed)},
-                "fault": self._fault,
-                "links_down": dict(self._links_down),
+                "estop": {"latched": self.state.estop, "reason": self.state.estop_reason, "unconfirmed": sorted(self.state.estop_unconfirmed)},
+                "fault": self.state.fault,
+                "links_down": self.state.links,
                 "counters": dict(self.counters),
                 "rejections": dict(self.rejections),
                 "violations": dict(self.violation_counts),
@@ -535,13 +489,58 @@ class ArmDriver:
     def last_violations(self) -> list[str]:
         return self.motion.last_violations
 
+    # -- the machine -----------------------------------------------------------------------------
+
+    @property
+    def started(self) -> bool:
+        return self.state.started
+
+    @property
+    def fault(self) -> str | None:
+        """The latched fault, or None (read without the lock: the state is swapped whole)."""
+        return self.state.fault
+
+    @property
+    def links_down(self) -> dict[str, str]:
+        """Arm -> why, for each link that is down (read without the lock)."""
+        return self.state.links
+
+    @property
+    def needs_reset(self) -> bool:
+        """The stream restarts from the measured poses before anything moves."""
+        return self.state.needs_reset
+
+    def _dispatch(self, event: m.Event) -> list[m.Effect]:
+        """Step the machine (with the lock held) and carry out its effects in order; the effects
+        that block (AskAlarms) are returned for the caller to carry out without the lock."""
+        self.state, effects = m.step(self.state, event)
+        later: list[m.Effect] = []
+        for e in effects:
+            if isinstance(e, m.StopPipe):
+                self.pipe.stop()
+            elif isinstance(e, m.HaltPipe):
+                self.pipe.halt()
+            elif isinstance(e, m.Restart):
+                self._restart_from_measured()
+            elif isinstance(e, m.ClearInFlight):
+                self._in_flight[e.arm].clear()
+            elif isinstance(e, m.ResendEstop):
+                try:
+                    c = self.clients[e.arm]
+                    c.send(c.emergency_stop_text(True))
+                    later += self._dispatch(m.EstopResent(e.arm))
+                except ProtocolError as err:
+                    later += self._dispatch(m.EstopResent(e.arm, str(err)))
+            elif isinstance(e, m.Count):
+                self.counters[e.name] += 1
+            elif isinstance(e, m.Note):
+                self._event(e.kind, e.detail)
+            else:
+                later.append(e)
+        return later
+
     def _set_fault(self, why: str) -> None:
-        if self._fault is None:
-            self._fault = why
-            self._fault_alarms_asked = False
-            self.counters["faults"] += 1
-            self._event("fault", why)
-        self.pipe.stop()
+        self._dispatch(m.FaultRaised(why))
 
     def _restart_from_measured(self) -> bool:
         """Reset the pipeline at rest at the poses the controllers command (QTarget, ToolVectorTarget:
@@ -552,16 +551,13 @@ class ArmDriver:
         controller alarms on (joint overspeed) or a jerk the other way."""
         recs = {a: self.clients[a].latest()[0] for a in ARMS}
         if any(r is None for r in recs.values()):
+            self._dispatch(m.Restarted("no_feedback"))
             return False
         found = self.motion.restart(recs)
         if found is None:
-            self._set_fault("the feedback reports a non-finite pose; cannot restart from it")
+            self._dispatch(m.Restarted("non_finite"))
             return False
-        self._needs_reset = False
-        self._reset_asked = -np.inf
-        self._stale.clear()
-        if found:
-            self._set_fault("the arms are outside the safety envelope: " + "; ".join(str(v) for v in found))
+        self._dispatch(m.Restarted("ok", tuple(str(v) for v in found)))
         return True
 
     # -- the loop --------------------------------------------------------------------------------
@@ -645,14 +641,11 @@ class ArmDriver:
             self._check_stall(now)
             self._last_cycle = now
             self._watch(now)
-            if self._estop:
+            if self.state.estop:
                 return False
-            if self._needs_reset and not self._links_down and self._fault is None and not self.pipe.moving:
-                if self._reset_asked == -np.inf:
-                    self._reset_asked = now
-                if self._settled() or now - self._reset_asked > SETTLE_TIMEOUT_S:
-                    self._restart_from_measured()
-            active = [a for a in ARMS if a not in self._links_down and a not in self._stale and not self._arm_in_error(a)]
+            moving = self.pipe.moving
+            self._dispatch(m.Cycle(now, moving, not moving and self.state.needs_reset and self._settled()))
+            active = [a for a in ARMS if m.commandable(self.state, a) and not self._arm_in_error(a)]
             out = self.motion.cycle(now, active, check_reach=self.cfg.servo_command == "servoj" or self.cfg.check_reach)
             if out.fault is not None:
                 self._set_fault(out.fault)
@@ -707,21 +700,17 @@ class ArmDriver:
                 c = self.clients[a]
                 try:
                     c.check(c.wait(p, timeout=0.0))
-                    self._failed_requests[a] = 0
+                    if not self.state.failed(a):
+                        continue  # a good reply with no tally to reset: no need to take the lock
+                    event: m.Event = m.ReplyOk(a)
                 except CommandRejected as e:
-                    with self._lock:
-                        if not self._estop:  # a ServoP that crossed the e-stop on the wire is refused: expected
-                            self._set_fault(str(e))
+                    event = m.ReplyRejected(str(e))  # refused across the e-stop on the wire: expected, no fault
                 except ConnectionLost as e:
-                    with self._lock:
-                        self._link_lost(a, str(e))
+                    event = m.LinkLost(a, str(e))
                 except ProtocolError as e:
-                    self._failed_requests[a] += 1
-                    self.counters["servo_failed"] += 1
-                    self._event("servo", str(e))
-                    if self._failed_requests[a] >= self.cfg.max_failed_requests:
-                        with self._lock:
-                            self._set_fault(f"{a}: {self._failed_requests[a]} motion requests in a row without a good reply ({e})")
+                    event = m.ReplyFailed(a, str(e), self.cfg.max_failed_requests)
+                with self._lock:
+                    self._dispatch(event)
 
     def _check_stall(self, now: float) -> None:
         """Drop the trajectory if the servo loop has not run for longer than the watchdog's time (with the
@@ -766,13 +755,11 @@ class ArmDriver:
                     continue  # reconnected; wait for its first packet
                 self._link_back(a)
             rec, _ = c.latest()
-            if rec is None or self._estop or self._closing:
+            if rec is None or self.state.estop or self.state.closing:
                 continue
             why = controller_fault(rec)
             if why is not None:
-                if self._fault is None:
-                    self.counters["alarms"] += 1
-                self._set_fault(f"{a}: {why}")
+                self._dispatch(m.ArmAlarm(a, why))
             elif not int(rec["EnableStatus"]):
                 self._set_fault(f"{a}: disabled (robot mode {int(rec['RobotMode'])})")
         self.motion.watchdog(now)
@@ -789,29 +776,12 @@ class ArmDriver:
         return max(0.0, self.clock.now() - self._stamp(rec))
 
     def _link_lost(self, arm: str, why: str) -> None:
-        self._stale.add(arm)
-        self._needs_reset = True
-        if arm not in self._links_down:
-            self._links_down[arm] = why
-            self.counters["links_lost"] += 1
-            self._event("link_lost", f"{arm}: {why}")
-            self._in_flight[arm].clear()
-        self.pipe.stop()
+        self._dispatch(m.LinkLost(arm, why))
 
     def _link_back(self, arm: str) -> None:
         """A reconnected controller: re-assert a latched e-stop, or restart from the measured pose."""
         self._seen_epoch[arm] = self.clients[arm].epoch
-        self._links_down.pop(arm, None)
-        self.counters["reconnects"] += 1
-        self._event("reconnected", arm)
-        if self._estop and arm in self._estop_unconfirmed:
-            try:
-                c = self.clients[arm]
-                c.send(c.emergency_stop_text(True))
-                self._estop_unconfirmed.discard(arm)
-                self._event("estop", f"{arm}: re-sent after reconnecting")
-            except ProtocolError as e:
-                self._event("estop", f"{arm}: still not sent: {e}")
+        self._dispatch(m.LinkBack(arm))
 
     def _supervise(self) -> None:
         """Reconnect dropped controllers with back-off, and ask a faulted controller for its alarms,
@@ -819,10 +789,13 @@ class ArmDriver:
         while not self._stop.wait(0.02):
             for a in ARMS:
                 c = self.clients[a]
-                if not c.connected and not self._closing:
+                if not c.connected and not self.state.closing:
                     c.reconnect_if_due()
-            if self._fault is not None and not self._fault_alarms_asked:
-                self._fault_alarms_asked = True
+            if self.state.fault is None or self.state.fault_alarms_asked:
+                continue  # read without the lock, as before the machine: this thread must not contend with the servo loop
+            with self._lock:
+                later = self._dispatch(m.AlarmsDue())
+            if any(isinstance(e, m.AskAlarms) for e in later):
                 self._report_alarms()
 
     def _report_alarms(self) -> None:
@@ -838,10 +811,5 @@ class ArmDriver:
                 continue
             if ids:
                 found.append(f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in ids))
-        if not found:
-            return
-        text = "; ".join(found)
         with self._lock:
-            if self._fault is not None:
-                self._fault = f"{self._fault} [alarms: {text}]"
-        self._event("alarms", text)
+            self._dispatch(m.AlarmsFound("; ".join(found)))

@@ -18,11 +18,10 @@ import numpy as np
 
 from bagit.common import cr5
 from bagit.common.dobot import RobotMode
+from bagit.common.dual_arm import Poses
 from bagit.common.geometry import invert_transform, matrix_to_rpy
 from bagit.common.messages import ArmState
 from bagit.common.rig import ARMS, ArmConfig
-
-Poses = dict[str, np.ndarray]  # 'left'/'right' -> (4, 4) world <- mount
 
 
 def poses_to_arrays(poses: Poses) -> tuple[np.ndarray, np.ndarray]:

@@ -254,8 +254,8 @@ class ArmDriverNode:
     def _overlay(self, now: float) -> dict[str, Any]:
         """What the driver adds to the controller's report: fault, lost link, recent event."""
         d = self.driver
-        fault = d._fault  # noqa: SLF001 - read without the lock: a string swapped atomically
-        links = dict(d._links_down)  # noqa: SLF001
+        fault = d.fault  # read without the lock: the driver's state is swapped whole
+        links = d.links_down
         if fault is not None:
             return {"error": True, "error_reason": f"driver fault: {fault}"}
         if links:

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization
 
+from bagit.common.dual_arm import apply_increment
 from bagit.common.rig import SafetyLimits
 from bagit.common.so3 import left_jacobian, rotvec_between, so3_exp
 from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
@@ -298,9 +299,7 @@ class TargetIntegrator:
 
     def proposed_end(self, u: np.ndarray) -> Poses:
         """The end pose after increment `u (12,)` on top of the current end (not applied)."""
-        p = self.end_p + u.reshape(2, 6)[:, :3]
-        R = np.stack([so3_exp(u.reshape(2, 6)[i, 3:]) @ self.end_R[i] for i in range(2)])
-        return arrays_to_poses(p, R)
+        return apply_increment(self.end(), u)
 
     def add(self, end: Poses, dt: float, now: float) -> None:
         """Complete the active segment, then move towards `end` over `dt` seconds from `now`."""

@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from bagit.common.dual_arm import Poses
 from bagit.common.errors import BadControlInput
 from bagit.common.params import MethodParams
 from bagit.services.controller.baselines import IbvsController, SsvsController
@@ -22,21 +23,25 @@ CONTROLLERS: dict[str, type[ServoBase]] = {"mpc": MpcController, "ibvs": IbvsCon
 
 
 class Controller(Protocol):
+    """What a host (`ServoSession`, the benchmarks) drives; `ServoBase` and its laws satisfy it
+    (`make_controller`'s return is checked against it by the type checker)."""
+
     name: str
     u_max: np.ndarray  # (12,) C7 per tick
     dt: float
+    ticks: int
 
     def reset(
         self,
         x0: np.ndarray | None,
         path: Any,
-        gripper_poses: dict[str, np.ndarray] | None,
+        gripper_poses: Poses | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
     ) -> None: ...
 
     def step(
-        self, x: np.ndarray | None, now: float, gripper_poses: dict[str, np.ndarray], source_stamp: float | None = None,
+        self, x: np.ndarray | None, now: float, gripper_poses: Poses, source_stamp: float | None = None,
         pending: np.ndarray | None = None, slowed: bool = False,
     ) -> ControlOutput: ...
 
@@ -50,13 +55,11 @@ def make_controller(name: str, params: MethodParams, n_x: int, **kwargs: Any) ->
 
 def ShapeServo(  # noqa: N802
     kind: str, params: MethodParams, path: np.ndarray, dagger_index: int, perimeter: float,
-    outline: np.ndarray | None = None, frame: np.ndarray | None = None,
 ) -> Controller:
-    """A controller already reset on `path (n_nodes, n_x, 3)`: the one-call form of make_controller + reset
-    (outline `(m, 3)`, frame `(4, 4)`: the object's bottom V and frame, for the enclosure rule)."""
+    """A controller already reset on `path (n_nodes, n_x, 3)`: the one-call form of make_controller + reset."""
     nodes = np.asarray(path, dtype=float)
     if nodes.ndim != 3:
         raise BadControlInput(f"path must have shape (n_nodes, n_x, 3), got {nodes.shape}")
     c = make_controller(kind, params, nodes.shape[1])
-    c.reset(None, nodes, None, dagger_index=dagger_index, perimeter=perimeter, outline=outline, frame=frame)
+    c.reset(None, nodes, None, dagger_index=dagger_index, perimeter=perimeter)
     return c

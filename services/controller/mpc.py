@@ -15,15 +15,7 @@ inputs: the fabric rim cannot be pulled further apart than about half its perime
 closer than the subgoal's shape needs it goes slack and folds in (see ServoBase.separation_band).
 Only the first input is applied.
 
-Move suppression (`MethodParams.du_weight`, not in the paper, 0 by default): the cost also has
-du Σ_k |u_k - u_{k-1}|² with u_{-1} the input applied last tick. The paper's R is tiny next to
-Q JᵀJ, so without it the QP is nearly minimum-time: its answer sits on a corner of the C7 box,
-and a few millimetres of SOI noise move it to another corner from one tick to the next (seen in
-the simulator as grippers shaking up and down at full speed instead of lifting the rim). The term
-adds the constant du (DᵀD ⊗ W) to H and -du (e_0 ⊗ W) u_{-1} to c (D the first difference, W the
-rotation weighting of R); `uncondensed_qp` stays the paper's QP, for the solver comparison.
-
-R's twist term (`MethodParams.twist_weight`; the paper leaves R open): per tick, twist |ω_L - ω_R|²
+R's twist term (`ControllerParams.experimental.twist_weight`; the paper leaves R open): per tick, twist |ω_L - ω_R|²
 on the difference of the two grippers' rotation increments, so they turn together and the rim
 moves as a body instead of being creased between its clamps (see `input_weight`). The paper's QP
 form is unchanged: it is a choice of R, and `uncondensed_qp` takes the same R.
@@ -43,16 +35,13 @@ import numpy as np
 import piqp
 import scipy.sparse as sp
 
-from bagit.common.geometry import pca
+from bagit.common.dual_arm import INCREMENT_SIZE, POSITION_COLUMNS, ROTATION, TRANSLATION
 from bagit.common.params import MethodParams
+from bagit.common.rig import ARMS
 from bagit.services.controller import servo as servo_mod
 from bagit.services.controller.servo import ServoBase
 
-# Q on the error out of the subgoal's plane, relative to in it. 1 is the paper's Q = qI; 0.3 was
-# measured worse in the simulator (with the sag no longer weighed, the grippers ran apart to C6's limit).
-OUT_OF_PLANE_WEIGHT = 1.0
 ROTATION_COST_FACTOR = 10.0  # a mount's turn moves the rim little: spend it only where it pays
-POSITION_COLUMNS = (0, 1, 2, 6, 7, 8)  # left and right gripper translation inside u (12,)
 
 
 @dataclass
@@ -77,13 +66,15 @@ def prediction_matrices(J: np.ndarray, horizon: int) -> tuple[np.ndarray, np.nda
 
 def rotation_weighted_r(r: float, horizon: int) -> np.ndarray:
     """Diagonal of R `(12 T,)`: r per unit of translation, ROTATION_COST_FACTOR r per radian."""
-    per_tick = np.array([1.0] * 3 + [ROTATION_COST_FACTOR] * 3 + [1.0] * 3 + [ROTATION_COST_FACTOR] * 3)
+    per_tick = np.ones(INCREMENT_SIZE)
+    for arm in ARMS:
+        per_tick[ROTATION[arm]] = ROTATION_COST_FACTOR
     return r * np.tile(per_tick, horizon)
 
 
 def input_weight(r: float, horizon: int, twist: float = 0.0) -> np.ndarray:
     """R `(12T, 12T)`: `rotation_weighted_r` on the diagonal plus, per tick, twist |ω_L - ω_R|², the
-    cost of the two grippers turning differently (ω: each gripper's rotation increment, u[3:6], u[9:12]).
+    cost of the two grippers turning differently (ω: each gripper's rotation increment, `dual_arm.ROTATION`).
 
     Why: each mount clamps a rigid quarter of the rim, so turning both alike moves the rim as a body,
     while turning them differently bends the free fabric between the clamps, which buckles into a fold
@@ -91,38 +82,18 @@ def input_weight(r: float, horizon: int, twist: float = 0.0) -> np.ndarray:
     in the simulator, the MPC yawed the mounts apart to widen the rim's near side and creased it instead."""
     R = np.diag(rotation_weighted_r(r, horizon))
     if twist > 0:
-        D = np.zeros((3, 12))
-        D[:, 3:6] = np.eye(3)
-        D[:, 9:12] = -np.eye(3)
+        D = np.zeros((3, INCREMENT_SIZE))
+        D[:, ROTATION["left"]] = np.eye(3)
+        D[:, ROTATION["right"]] = -np.eye(3)
         R += twist * np.kron(np.eye(horizon), D.T @ D)
     return R
 
 
-def move_suppression(s: float, horizon: int) -> tuple[np.ndarray, np.ndarray]:
-    """The cost s Σ_k |u_k - u_{k-1}|² (u_{-1} the input applied last tick, rotations weighted like R)
-    as its Hessian `(12T, 12T)` = s (DᵀD ⊗ W) and the gradient's factor `(12T, 12)` = -s (e_0 ⊗ W),
-    D the first difference over the horizon: c gets factor @ u_prev."""
-    W = np.diag(rotation_weighted_r(1.0, 1))
-    D = np.eye(horizon) - np.eye(horizon, k=-1)
-    e0 = np.zeros((horizon, 1))
-    e0[0, 0] = 1.0
-    return s * np.kron(D.T @ D, W), -s * np.kron(e0, W)
-
-
-def plane_weight(target: np.ndarray, out_of_plane: float) -> np.ndarray:
-    """W `(3, 3)` = I - (1 - out_of_plane) n nᵀ with n the normal of the subgoal `target (3 n_x,)`:
-    whether the object passes is decided in the rim's plane, while the sag of the free fabric out of
-    it is neither harmful nor in the arms' power to remove."""
-    pts = np.asarray(target, dtype=float).reshape(-1, 3)
-    n = pca(pts)[2][-1]
-    return np.eye(3) - (1.0 - out_of_plane) * np.outer(n, n)
-
-
 def separation_gradient(axis: np.ndarray) -> np.ndarray:
     """d(separation)/du `(12,)`: the change of the grippers' distance along the unit `axis (3,)` (left -> right)."""
-    a = np.zeros(12)
-    a[0:3] = -axis
-    a[6:9] = axis
+    a = np.zeros(INCREMENT_SIZE)
+    a[TRANSLATION["left"]] = -axis
+    a[TRANSLATION["right"]] = axis
     return a
 
 
@@ -143,7 +114,7 @@ class MpcSolver:
     """
 
     def __init__(
-        self, horizon: int, q: float, r: float, backend: str = "dense", eps: float = 1e-7, du: float = 0.0, twist: float = 0.0
+        self, horizon: int, q: float, r: float, backend: str = "dense", eps: float = 1e-7, twist: float = 0.0
     ):
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -161,10 +132,6 @@ class MpcSolver:
         if not (np.isfinite(twist) and twist >= 0):
             raise ValueError(f"twist must be a finite weight >= 0, got {twist}")
         self.R = input_weight(r, horizon, twist)
-        if not (np.isfinite(du) and du >= 0):
-            raise ValueError(f"du must be a finite weight >= 0, got {du}")
-        self.du = float(du)
-        self._H_du, self._c_du = move_suppression(self.du, horizon)
         # Fixed sparsity patterns (the sparse solver's update needs the same pattern every tick).
         n = 12 * horizon
         self._triu = np.triu_indices(n)
@@ -182,21 +149,10 @@ class MpcSolver:
         self._has_g: bool | None = None
         self.last: MpcSolution | None = None
 
-    def condensed(
-        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, point_weight: np.ndarray | None = None, u_prev: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """H `(12T, 12T)` and c `(12T,)` of the condensed cost for `J (3 n_x, 12)`, `x`, `target (3 n_x,)`.
-
-        point_weight `(3, 3)`: Q = q (I_{n_x} ⊗ W) instead of q I, the same symmetric weight on every
-        point's (x, y, z) error (e.g. less on the direction out of the rim's plane). u_prev `(12,)`: the
-        input applied last tick, the start of the move suppression (`du`; None: zero)."""
-        WJ = J if point_weight is None else np.einsum("ab,ibk->iak", point_weight, J.reshape(-1, 3, J.shape[1])).reshape(J.shape)
-        H = self.q * np.kron(self._LtL, J.T @ WJ) + self.R
-        c = self.q * np.outer(self._Lt1, WJ.T @ (x - target)).ravel()
-        if self.du > 0:
-            H = H + self._H_du
-            if u_prev is not None:
-                c = c + self._c_du @ np.asarray(u_prev, dtype=float)
+    def condensed(self, J: np.ndarray, x: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """H `(12T, 12T)` and c `(12T,)` of the condensed cost for `J (3 n_x, 12)`, `x`, `target (3 n_x,)`."""
+        H = self.q * np.kron(self._LtL, J.T @ J) + self.R
+        c = self.q * np.outer(self._Lt1, J.T @ (x - target)).ravel()
         return H, c
 
     def separation_rows(self, axis: np.ndarray) -> np.ndarray:
@@ -213,16 +169,13 @@ class MpcSolver:
         sep_now: float = 0.0,
         sep_limits: tuple[float, float] = (0.0, np.inf),
         sep_recover: float = 0.0,
-        point_weight: np.ndarray | None = None,
-        u_prev: np.ndarray | None = None,
     ) -> MpcSolution:
         """Inputs for the SOI `x (3 n_x,)` to reach `target (3 n_x,)` under the model `J (3 n_x, 12)`.
 
         `u_max (12,)`: C7 bound per input per tick. `sep_axis (3,)`: unit vector from the left to the
         right gripper; the separation along it stays within `sep_limits` over the horizon (C6). If the
         grippers are already outside that band they must head back by `sep_recover` (m) per step
-        (0: only no worse), never faster than the band asks. `point_weight (3, 3)`, `u_prev (12,)`:
-        see `condensed`.
+        (0: only no worse), never faster than the band asks.
         """
         T = self.T
         t0 = time.perf_counter()
@@ -230,22 +183,20 @@ class MpcSolver:
         x = np.asarray(x, dtype=float).ravel()
         target = np.asarray(target, dtype=float).ravel()
         zeros = np.zeros(12 * T)
-        if u_prev is not None and not np.all(np.isfinite(u_prev)):
-            u_prev = None
         if not (np.all(np.isfinite(J)) and np.all(np.isfinite(x)) and np.all(np.isfinite(target))):
             return self._fail(zeros, t0, "non-finite model or SOI")
         try:
-            return self._solve(J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, u_prev, t0)
+            return self._solve(J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, t0)
         except (ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError) as e:
             # PIQP's set-up or factorisation refusing the data: a failed tick (the arms hold), not a crash
             self._solver = None  # set up afresh next tick
             return self._fail(zeros, t0, f"solver error: {e}")
 
-    def _solve(self, J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, point_weight, u_prev, t0) -> MpcSolution:
+    def _solve(self, J, x, target, u_max, sep_axis, sep_now, sep_limits, sep_recover, t0) -> MpcSolution:
         T = self.T
         zeros = np.zeros(12 * T)
         with np.errstate(over="ignore", invalid="ignore"):  # an overflowing model is caught just below
-            H, c = self.condensed(J, x, target, point_weight, u_prev)
+            H, c = self.condensed(J, x, target)
         if not (np.all(np.isfinite(H)) and np.all(np.isfinite(c))):
             return self._fail(zeros, t0, "non-finite QP data")
         ub = np.tile(np.asarray(u_max, dtype=float), T)
@@ -330,17 +281,15 @@ def uncondensed_qp(
     sep_now: float,
     sep_limits: tuple[float, float],
     sep_recover: float = 0.0,
-    point_weight: np.ndarray | None = None,
 ) -> dict[str, np.ndarray | sp.csc_matrix]:
     """The same MPC without condensing, for sparse solvers: variables z = [x̄ (3 n_x T), ū (12 T)],
     C8 as equality rows x_{k+1} = x_k + J u_k. Returns P (upper triangle), c, A, b, G, h_l, h_u, x_l, x_u."""
     n, T = J.shape[0], horizon
     x = np.asarray(x, dtype=float).ravel()
     target = np.asarray(target, dtype=float).ravel()
-    W = np.eye(3) if point_weight is None else np.asarray(point_weight, dtype=float)
-    Qx = sp.kron(sp.eye(n // 3 * T), sp.csc_matrix(q * W))
+    Qx = sp.kron(sp.eye(n // 3 * T), sp.csc_matrix(q * np.eye(3)))
     P = sp.triu(sp.block_diag([Qx, sp.csc_matrix(np.asarray(R, dtype=float))])).tocsc()
-    c = np.concatenate([np.tile(-q * (target.reshape(-1, 3) @ W).ravel(), T), np.zeros(12 * T)])
+    c = np.concatenate([np.tile(-q * target, T), np.zeros(12 * T)])
     # x_k - x_{k-1} - J u_k = 0 (x_{-1} = x_t): [I - shift] ⊗ I_n on x̄, -I_T ⊗ J on ū. Built from
     # explicit coordinates so the patterns (zeros in J or the axis included) never change.
     k, i = np.meshgrid(np.arange(T), np.arange(n), indexing="ij")
@@ -375,8 +324,8 @@ class MpcController(ServoBase):
         self.solver = self._new_solver(backend)
 
     def _new_solver(self, backend: str) -> MpcSolver:
-        p = self.p
-        return MpcSolver(p.horizon, p.q_weight, p.r_weight, backend, du=p.du_weight, twist=p.twist_weight)
+        c = self.p.controller
+        return MpcSolver(c.horizon, c.q_weight, c.r_weight, backend, twist=c.experimental.twist_weight)
 
     def _on_reset(self) -> None:
         self.solver = self._new_solver(self.solver.backend)
@@ -386,8 +335,7 @@ class MpcController(ServoBase):
         sep = float(np.linalg.norm(pr - pl))
         axis = (pr - pl) / max(sep, 1e-9)
         band = self.separation_band(target, axis)
-        W = plane_weight(target, OUT_OF_PLANE_WEIGHT) if OUT_OF_PLANE_WEIGHT != 1.0 else None
-        sol = self.solver.solve(J, x, target, self.u_max, axis, sep, band, servo_mod.SEP_RECOVER_M, W, self._u_prev)
+        sol = self.solver.solve(J, x, target, self.u_max, axis, sep, band, servo_mod.SEP_RECOVER_M)
         if not sol.ok:
             return np.zeros(12), sol.solve_ms, f"MPC QP not solved ({sol.status})"
         return sol.u, sol.solve_ms, None

@@ -70,7 +70,7 @@ class ControllerServiceConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     controller: str | None = Field(None, description="mpc | ibvs | ssvs; None: the run's choice (RunState.controller), else mpc")
-    control_rate_hz: float | None = Field(None, gt=0.0, le=500.0, description="None: the run's params.control_rate_hz")
+    control_rate_hz: float | None = Field(None, gt=0.0, le=500.0, description="None: the run's params.controller.control_rate_hz")
     soi_max_age_s: float = Field(SOI_MAX_AGE_S, gt=0.0, le=10.0, description="a SOI older than this: hold")
     arm_max_age_s: float = Field(ARM_MAX_AGE_S, gt=0.0, le=10.0, description="an arm state older than this: hold")
     params: dict[str, Any] = Field(default_factory=dict, description="method parameter overrides laid over the run's")
@@ -225,7 +225,7 @@ class ControllerNode:
         run = self._run
         if run is not None:
             return run.tick_s  # the control period, or the keep-alive pace of a slower control rate
-        return 1.0 / (self.cfg.control_rate_hz or MethodParams().control_rate_hz)
+        return 1.0 / (self.cfg.control_rate_hz or MethodParams().controller.control_rate_hz)
 
     def _tick(self, now: float | None = None) -> None:
         """One control tick at `now` (the rig's clock; None: this host's)."""

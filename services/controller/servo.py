@@ -15,14 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from bagit.common.dual_arm import DualArmIncrement, apply_increment, pose_increment
 from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import Command
 from bagit.common.params import MethodParams
-from bagit.common.so3 import so3_log
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
-from bagit.services.controller.increment import apply_increment, pose_increment
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
 
 EXPLORE_PUSH_TICKS = 4  # ticks each exploratory push lasts (at the C7 limit)
@@ -30,12 +29,11 @@ EXPLORE_SETTLE_TICKS = 2  # ticks held after each push before its SOI change is 
 BROYDEN_WINDOW = 5  # ticks of input and SOI change summed per Broyden update: one tick is mostly noise
 SEPARATION_MARGIN = 0.9  # C6: the grippers stay within this share of the rim's half perimeter apart
 MIN_SEPARATION_M = 0.06  # C6: the two mounts never come closer than this
-TAUT_SEPARATION = True  # C6: ... nor closer than the subgoal's rim, held taut, needs (less TAUT_MARGIN_M)
-TAUT_MARGIN_M = 0.01
+TAUT_MARGIN_M = 0.01  # C6: ... nor closer than the subgoal's rim, held taut, needs (less this)
 SEP_RECOVER_M = 0.001  # outside the C6 band the grippers head back by at least this per tick
-BROYDEN_SCALED = True  # Broyden's update in units of each input's C7 limit (see BroydenJacobian)
-MIN_SCALED_STEP = 0.5  # ... and windows that moved less than half a full-speed tick are not learnt from
-PREDICT_PENDING = True  # the law predicts from the SOI the motion still in flight will make (see ServoBase._predicted)
+# Broyden's update is in units of each input's C7 limit (see BroydenJacobian), and windows that moved
+# less than this share of a full-speed tick are not learnt from.
+MIN_SCALED_STEP = 0.5
 # When the arm side reports a step its joints could not follow (ArmState.slowed), the direction of the
 # motion it still has in flight is barred for this many ticks: the law may not ask for more of it, and
 # while the arms stay slowed the input takes it back (see ServoBase._bar_unmade). Traced on the CR5s:
@@ -77,33 +75,10 @@ class ControlOutput:
 
 def c7_limits(params: MethodParams) -> np.ndarray:
     """C7: the largest |u| per component per tick `(12,)` from the arms' speed limits."""
-    dt = 1.0 / params.control_rate_hz
-    lin, ang = params.max_linear_speed_mps * dt, params.max_angular_speed_rps * dt
-    return np.array([lin] * 3 + [ang] * 3 + [lin] * 3 + [ang] * 3)
-
-
-def bound_pitch(u: np.ndarray, grippers: dict[str, np.ndarray], start: dict[str, np.ndarray], limit_rad: float) -> np.ndarray:
-    """`u (12,)` with each gripper's turn about the line between the grippers cut so that its angle
-    about it from its `start` rotation `(3, 3)` does not grow past `limit_rad`.
-
-    That turn swings the rim's near side (towards the camera) and its far side in opposite ways.
-    The camera sees only the near side, so a controller lifting what it sees by it drops the far
-    side, hidden behind the object, under the object's bottom. Only growth is cut: an input never
-    has to turn a gripper back, so it stays inside C7."""
-    pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
-    sep = float(np.linalg.norm(pr - pl))
-    if sep < 1e-9:
-        return u
-    axis = (pr - pl) / sep
-    out = np.array(u, dtype=float)
-    for arm, cols in (("left", slice(3, 6)), ("right", slice(9, 12))):
-        pitch = float(so3_log(grippers[arm][:3, :3] @ start[arm][:3, :3].T) @ axis)
-        step = float(out[cols] @ axis)
-        if step > 0 and pitch + step > limit_rad:
-            out[cols] += (max(limit_rad - pitch, 0.0) - step) * axis
-        elif step < 0 and pitch + step < -limit_rad:
-            out[cols] += (min(-limit_rad - pitch, 0.0) - step) * axis
-    return out
+    c = params.controller
+    dt = 1.0 / c.control_rate_hz
+    per_arm = np.array([c.max_linear_speed_mps * dt] * 3 + [c.max_angular_speed_rps * dt] * 3)
+    return DualArmIncrement(per_arm, per_arm).to_array()
 
 
 def project_box_halfspace(v: np.ndarray, d: np.ndarray, limit: float, iterations: int = 60) -> np.ndarray:
@@ -181,7 +156,7 @@ class ServoBase:
             raise BadControlInput(f"broyden_window must be >= 1, got {broyden_window}")
         self.p = params
         self.n_x = n_x
-        self.dt = 1.0 / params.control_rate_hz
+        self.dt = 1.0 / params.controller.control_rate_hz
         self.u_max = c7_limits(params)
         self.explore_push_ticks = explore_push_ticks
         self.explore_settle_ticks = explore_settle_ticks
@@ -200,15 +175,11 @@ class ServoBase:
         gripper_poses: dict[str, np.ndarray] | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
-        outline: np.ndarray | None = None,
-        frame: np.ndarray | None = None,
     ) -> None:
         """Start a run on `path` (a Path message, or nodes `(n_nodes, n_x, 3)` with `dagger_index`).
 
         x0 `(n_x, 3)`: the first SOI (its length is the rim perimeter for C6 unless `perimeter` is
         given; without either, the path's first node's). gripper_poses: {'left','right'}: 4x4 world.
-        outline `(m, 3)` and frame `(4, 4)`: the object's bottom vertices V and bottom frame (the goal's),
-        for the enclosure rule at g† and g* (`MethodParams.enclose_margin_m`); None: no such rule.
         """
         nodes, dagger = as_path(path, dagger_index)
         if nodes.ndim != 3 or nodes.shape[1:] != (self.n_x, 3):
@@ -220,14 +191,9 @@ class ServoBase:
         if gripper_poses is not None and (why := pose_problem(gripper_poses)):
             raise BadControlInput(why)
         # a law aiming straight at g* (ssvs) has no g† to settle at
-        settle = 0 if self.aims_at_goal else int(round(self.p.dagger_settle_s * self.p.control_rate_hz))
-        if self.aims_at_goal or self.p.enclose_margin_m is None:  # ssvs has no g†; None: the paper's rule
-            outline = None
-        self.tracker = SubgoalTracker(
-            nodes, dagger, self.p.subgoal_tol_m, self.p.goal_tol_m, GOAL_STALL_TICKS, settle,
-            outline=outline, frame=frame, enclose_margin=self.p.enclose_margin_m or 0.0,
-            enclose_ticks=int(round(self.p.enclose_timeout_s * self.p.control_rate_hz)), max_push=self.p.enclose_push_m,
-        )
+        c = self.p.controller
+        settle = 0 if self.aims_at_goal else int(round(c.experimental.dagger_settle_s * c.control_rate_hz))
+        self.tracker = SubgoalTracker(nodes, dagger, c.subgoal_tol_m, c.goal_tol_m, GOAL_STALL_TICKS, settle)
         self.path = self.tracker.path
         if perimeter is None:
             perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
@@ -239,7 +205,6 @@ class ServoBase:
         self.exploration = Exploration(self.u_max, self.explore_push_ticks, self.explore_settle_ticks)
         self.jacobian = None
         self._x_prev: np.ndarray | None = None
-        self._u_prev = np.zeros(12)  # the last input sent (the MPC's move suppression starts from it)
         self._poses_prev: dict[str, np.ndarray] | None = None  # the grippers at the last tick with a valid SOI
         self._win_u = np.zeros(12)
         self._win_s = np.zeros(3 * self.n_x)
@@ -248,7 +213,6 @@ class ServoBase:
         self._goal_since = 0
         self._sep_offset: float | None = None
         self.ticks = 0
-        self._start_rot: dict[str, np.ndarray] | None = None  # the grippers' rotations at the first tick (max_pitch_deg)
         self._barred: np.ndarray | None = None  # (12,) unit, C7 units: motion the arm side could not make (see _note_reach)
         self._barred_ticks = 0
         if x0 is not None and gripper_poses is not None:
@@ -293,8 +257,6 @@ class ServoBase:
         xf = x.ravel()
         if self._sep_offset is None:
             self._learn_separation_offset(x, gripper_poses)
-        if self._start_rot is None:
-            self._start_rot = {a: np.array(gripper_poses[a][:3, :3]) for a in ("left", "right")}
         moved = None if self._poses_prev is None else pose_increment(self._poses_prev, gripper_poses)
         self._poses_prev = {a: np.array(gripper_poses[a], dtype=float) for a in ("left", "right")}
         self._learn(xf, moved)
@@ -302,28 +264,23 @@ class ServoBase:
         if self.jacobian is None:
             u = self.exploration.next_input(xf, moved)
             if u is not None:
-                self._u_prev = u
                 return self._out(u, "explore", None, x)
             try:
                 J0 = self.exploration.jacobian()
-                if BROYDEN_SCALED:
-                    self.jacobian = BroydenJacobian(J0, self.p.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
-                else:
-                    self.jacobian = BroydenJacobian(J0, self.p.epsilon)
+                self.jacobian = BroydenJacobian(J0, self.p.controller.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
             except NUMERIC_ERRORS as e:
                 return self._hold(f"no Jacobian estimate from the exploration: {e}", x)
         idx = self.tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
         if self.tracker.settling:  # still at g†: the bag settles before the lift
-            self._u_prev = np.zeros(12)
             return self._out(np.zeros(12), "settle", None, x)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]
         pending = self._valid_pending(pending)
         self._note_reach(pending, slowed)
         try:
             xp, grippers = self._predicted(xf, gripper_poses, None if slowed else pending)
-            target = (slide_to(goal, xp.reshape(-1, 3)) + self.tracker.push(x)).ravel()  # push: zero without the enclosure rule (and for ssvs)
+            target = slide_to(goal, xp.reshape(-1, 3)).ravel()
             u, solve_ms, why = self._law(self.jacobian.J, xp, target, grippers)
         except NUMERIC_ERRORS as e:  # hold with the reason; never let a numerical error out of a tick
             return self._hold(f"the {self.name} law failed numerically: {e}", x)
@@ -335,12 +292,7 @@ class ServoBase:
             out.solve_ms = solve_ms
             return out
         u = np.clip(u, -self.u_max, self.u_max)  # C7, whatever the law
-        if self.p.max_pitch_deg is not None:
-            # the cut is along the grippers' axis, which is not a C7 box axis: alternate with the box
-            for _ in range(3):
-                u = np.clip(bound_pitch(u, grippers, self._start_rot, np.radians(self.p.max_pitch_deg)), -self.u_max, self.u_max)
         u = self._bar_unmade(u, pending if slowed else None)
-        self._u_prev = u
         out = self._out(u, "servo", None, x)
         out.solve_ms = solve_ms
         return out
@@ -355,7 +307,7 @@ class ServoBase:
         servo loop; measured on the simulated rig), while the paper's model x_{t+1} = x_t + J u_t has
         each input act at once. Predicting from the measured SOI alone, the MPC asks again for motion
         already on its way, saturates C7 and overshoots, then reverses: the rim circles a subgoal."""
-        if not PREDICT_PENDING or pending is None or self.jacobian is None:
+        if pending is None or self.jacobian is None:
             return xf, grippers
         return xf + self.jacobian.J @ pending, apply_increment(grippers, pending)
 
@@ -415,7 +367,7 @@ class ServoBase:
         (the fold is what leaves an object's corner outside): the subgoal's extent along the axis,
         less the mounts' offset inside the rim, less a margin."""
         lower, upper = self.sep_limits
-        if TAUT_SEPARATION and self._sep_offset is not None:
+        if self._sep_offset is not None:
             proj = np.asarray(target, dtype=float).reshape(-1, 3) @ axis
             taut = float(proj.max() - proj.min()) - self._sep_offset - TAUT_MARGIN_M
             lower = float(np.clip(taut, lower, upper - TAUT_MARGIN_M))
@@ -443,16 +395,13 @@ class ServoBase:
             self._goal_best, self._goal_since = e, 0
         else:
             self._goal_since += 1
-        return e <= self.p.goal_tol_m or (self._goal_since >= GOAL_STALL_TICKS and e <= 2 * self.p.subgoal_tol_m)
+        return e <= self.p.controller.goal_tol_m or (self._goal_since >= GOAL_STALL_TICKS and e <= 2 * self.p.controller.subgoal_tol_m)
 
     def _hold(self, reason: str, x: np.ndarray | None) -> ControlOutput:
-        self._u_prev = np.zeros(12)
         return self._out(np.zeros(12), "hold", reason, x)
 
     def _out(self, u: np.ndarray, mode: str, reason: str | None, x: np.ndarray | None, done: bool = False) -> ControlOutput:
         tr = self.tracker
-        if done:
-            self._u_prev = np.zeros(12)
         ok = x is not None and np.all(np.isfinite(x))
         e_sub = tr.error(x, tr.index) if ok else float("nan")
         e_goal = tr.error(x, len(self.path) - 1) if ok else float("nan")

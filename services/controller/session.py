@@ -26,14 +26,14 @@ from typing import Any
 
 import numpy as np
 
+from bagit.common.dual_arm import pose_increment
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, Goal, Path, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER
-from bagit.common.params import MethodParams
+from bagit.common.params import MethodParams, merge_params
 from bagit.common.rig import ARMS, SafetyLimits
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
-from bagit.services.controller.increment import pose_increment
 
 # A command's dt (the time the driver spreads its increment over) stays this far under the arm
 # driver's watchdog (`SafetyLimits.watchdog_s`), so a slow SOI gives slower motion, never a stop.
@@ -145,31 +145,24 @@ class ServoSession:
             why = f"the planner found no path for run {state.run_id}"
             return cls._finished(state.run_id, why, next_seq), Outbox(status=ControllerStatus(run_id=state.run_id, reason=why))
         try:
-            scen_params: dict[str, Any] = {}
-            if state.scenario_doc is not None:
-                scen_params = Scenario.model_validate(state.scenario_doc).params.model_dump(exclude_unset=True)
-            over = {**state.params, **overrides}
-            fields = MethodParams.model_fields
-            ignored = sorted(k for k in over if k not in fields)
-            params = MethodParams(**{**scen_params, **{k: v for k, v in over.items() if k in fields}})
+            base = Scenario.model_validate(state.scenario_doc).params if state.scenario_doc is not None else MethodParams()
+            params = merge_params(merge_params(base, state.params), overrides)
             name = controller or state.controller or DEFAULT_CONTROLLER
-            rate = rate_hz or params.control_rate_hz
-            if rate != params.control_rate_hz:
-                params = params.model_copy(update={"control_rate_hz": rate})
+            rate = rate_hz or params.controller.control_rate_hz
+            if rate != params.controller.control_rate_hz:
+                params = merge_params(params, {"control_rate_hz": rate})
             nodes = np.asarray(path.nodes, dtype=float)
             ctrl = make_controller(name, params, nodes.shape[1])
         except Exception as e:  # noqa: BLE001 - a bad run must not take the host down
             reason = f"cannot build the controller for run {state.run_id}: {type(e).__name__}: {str(e).splitlines()[0]}"
             return cls._finished(state.run_id, reason, next_seq), Outbox(status=ControllerStatus(run_id=state.run_id, reason=reason), report=reason)
         note = f"run {state.run_id}: {name} at {rate:g} Hz on a path of {len(nodes)} nodes (g† at {path.dagger_index})"
-        if ignored:
-            note += f"; parameters not for the controller ignored: {', '.join(ignored)}"
         return cls(state.run_id, name, ctrl, params, rate, next_seq, watchdog_s), Outbox(report=note)
 
     @classmethod
     def _finished(cls, run_id: str | None, why: str, next_seq: Callable[[], int]) -> ServoSession:
         """A run that is never servoed (no path, or no controller): the reason is told once, not every tick."""
-        s = cls(run_id, "none", None, MethodParams(), MethodParams().control_rate_hz, next_seq)
+        s = cls(run_id, "none", None, MethodParams(), MethodParams().controller.control_rate_hz, next_seq)
         s.finished = why
         return s
 
@@ -209,14 +202,8 @@ class ServoSession:
         try:
             if not self.reset_done:
                 perimeter = goal.perimeter if goal is not None and goal.perimeter > 0 else None
-                outline, frame = (None, None) if goal is None else (np.asarray(goal.vertices, dtype=float), np.asarray(goal.frame, dtype=float))
-                c.reset(x, path, grippers, perimeter=perimeter, outline=outline, frame=frame)
+                c.reset(x, path, grippers, perimeter=perimeter)
                 self.reset_done = True
-                if self.params.enclose_margin_m is not None and outline is not None:
-                    report = (f"run {self.run_id}: the rim must go round the object's {len(outline)} bottom vertices "
-                              f"by {self.params.enclose_margin_m * 1000:.0f} mm before the lift and at g*")
-                elif self.params.enclose_margin_m is not None:
-                    report = f"run {self.run_id}: no goal (with the object's V) yet at the first tick: no enclosure rule"
             out = c.step(x, now, grippers, pending=pending, slowed=slowed)
         except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so
             return self.hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", now)

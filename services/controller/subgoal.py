@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from bagit.common.errors import BadControlInput
-from bagit.common.geometry import enclosure
 
 
 def rms_error(x: np.ndarray, g: np.ndarray) -> float:
@@ -17,13 +16,7 @@ class SubgoalTracker:
     """Walks along path `(n_nodes, n_x, 3)`: advance when close enough to the current subgoal or when a
     later node is already nearer, but never past g† (dagger_index) before g† itself was reached, that
     is, `dagger_settle_ticks` updates after the SOI first came within tolerance of it (while the
-    controller keeps the grippers still and the bag settles).
-
-    With the object's bottom `outline (m, 3)` and bottom `frame (4, 4)` (world <- F), closeness is not
-    enough at g† and at g*: the SOI, seen along the frame's z axis, must also go round the outline by
-    `enclose_margin` (it is what the RMS tolerance cannot promise, and what the lift needs), for at
-    most `enclose_ticks` updates at each of the two; `push` moves the subgoal outwards meanwhile, by
-    at most `max_push` (0: it only holds)."""
+    controller keeps the grippers still and the bag settles)."""
 
     def __init__(
         self,
@@ -33,11 +26,6 @@ class SubgoalTracker:
         goal_tol: float,
         stall_ticks: int = 45,
         dagger_settle_ticks: int = 0,
-        outline: np.ndarray | None = None,
-        frame: np.ndarray | None = None,
-        enclose_margin: float = 0.0,
-        enclose_ticks: int = 0,
-        max_push: float = 0.0,
     ):
         self.path = np.asarray(path, dtype=float)
         if self.path.ndim != 3 or len(self.path) < 1 or self.path.shape[2] != 3:
@@ -60,21 +48,6 @@ class SubgoalTracker:
             raise BadControlInput(f"dagger_settle_ticks must be >= 0, got {dagger_settle_ticks}")
         self.dagger_settle_ticks = dagger_settle_ticks
         self.settled_ticks = 0  # updates since the SOI first came within tolerance of g†
-        if outline is not None:
-            outline = np.asarray(outline, dtype=float)
-            frame = np.asarray(frame, dtype=float) if frame is not None else None
-            if outline.ndim != 2 or outline.shape[1] != 3 or len(outline) < 1 or not np.all(np.isfinite(outline)):
-                raise BadControlInput(f"outline must be finite points (m, 3), got shape {outline.shape}")
-            if frame is None or frame.shape != (4, 4) or not np.all(np.isfinite(frame)):
-                raise BadControlInput("an outline needs its finite bottom frame (4, 4)")
-        if enclose_margin < 0 or enclose_ticks < 0 or max_push < 0:
-            raise BadControlInput(f"enclose_margin, enclose_ticks and max_push must be >= 0, got {enclose_margin}, {enclose_ticks}, {max_push}")
-        self.outline, self.frame = outline, frame
-        self.enclose_margin = enclose_margin
-        self.enclose_ticks = enclose_ticks
-        self.max_push = max_push
-        self._updates = 0
-        self._held_since: dict[str, int | None] = {"dagger": None, "goal": None}  # update of the rule's first hold there
 
     def _reached(self, x: np.ndarray, k: int) -> bool:
         e = self.error(x, k)
@@ -84,7 +57,6 @@ class SubgoalTracker:
 
     def update(self, x: np.ndarray) -> int:
         """The index of g_next for the SOI `x (n_x, 3)`."""
-        self._updates += 1
         last = len(self.path) - 1
         e = self.error(x, self.index)
         if e < self._best - 1e-3:
@@ -112,52 +84,13 @@ class SubgoalTracker:
         return self.index
 
     def _settle_at_dagger(self, x: np.ndarray) -> None:
-        """One update at g†: the settle starts when the SOI first comes within tolerance (and round
-        the outline by the margin) and then counts every update; g† is reached when it is over with
-        the rim still round the outline (by any margin: a rim at the threshold must not restart the
-        settle on every flicker of its noise); a rim that settled off it servoes back to g† first."""
-        if self.settled_ticks == 0 and not (self._reached(x, self.dagger) and self._encloses(x, "dagger")):
+        """One update at g†: the settle starts when the SOI first comes within tolerance and then
+        counts every update; g† is reached when it is over."""
+        if self.settled_ticks == 0 and not self._reached(x, self.dagger):
             return
         self.settled_ticks += 1
         if self.settled_ticks > self.dagger_settle_ticks:
-            if self._encloses(x, "dagger", margin=0.0):
-                self.dagger_reached = True
-            else:
-                self.settled_ticks = 0
-
-    def _encloses(self, x: np.ndarray, where: str, margin: float | None = None) -> bool:
-        """Does the SOI `x (n_x, 3)` go round the outline by `margin` (default: enclose_margin)? True
-        without an outline, and once enclose_ticks updates have passed since the rule first held the
-        run at `where` ('dagger' or 'goal'), settles included: it then lets the run go on, and the
-        judge, not the rule, has the last word."""
-        if self.outline is None:
-            return True
-        since = self._held_since[where]
-        if since is not None and self._updates - since >= self.enclose_ticks:
-            return True
-        if float(enclosure(x, self.outline, self.frame)[0].min()) >= (self.enclose_margin if margin is None else margin):
-            return True
-        if since is None:
-            self._held_since[where] = self._updates
-        return False
-
-    @property
-    def held(self) -> dict[str, int]:
-        """Updates since the enclosure rule first held the run at g† and at g* (0: never; at most enclose_ticks)."""
-        return {k: 0 if v is None else min(self._updates - v + 1, self.enclose_ticks) for k, v in self._held_since.items()}
-
-    def push(self, x: np.ndarray) -> np.ndarray:
-        """`(3,)`: how far to move the current subgoal, from g† on and once the SOI `x (n_x, 3)` is near
-        it, so the rim goes round the outline: each outline point closer than 1.5x the margin to the
-        rim's edge (or outside it) pushes that edge outwards by its shortfall; opposite pushes cancel,
-        so a rim too small for both sides is not shaken between them. Zero when the rule is off."""
-        if self.outline is None or self.max_push <= 0 or self.index < self.dagger or self.error(x, self.index) > 2 * self.subgoal_tol:
-            return np.zeros(3)
-        signed, direction = enclosure(x, self.outline, self.frame)
-        shortfall = np.clip(1.5 * self.enclose_margin - signed, 0.0, None)
-        v = shortfall @ direction
-        n = float(np.linalg.norm(v))
-        return v * (self.max_push / n) if n > self.max_push else v
+            self.dagger_reached = True
 
     @property
     def settling(self) -> bool:
@@ -178,12 +111,11 @@ class SubgoalTracker:
 
     def done(self, x: np.ndarray) -> bool:
         """At g*: within goal_tol, or as close as the bag gets (stalled within 2x the subgoal tolerance;
-        the run is then judged on what the rim really does round the object); and round the outline."""
+        the run is then judged on what the rim really does round the object)."""
         if not (self.dagger_reached and self.index == len(self.path) - 1):
             return False
         e = self.error(x, self.index)
-        close = e <= self.goal_tol or (self._since_best >= self.stall_ticks and e <= 2 * self.subgoal_tol)
-        return close and self._encloses(x, "goal")
+        return e <= self.goal_tol or (self._since_best >= self.stall_ticks and e <= 2 * self.subgoal_tol)
 
 
 def slide_to(target: np.ndarray, x: np.ndarray, steps: int = 16) -> np.ndarray:

@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BadScenario, BagItError
 from bagit.common.messages import ControllerStatus, EStop, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
-from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES, SERVO_STAGES
+from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PERCEIVE_STAGES, PLANNER_NAMES, SERVO_STAGES
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, axis_error_cm, points_list
 from bagit.common.rig import RigConfig
@@ -340,7 +340,7 @@ class Coordinator:
         a g0 waiting for it goes on at once."""
         self.objects_heard = True
         r = self.run
-        if r is None or self.state.stage not in ("perceiving", "goal"):
+        if r is None or self.state.stage not in PERCEIVE_STAGES:
             return []
         if det.source_stamp < r.t_start + self.cfg.settle_s:
             return []  # a frame of before the start (or of the world before its reset)

@@ -288,11 +288,11 @@ def bagging_soi(
 
     centre = np.zeros(2)
     alpha = 0.0
-    a, b, L_min = smallest_ellipse(xy, p.lambda_1)
+    a, b, L_min = smallest_ellipse(xy, p.goal.lambda_1)
     moved = L_min > rim_perimeter
     if moved:  # the centred, parallel ellipse is too long: use C2's and C3's slack
-        max_angle = float(np.arccos(p.lambda_3)) if c3_applied else None
-        centre, a, b, alpha, L_min = smallest_ellipse_moved(xy, p.lambda_1, p.lambda_2, max_angle)
+        max_angle = float(np.arccos(p.goal.lambda_3)) if c3_applied else None
+        centre, a, b, alpha, L_min = smallest_ellipse_moved(xy, p.goal.lambda_1, p.goal.lambda_2, max_angle)
     if L_min > rim_perimeter:
         needed = np.ceil(L_min * 1000) / 1000
         raise InfeasibleGoal(
@@ -305,16 +305,16 @@ def bagging_soi(
         # no principal axis to follow: turn the ellipse by 90 degrees if that holds V better
         if _f_e(xy, centre, a, b, np.pi / 2).max() < _f_e(xy, centre, a, b, 0.0).max() - 1e-9:
             alpha = np.pi / 2
-    if p.dagger_shape == "bag" and g0 is not None and not moved:
+    if p.goal.experimental.dagger_shape == "bag" and g0 is not None and not moved:
         g0_xy = transform_points(T_inv, np.asarray(g0, dtype=float))[:, :2]
-        a, b, alpha = bag_ellipse(xy, rim_perimeter, p.lambda_1, g0_xy, (a, b, alpha), p.dagger_margin_share)
+        a, b, alpha = bag_ellipse(xy, rim_perimeter, p.goal.lambda_1, g0_xy, (a, b, alpha), p.goal.experimental.dagger_margin_share)
         c3_applied, oriented_by = False, "bag"  # the bag's own opening sets the orientation, not V's axis
     c1 = float(_f_e(xy, centre, a, b, alpha).max())
-    if c1 > p.lambda_1 + 1e-9:
-        raise InfeasibleGoal(f"internal: the bagging ellipse breaks C1 (max F_e {c1:.3f} > {p.lambda_1})")
+    if c1 > p.goal.lambda_1 + 1e-9:
+        raise InfeasibleGoal(f"internal: the bagging ellipse breaks C1 (max F_e {c1:.3f} > {p.goal.lambda_1})")
     # d_e: the major axis (a >= b); d_v: V's principal axis, F_m's x by construction
     c3 = float(abs(np.cos(alpha)))  # |d_e . d_v| with d_v = (1, 0)
-    if c3_applied and c3 < p.lambda_3 - 1e-12:
+    if c3_applied and c3 < p.goal.lambda_3 - 1e-12:
         raise InfeasibleGoal(f"internal: the bagging ellipse breaks C3 (|d_e . d_v| = {c3:.4f})")
 
     theta = np.linspace(0.0, 2 * np.pi, N_ELLIPSE, endpoint=False)
@@ -322,11 +322,11 @@ def bagging_soi(
     idx = farthest_point_sampling(dense, n_x)
     ring = dense[np.sort(idx)]  # FPS picks the points; sorting by theta orders them counter-clockwise
 
-    g_dagger = transform_points(T, np.column_stack([ring, np.full(n_x, -p.dagger_depth_m)]))
+    g_dagger = transform_points(T, np.column_stack([ring, np.full(n_x, -p.goal.experimental.dagger_depth_m)]))
     if g0 is not None:
         g_dagger = align_cyclic(g_dagger, np.asarray(g0, dtype=float))
-    ld = lambda_d if lambda_d is not None else (p.lambda_d if p.lambda_d is not None else DEFAULT_LAMBDA_D_M)
-    g_star = g_dagger + (p.dagger_depth_m + ld) * T[:3, 2]  # eq. (11) with a_z already turned upward
+    ld = lambda_d if lambda_d is not None else (p.goal.lambda_d if p.goal.lambda_d is not None else DEFAULT_LAMBDA_D_M)
+    g_star = g_dagger + (p.goal.experimental.dagger_depth_m + ld) * T[:3, 2]  # eq. (11) with a_z already turned upward
     return BaggingGoal(
         g_dagger=g_dagger,
         g_star=g_star,
@@ -340,5 +340,5 @@ def bagging_soi(
         lambda_d=ld,
         oriented_by=oriented_by,
         vertices=v,
-        dagger_depth=p.dagger_depth_m,
+        dagger_depth=p.goal.experimental.dagger_depth_m,
     )

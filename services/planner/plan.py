@@ -111,24 +111,24 @@ def plan_path(
         center_lo=centres.min(0) - REGION_MARGIN,
         center_hi=centres.max(0) + REGION_MARGIN,
         up=goal.up,
-        lambda_4=params.lambda_4,
-        lambda_5=params.lambda_5,
-        perimeter_tol=params.planner_perimeter_tol,
-        step_m=params.planner_step_m,
+        lambda_4=params.planner.lambda_4,
+        lambda_5=params.planner.lambda_5,
+        perimeter_tol=params.planner.perimeter_tol,
+        step_m=params.planner.step_m,
     )
     g0_perim = closed_polyline_length(g0)
-    if abs(g0_perim / perimeter - 1) > params.planner_perimeter_tol:
-        return fail(f"g0's perimeter {g0_perim:.3f} m is not within {params.planner_perimeter_tol:.0%} of R = {perimeter:.3f} m")
+    if abs(g0_perim / perimeter - 1) > params.planner.perimeter_tol:
+        return fail(f"g0's perimeter {g0_perim:.3f} m is not within {params.planner.perimeter_tol:.0%} of R = {perimeter:.3f} m")
     deadline = t0 + time_budget_s
     search = PLANNERS[planner]
     total_iters = 0
     pieces = []
     for a, b, stage in ((g0, gd, "pre-bagging"), (gd, gs, "bagging")):
         try:
-            raw, iters = search(space, a, b, params.planner_connect_eps_m, params.planner_max_iterations, deadline)
+            raw, iters = search(space, a, b, params.planner.connect_eps_m, params.planner.max_iterations, deadline)
             total_iters += iters
             if raw is None:
-                why = "time budget" if time.perf_counter() > deadline else f"{params.planner_max_iterations} iterations"
+                why = "time budget" if time.perf_counter() > deadline else f"{params.planner.max_iterations} iterations"
                 return fail(f"{planner} found no {stage} path within its {why}", total_iters)
             piece = postprocess(space, raw)
         except (NumericalFailure, np.linalg.LinAlgError, FloatingPointError) as e:
@@ -193,7 +193,7 @@ def check_scenario_goal(scenario: Scenario, rig: RigConfig | None = None) -> Non
 def path_to_goal(scenario: Scenario, g0: np.ndarray, goal: BaggingGoal, perimeter: float, planner: str, seed: int,
                  time_budget_s: float) -> PlanResult:
     """The SOI path g0 -> g† -> g* round the scenario's object and obstacles (see `plan_path`)."""
-    coll = collision_model(scenario, goal.up, scenario.params.planner_clearance_m, goal.g_dagger)
+    coll = collision_model(scenario, goal.up, scenario.params.planner.clearance_m, goal.g_dagger)
     return plan_path(g0, goal, coll, perimeter, scenario.params, planner, seed, time_budget_s)
 
 

@@ -21,11 +21,10 @@ from __future__ import annotations
 import numpy as np
 
 from bagit.common import cr5
+from bagit.common.dual_arm import Poses
 from bagit.common.geometry import invert_transform, make_transform, pca
 from bagit.common.mounts import mount_rotation, rim_frame
 from bagit.common.rig import ARMS, ArmConfig, RigConfig
-
-Poses = dict[str, np.ndarray]  # 'left' / 'right' -> (4, 4) world <- mount
 
 
 def rim_mount_poses(rim: np.ndarray) -> Poses:
