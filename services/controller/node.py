@@ -5,8 +5,9 @@
 
 It follows `run/state`. When `planner/path` for the current run arrives (with `planner/goal`,
 whose perimeter is C6's R), it builds the run's controller (`RunState.controller`, default mpc;
-params = the scenario's `params:` overlaid with `RunState.params`) and servos on the wall clock at
-the control rate. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
+params = the scenario's `params:` overlaid with `RunState.params`) and servos on the wall clock:
+a tick as soon as a new SOI arrives (at most one per 3/4 of a control period), and one every
+control period without one. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
 (`arm/<side>/state` tool_pose: world [x y z roll pitch yaw], the driver's convention), calls the
 pure controller, and publishes a `Command` on `controller/cmd` and a `ControllerStatus` on
 `controller/status`. A tick without a new SOI (but a fresh one) learns nothing and sends a zero
@@ -61,6 +62,7 @@ from bagit.services.controller.session import (
 log = logging.getLogger("bagit.controller")
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
+SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at least this share of a period after the last tick
 LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
 
 
@@ -109,7 +111,8 @@ class ControllerNode:
         self.runs_done: list[dict[str, Any]] = []
         self._cmd = Publisher(session, keys.controller_cmd, Command)
         self._status = Publisher(session, keys.controller_status, ControllerStatus)
-        self.soi = LatestCache(session, keys.perception_soi, SoiState)
+        self._soi_new = threading.Event()  # wall clock: a new SOI wakes the loop for a tick at once
+        self.soi = LatestCache(session, keys.perception_soi, SoiState, None if self.lockstep else lambda _m: self._soi_new.set())
         self.arms = LatestCache(session, keys.arm_state_any, ArmState)
         self._subs = [
             Subscriber(session, keys.run_state, RunState, self._on_run_state),
@@ -207,19 +210,22 @@ class ControllerNode:
             log.warning(f"lockstep: frame {t:.3f} ticked without {', '.join(missing)} after {LOCKSTEP_WAIT_S:g} s")
 
     def _loop(self) -> None:
-        next_t = time.monotonic()
+        """Ticks on the wall clock: at once when a new SOI arrives (its frame waits for no timer), but
+        no sooner than SOI_TICK_SHARE of a period after the last tick (a camera faster than the
+        control rate does not tick faster than it), and otherwise every period (`_period`: keep-alives
+        between SOIs, so the driver's watchdog never sees a gap)."""
         while not self._stop.is_set():
             period = self._period()
+            started = time.monotonic()
+            self._soi_new.clear()
             try:
                 self._tick()
             except Exception as e:  # noqa: BLE001 - a bug here must hold the arms, never kill the loop
                 self.counters["errors"] += 1
                 self._hold(f"controller node error: {type(e).__name__}: {e}", self._run)
-            next_t += period
-            now = time.monotonic()
-            if next_t < now - period:
-                next_t = now  # late: never catch up with a burst of ticks
-            self._stop.wait(max(0.0, next_t - now))
+            earliest = started + SOI_TICK_SHARE * period
+            self._stop.wait(max(0.0, earliest - time.monotonic()))
+            self._soi_new.wait(max(0.0, started + period - time.monotonic()))
 
     def _period(self) -> float:
         run = self._run
