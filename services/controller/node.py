@@ -6,8 +6,8 @@
 It follows `run/state`. When `planner/path` for the current run arrives (with `planner/goal`,
 whose perimeter is C6's R), it builds the run's controller (`RunState.controller`, default mpc;
 params = the scenario's `params:` overlaid with `RunState.params`) and servos on the wall clock:
-a tick as soon as a new SOI arrives (at most one per 3/4 of a control period), and one every
-control period without one. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
+a tick as soon as a new SOI arrives (at most one per 3/4 of a control period), and one a control
+period after the last tick while none comes. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
 (`arm/<side>/state` tool_pose: world [x y z roll pitch yaw], the driver's convention), calls the
 pure controller, and publishes a `Command` on `controller/cmd` and a `ControllerStatus` on
 `controller/status`. A tick without a new SOI (but a fresh one) learns nothing and sends a zero
@@ -66,7 +66,7 @@ from bagit.services.controller.session import (
 log = logging.getLogger("bagit.controller")
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
-SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at least this share of a period after the last tick
+SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at least this share of a period after the last one
 LOCKSTEP_WAIT_S = 2.0
 KEEPALIVE_TICK = "sim-keepalive"  # lockstep: a keep-alive tick from sim/clock, queued with the frames to tick on  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
 
@@ -248,21 +248,30 @@ class ControllerNode:
 
     def _loop(self) -> None:
         """Ticks on the wall clock: at once when a new SOI arrives (its frame waits for no timer), but
-        no sooner than SOI_TICK_SHARE of a period after the last tick (a camera faster than the
-        control rate does not tick faster than it), and otherwise every period (`_period`: keep-alives
-        between SOIs, so the driver's watchdog never sees a gap)."""
+        no sooner than SOI_TICK_SHARE of a period after the last tick on a new SOI (a camera faster than
+        the control rate does not tick faster than it), and a period after the last tick without one
+        (`_period`: keep-alives between SOIs, so the driver's watchdog never sees a gap)."""
+        last_soi_tick = -float("inf")
         while not self._stop.is_set():
             period = self._period()
             started = time.monotonic()
+            if self._soi_new.is_set():
+                last_soi_tick = started
             self._soi_new.clear()
             try:
                 self._tick()
             except Exception as e:  # noqa: BLE001 - a bug here must hold the arms, never kill the loop
                 self.counters["errors"] += 1
                 self._hold(f"controller node error: {type(e).__name__}: {e}", self._run)
-            earliest = started + SOI_TICK_SHARE * period
-            self._stop.wait(max(0.0, earliest - time.monotonic()))
-            self._soi_new.wait(max(0.0, started + period - time.monotonic()))
+            deadline, soonest = started + period, last_soi_tick + SOI_TICK_SHARE * period
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if now >= deadline or (self._soi_new.is_set() and now >= soonest):
+                    break
+                if self._soi_new.is_set():
+                    self._stop.wait(min(deadline, soonest) - now)
+                else:
+                    self._soi_new.wait(deadline - now)
 
     def _period(self) -> float:
         run = self._run
