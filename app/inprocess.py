@@ -34,7 +34,14 @@ from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.controller.session import (
-    SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, arms_slowed, gripper_poses, pending_motion, tick_period,
+    SOI_MAX_AGE_S,
+    Outbox,
+    ServoSession,
+    arm_fault,
+    arms_slowed,
+    gripper_poses,
+    pending_motion,
+    tick_period,
 )
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.tracker import RimTracker

@@ -15,13 +15,14 @@ depth noise, and perception's SOI) per mode. Failures to find a rim are counted.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import time
 from typing import Any
 
 import numpy as np
+
+from bagit.common.logs import configure_logging
 
 log = logging.getLogger("bagit.bench.camera_modes")
 
@@ -57,7 +58,8 @@ def measure_one(name: str, seed: int, modes: tuple[tuple[int, int], ...] = MODES
 
     sc = Scenario.from_file(find_scenario(name))
     worlds = {m: SimWorld(sc, RigConfig(camera=_camera(*m)), seed) for m in modes}
-    trackers = {m: RimTracker(sc.bag.n_x, sc.bag.kind, tuple(sc.bag.color)) for m in modes}
+    r, g, b = sc.bag.color
+    trackers = {m: RimTracker(sc.bag.n_x, sc.bag.kind, (r, g, b)) for m in modes}
     out: dict[str, Any] = {m_key(m): {"errors_mm": [], "max_mm": [], "failed": 0, "render_ms": [], "soi_ms": []} for m in modes}
     try:
         for w in worlds.values():
@@ -106,7 +108,8 @@ def run(quick: bool = False) -> dict[str, Any]:
     for name in scenarios:
         for seed in seeds:
             per[f"{name} s{seed}"] = measure_one(name, seed)
-            log.info("%s seed %d: %s", name, seed, {k: round(float(np.mean(v["errors_mm"])), 2) if v["errors_mm"] else None for k, v in per[f"{name} s{seed}"].items()})
+            rms = {k: round(float(np.mean(v["errors_mm"])), 2) if v["errors_mm"] else None for k, v in per[f"{name} s{seed}"].items()}
+            log.info("%s seed %d: SOI RMS (mm) %s", name, seed, rms)
     summary = {}
     for m in MODES:
         k = m_key(m)
@@ -123,7 +126,8 @@ def run(quick: bool = False) -> dict[str, Any]:
 def markdown(r: dict[str, Any]) -> str:
     m = r["machine"]
     lines = ["# SOI accuracy by camera mode (simulated D455)", "",
-             f"commit {m['commit']}, host {m['host']}, {m['cpu']}, {m['cores']} cores, load {r['load']}; scenarios {', '.join(r['scenarios'])}, seeds {r['seeds']}", "",
+             f"commit {m['commit']}, host {m['host']}, {m['cpu']}, {m['cores']} cores, load {r['load']}; "
+             f"scenarios {', '.join(r['scenarios'])}, seeds {r['seeds']}", "",
              "| mode | SOI RMS to the true rim, mean (mm) | p95 (mm) | worst point (mm) | frames | no rim found | render + noise (ms CPU) | SOI (ms CPU) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for k, s in r["summary"].items():
@@ -139,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--record", action="store_true", help="write bench/results/camera-modes.json and .md")
     a = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    configure_logging()
     r = run(a.quick)
     md = markdown(r)
     if a.record:

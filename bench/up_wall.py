@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from bagit.common.logs import configure_logging
+
 log = logging.getLogger("bagit.bench.up_wall")
 
 GOAL_P99_MS = 30.0
@@ -103,7 +105,8 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
     }
     timings = _Timings()
     stop = threading.Event()
-    up = Up(opts, log=_LogSink())
+    sink = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115 - closed in the finally below
+    up = Up(opts, log=sink, on_line=lambda who, text: log.debug("[%s] %s", who, text))  # the bench prints its numbers
     subs: list[Any] = []
     t_start = time.monotonic()
     try:
@@ -133,7 +136,7 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
                     state = s
                     break
             time.sleep(0.05)
-        t = up.truth.get()
+        t = up.truth.get() if up.truth is not None else None
         marks["end"] = (time.monotonic(), t.sim_time if t is not None else float("nan"), up.cpu_s())
         cpu_total = up.cpu_s()
         arm = up.arm_states.get(up.keys.arm_state("left")) if up.arm_states is not None else None
@@ -143,6 +146,7 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
             s.close()
         up.stop()
         stop.set()
+        sink.close()
     out["load_after"] = [round(x, 2) for x in os.getloadavg()]
     out["wall_s"] = round(time.monotonic() - t_start, 2)
     out["run"] = {"stage": state.stage if state else "timeout", "reason": state.reason if state else None,
@@ -170,18 +174,6 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
         "p99_ms": lat.get("n", 0) > 0 and lat["p99_ms"] <= GOAL_P99_MS,
     }
     return out
-
-
-class _LogSink:
-    """The services' output, to the log at debug level (the bench prints its numbers)."""
-
-    def write(self, text: str) -> int:
-        if text.strip():
-            log.debug(text.rstrip())
-        return len(text)
-
-    def flush(self) -> None:
-        pass
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -227,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print the record as JSON")
     ap.add_argument("--record", action="store_true", help="write bench/results/up-wall-<time>.json and .md")
     a = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    configure_logging()
     r = measure(a.scenario, a.seed, dashboard=not a.no_dashboard)
     md = markdown(r)
     if a.record:
