@@ -161,7 +161,7 @@ class _Run:
         except SimulationFailed as e:
             coord.fail(f"simulator: {e}", sim.clock_s)
         # the events `bagit sim` steps by too (keep-alive ticks between frames sparser than the controller's pace)
-        keep_s = tick_period(merge_params(sc.params, opts.overrides).control_rate_hz, sim.rig.safety.watchdog_s)
+        keep_s = tick_period(merge_params(sc.params, opts.overrides).controller.control_rate_hz, sim.rig.safety.watchdog_s)
         sched = Schedule.starting(sim.time, self.frame_dt, self.arms.period, keep_s=keep_s)
         while coord.state.stage not in FINAL_STAGES:
             now = sim.clock_s  # the rig's clock (as `bagit sim` publishes it); the events fall on the world's time

@@ -100,7 +100,7 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
     out["params"] = {
         "scenario": scenario, "seed": seed, "clock": "wall", "services": list(services),
         "camera": f"{rig.camera.width}x{rig.camera.height}", "camera_fps": opts.camera_fps(),
-        "control_rate_hz": MethodParams().control_rate_hz, "watchdog_s": rig.safety.watchdog_s,
+        "control_rate_hz": MethodParams().controller.control_rate_hz, "watchdog_s": rig.safety.watchdog_s,
         "servo_period_s": rig.safety.servo_period_s, "speed": opts.speed,
     }
     timings = _Timings()

@@ -40,7 +40,7 @@ from bagit.common.dobot import describe_alarm
 from bagit.common.errors import BagItError
 from bagit.common.messages import ClockTick, RgbdFrame, RunState, SimTruth, StepAck
 from bagit.common.names import FINAL_STAGES
-from bagit.common.params import MethodParams, merge_params
+from bagit.common.params import merge_params
 from bagit.common.scenario import Scenario
 from bagit.services.controller.session import tick_period
 from bagit.services.sim.lockstep import Lockstep, Schedule
@@ -150,8 +150,7 @@ class SimNode:
         t0 = time.monotonic()
         try:
             scenario = Scenario.from_dict(doc, "run/state scenario_doc")
-            # the run's control rate, as the controller takes it (parameters not for it are ignored there too)
-            rate = merge_params(scenario.params, {k: v for k, v in (params or {}).items() if k in MethodParams.model_fields}).control_rate_hz
+            rate = self._control_rate(scenario, params)
             self.rig.reset(scenario, seed)
         except (BagItError, ValueError) as e:
             # frames of the old world would be taken for this run's: publish none until a good reset
@@ -166,6 +165,15 @@ class SimNode:
         self.scenario_name = name or scenario.name
         self.stats.resets += 1
         self.say(f"run {run_id}: world reset to {self.scenario_name} (seed {seed}) in {time.monotonic() - t0:.2f} s")
+
+    @staticmethod
+    def _control_rate(scenario: Scenario, params: dict[str, Any] | None) -> float:
+        """The run's control rate as the controller takes it: the scenario's parameters with the run's on top
+        (parameters the coordinator let through; should they not merge, the scenario's rate)."""
+        try:
+            return merge_params(scenario.params, params or {}).controller.control_rate_hz
+        except BagItError:
+            return scenario.params.controller.control_rate_hz
 
     def _publish_truth(self, final: bool = False) -> None:
         gt = self.rig.ground_truth()
