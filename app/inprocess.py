@@ -33,7 +33,16 @@ from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
-from bagit.services.controller.session import SOI_MAX_AGE_S, Outbox, ServoSession, arm_fault, arms_slowed, gripper_poses, pending_motion
+from bagit.services.controller.session import (
+    SOI_MAX_AGE_S,
+    Outbox,
+    ServoSession,
+    arm_fault,
+    arms_slowed,
+    gripper_poses,
+    pending_motion,
+    tick_period,
+)
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.tracker import RimTracker
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S, Coordinator, CoordinatorConfig, Effect, compute_plan
@@ -122,7 +131,6 @@ class _Run:
         self.session: ServoSession | None = None
         self.seq = 0
         self.frames = 0
-        self.last_tick: float | None = None  # the controller's last tick (a frame's, or a keep-alive's)
         self.marker_due = np.inf
         self.trace = _Trace()
 
@@ -152,14 +160,16 @@ class _Run:
             self.arms.start()
         except SimulationFailed as e:
             coord.fail(f"simulator: {e}", sim.clock_s)
-        sched = Schedule.starting(sim.time, self.frame_dt, self.arms.period)  # the events `bagit sim` steps by too
+        # the events `bagit sim` steps by too (keep-alive ticks between frames sparser than the controller's pace)
+        keep_s = tick_period(merge_params(sc.params, opts.overrides).controller.control_rate_hz, sim.rig.safety.watchdog_s)
+        sched = Schedule.starting(sim.time, self.frame_dt, self.arms.period, keep_s=keep_s)
         while coord.state.stage not in FINAL_STAGES:
             now = sim.clock_s  # the rig's clock (as `bagit sim` publishes it); the events fall on the world's time
             if sched.servo_due(sim.time) is not None:
                 self.arms.servo(now)
             if sched.frame_due(sim.time):
                 self._frame(now)
-            elif (keep := self._keepalive_due()) is not None and now >= keep - 1e-9:
+            elif sched.keep_due(sim.time) and self.session is not None and self.session.finished is None:
                 self._control(self.arms.states(), now)  # frames sparser than the keep-alive pace: a tick on the last SOI
             self._apply(coord.tick(now), now)
             if coord.state.stage in FINAL_STAGES:
@@ -170,21 +180,11 @@ class _Run:
                            f"(limit {opts.wall_limit_s:.0f} s; the contact solver crawls?)", now)
                 break
             step = sched.until_next(sim.time)
-            if (keep := self._keepalive_due()) is not None:
-                step = max(min(step, keep - now), 1e-9)
             try:
                 self.arms.step(step)
             except SimulationFailed as e:
                 coord.fail(f"simulator: {e}", sim.clock_s)
         return self._result()
-
-    def _keepalive_due(self) -> float | None:
-        """When the controller must tick again without a new frame, as the node ticks at its pace
-        between camera frames (`ServoSession.tick_s`); None while frames come at least that often."""
-        s = self.session
-        if s is None or s.finished is not None or self.frame_dt <= s.tick_s + 1e-9 or self.last_tick is None:
-            return None
-        return self.last_tick + s.tick_s
 
     def _frame(self, now: float) -> None:
         """A camera frame: perception (the SOI, the object's marker), then a control tick."""
@@ -240,7 +240,6 @@ class _Run:
         if self.session is None:
             self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq, watchdog_s=self.sim.rig.safety.watchdog_s)
             self._send(out, now)
-        self.last_tick = now
         grippers, problem = gripper_poses(states)
         fault = arm_fault(states) if problem is None else None
         age = None if self.soi is None else now - self.soi.source_stamp

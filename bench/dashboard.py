@@ -126,7 +126,7 @@ def run(quick: bool = False, seconds: float | None = None, browser: bool = True)
         T = rig.arms[arm].T_world_base() @ cr5.fk(q)
         return ArmState(arm=arm, q=q, qd=np.full(6, 0.05), tool_pose=np.r_[T[:3, 3], matrix_to_rpy(T[:3, :3])])
 
-    dash = Dashboard(_Link(), DashboardConfig(port=0, max_cloud_points=CLOUD_POINTS))
+    dash = Dashboard(_Link(), DashboardConfig(port=0, max_cloud_points=CLOUD_POINTS, draw_without_viewers=True))
     page = None
     try:
         dash.on_goal(r.goal.to_message("bench", 0.15))

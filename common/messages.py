@@ -300,12 +300,15 @@ class ClockTick(Message):
     """The simulated rig's time, from `bagit sim` on sim/clock (`BusConfig.clock == "sim"`).
 
     t: seconds on the rig's clock (the simulated controllers' time: it never goes back, resets
-    included). `servo_tick` n: the arm driver runs servo cycle n now, at `t`, and answers it."""
+    included). `servo_tick` n: the arm driver runs servo cycle n now, at `t`, and answers it.
+    `keepalive`: camera frames come further apart than the controller's keep-alive pace, and the
+    controller ticks now on its last SOI (a keep-alive, or a hold) and answers it, as at a frame."""
 
     KIND: ClassVar[str] = "clock"
     t: float = Field(ge=0.0, allow_inf_nan=False)
     servo_tick: int | None = Field(None, ge=0)
     run_id: str | None = None
+    keepalive: bool = False
 
 
 class StepAck(Message):

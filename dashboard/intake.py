@@ -59,13 +59,16 @@ class LatestSlots:
             self._pending[key] = Item(value, now)
         self.wake.set()
 
-    def take_due(self, force: bool = False) -> dict[str, Item]:
-        """The pending items whose slot's period has passed since its last take (all with force)."""
+    def take_due(self, force: bool = False, hold: tuple[str, ...] = ()) -> dict[str, Item]:
+        """The pending items whose slot's period has passed since its last take (all with force); slots
+        whose key (or its prefix before ':') is in `hold` keep their item for a later take."""
         now = self._clock()
         out: dict[str, Item] = {}
         with self._lock:
             for key in list(self._pending):
                 st = self._stats[key]
+                if not force and key.split(":", 1)[0] in hold:
+                    continue
                 if force or now - st.last_taken >= self.period(key):
                     out[key] = self._pending.pop(key)
                     st.taken += 1
@@ -74,13 +77,14 @@ class LatestSlots:
                 self.wake.clear()
         return out
 
-    def next_due_in(self) -> float | None:
-        """Seconds until the earliest pending slot is due (0 if one is), None if nothing waits."""
+    def next_due_in(self, hold: tuple[str, ...] = ()) -> float | None:
+        """Seconds until the earliest pending slot (not held, see `take_due`) is due (0 if one is), None if nothing waits."""
         now = self._clock()
         with self._lock:
-            if not self._pending:
+            keys = [k for k in self._pending if k.split(":", 1)[0] not in hold]
+            if not keys:
                 return None
-            return max(0.0, min(self._stats[k].last_taken + self.period(k) - now for k in self._pending))
+            return max(0.0, min(self._stats[k].last_taken + self.period(k) - now for k in keys))
 
     def stats(self) -> dict[str, dict[str, int]]:
         with self._lock:

@@ -43,6 +43,7 @@ from bagit.dashboard.series import Series
 log = logging.getLogger("bagit.dashboard")
 
 LATENCY_SAMPLES = 4096
+LIVE_LAYERS = ("cloud", "soi", "arm", "cmd")  # redrawn many times a second: only worth it for a browser watching
 
 
 class DashboardConfig(BaseModel):
@@ -62,6 +63,9 @@ class DashboardConfig(BaseModel):
     plot_hz: float = Field(4.0, gt=0, le=60)
     slow_hz: float = Field(1.0, gt=0, le=10, description="health and history tables")
     plot_capacity: int = Field(1800, ge=10, le=100_000, description="samples kept per live plot")
+    draw_without_viewers: bool = Field(
+        False, description="draw the live layers (cloud, SOI, arms, command) with no browser connected; False: they wait in their "
+        "latest-wins slots and the first browser to connect gets the newest at once (a rig nobody watches spends no CPU on them)")
 
 
 def _percentiles(x: list[float]) -> dict[str, float]:
@@ -268,7 +272,7 @@ class Dashboard:
 
     def render_once(self, force: bool = False) -> int:
         """Draw every due layer and, when due, refresh the panel. Returns the number of layers drawn."""
-        items = self._slots.take_due(force=force)
+        items = self._slots.take_due(force=force, hold=self._held())
         for key, item in items.items():
             try:
                 self._draw(key, item.value)
@@ -295,6 +299,12 @@ class Dashboard:
                 self._next["slow"] = now + 1 / c.slow_hz
         return len(items)
 
+    def _held(self) -> tuple[str, ...]:
+        """The live layers while no browser is connected (unless `draw_without_viewers`)."""
+        if self.config.draw_without_viewers or self.server.get_clients():
+            return ()
+        return LIVE_LAYERS
+
     def flush(self) -> None:
         """Draw everything pending now, ignoring the rate limits (tests, shutdown)."""
         self.render_once(force=True)
@@ -305,9 +315,12 @@ class Dashboard:
                 self.render_once()
             except Exception:  # noqa: BLE001 - the renderer must outlive one bad frame
                 log.exception("dashboard render pass failed")
-            due = self._slots.next_due_in()
+            held = self._held()
+            due = self._slots.next_due_in(hold=held)
             panel_in = max(0.0, self._next["panel"] - self._clock())
-            if due is None:
+            if due is None and held:
+                self._stop.wait(min(panel_in, 0.1) if panel_in > 0 else 0.005)  # a browser may connect: look again soon
+            elif due is None:
                 self._slots.wake.wait(timeout=panel_in if panel_in > 0 else 0.005)
             else:
                 self._stop.wait(max(0.002, min(due, panel_in)))

@@ -23,3 +23,29 @@ def test_the_arm_driver_benchmark_times_one_12_axis_ruckig_update_and_the_cycle_
         assert s["n"] == 30 and np.isfinite(s["median_ms"]) and 0 < s["min_ms"] <= s["median_ms"], name
     # the pipeline runs one Ruckig update per cycle and more besides
     assert r["pipeline"]["median_ms"] > r["ruckig"]["median_ms"]
+
+
+def test_up_wall_times_each_frame_once_from_its_publication_and_from_its_stamp_and_tables_the_record() -> None:
+    """Frame -> command latency pairs a command with its frame by the frame's stamp: the first command
+    of a frame only (a keep-alive carries the same stamp later), from the frame's arrival and from the
+    stamp (the image taken); commands outside a run or before the window are not timed."""
+    from types import SimpleNamespace as NS
+
+    from bagit.bench import up_wall
+
+    t = up_wall._Timings()  # noqa: SLF001
+    t.frames = {100.0: 100.020, 100.1: 100.125, 99.0: 99.02}
+    t.cmds = {100.0: 100.030, 100.1: 100.160, 99.0: 99.05}
+    t.on_cmd(NS(mode="servo", source_stamp=100.0, run_id="r"))  # a keep-alive on frame 100.0, later: not timed again
+    t.on_cmd(NS(mode="hold", source_stamp=0.0, run_id="r"))  # no frame: counted, not timed
+    lat = t.latency(since=99.5)
+    assert lat["commands"] == 2 and lat["frames"] == 2 and t.modes == {"servo": 1, "hold": 1}
+    pub, taken = lat["from_published"], lat["from_taken"]
+    assert np.isclose(pub["p50_ms"], 22.5) and np.isclose(pub["max_ms"], 35.0)
+    assert np.isclose(taken["max_ms"], 60.0) and taken["n"] == 2
+    rec = {"machine": {"commit": "abc", "host": "h", "cpu": "c", "cores": 2, "when": "now"}, "load_before": [1.0, 1.0, 1.0],
+           "load_after": [1.2, 1.0, 1.0], "params": {"camera": "640x480", "camera_fps": 10.0}, "run": {"stage": "done", "realtime_factor": 1.01},
+           "servo": {"realtime_factor": 1.0}, "watchdog_stops": 0, "arm_events": {"watchdog_stops": 0}, "latency": lat,
+           "cpu_s_per_sim_s": {"sim": 0.6, "total": 1.0}, "cpu_s_whole_life": {"sim": 30.0}, "goal": {"p99_ms": False}}
+    md = up_wall.markdown(rec)
+    assert "| commit | abc |" in md and "camera 640x480" in md and "22.5 /" in md and "p99_ms no" in md and "sim 0.600" in md

@@ -40,7 +40,7 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
     server = serve_run_control(peer, keys, coordinator)
     estops: list[EStop] = []
     estop_sub = Subscriber(peer, keys.estop, EStop, estops.append)
-    node = DashboardNode(BusConfig(rig=rig, connect=locators(peer)), DashboardConfig(port=0), query_timeout_s=3.0)
+    node = DashboardNode(BusConfig(rig=rig, connect=locators(peer)), DashboardConfig(port=0, draw_without_viewers=True), query_timeout_s=3.0)
     try:
         d = node.dashboard
         assert wait_until(lambda: len(list(peer.info.peers_zid())) == 1, 3.0)

@@ -162,6 +162,7 @@ def test_estop_is_not_blocked_by_a_slow_render_or_a_hung_request(dash, link):
 
     from bagit.common.messages import SoiState
 
+    dash.config.draw_without_viewers = True  # no browser here: the SOI would wait for one
     dash.on_soi(SoiState(rim=planned_exp01().path[0]))
     dash.start()
     assert slow.wait(2.0)

@@ -179,6 +179,7 @@ def test_camera_frustum_from_camera_info(dash):
 def test_render_thread_rate_limits_a_burst(dash):
     """A burst of 300 SOIs in one go is drawn a few times, latest last, and nothing queues up."""
     rim = planned_exp01().path[0]
+    dash.config.draw_without_viewers = True  # no browser here: the live layers would wait for one
     dash.start()
     for i in range(300):
         dash.on_soi(SoiState(rim=rim + [0, 0, 0.0001 * i], seq=i))
@@ -189,3 +190,27 @@ def test_render_thread_rate_limits_a_burst(dash):
     t0 = time.monotonic()
     assert wait_until(lambda: dash.scene.summary.get("cloud", {}).get("n_received") == 100_000, 3.0)
     assert time.monotonic() - t0 < 3.0
+
+
+def test_with_no_browser_the_live_layers_wait_and_the_first_browser_gets_the_newest(dash):
+    """No viewer: the cloud, SOI, arms and command stay in their latest-wins slots (no CPU spent on
+    them), the plan is drawn; once a browser is connected the newest live messages are drawn."""
+    m = feed_scene(dash)
+    assert not dash.server.get_clients()
+    dash.render_once()
+    sc = dash.scene
+    assert sc.node("/cloud/points") is None and sc.node("/soi/points") is None and "arm:left" not in sc.summary
+    assert sc.node("/path/fan") is not None  # the plan is drawn whoever watches
+    dash._held = lambda: ()  # a browser connected (what get_clients() would say)
+    dash.render_once()
+    assert np.allclose(sc.node("/soi/points").points, m["soi"].rim, atol=1e-6) and "arm:left" in sc.summary
+
+
+def test_draw_without_viewers_draws_the_live_layers_anyway():
+    d = Dashboard(FakeRunLink(), DashboardConfig(port=0, max_cloud_points=2000, draw_without_viewers=True), start=False)
+    try:
+        m = feed_scene(d)
+        d.render_once()
+        assert np.allclose(d.scene.node("/soi/points").points, m["soi"].rim, atol=1e-6)
+    finally:
+        d.close()

@@ -121,3 +121,44 @@ def test_a_service_gone_or_silent_is_dropped_for_the_run_and_said_so():
     assert ls.expire(202.5) == [] and "no answer for 2 s" in ls.dropped["arm-driver"]
     ls.start_run("r2")  # a new run waits for everyone again
     assert ls.dropped == {}
+
+
+def test_schedule_keep_alive_ticks_between_frames_sparser_than_the_keep_alive_pace():
+    """Frames 0.1 s apart and a keep-alive pace of 1/30 s: two keep-alive ticks after each frame (at
+    +1/30 and +2/30; the third would be the next frame's), none when frames come at least that often."""
+    s = Schedule.starting(1.0, 0.1, 0.03, keep_s=1 / 30)
+    events, t = [], 1.0
+    while t < 1.45:
+        n, f = s.servo_due(t), s.frame_due(t)
+        k = s.keep_due(t)
+        events.append((t, n, f, k))
+        t += s.until_next(t)
+    frames = [e[0] for e in events if e[2]]
+    keeps = [e[0] for e in events if e[3]]
+    assert np.allclose(frames, [1.0, 1.1, 1.2, 1.3, 1.4])
+    assert np.allclose(keeps, [1.0 + k * 0.1 + j / 30 for k in range(4) for j in (1, 2)] + [1.4 + 1 / 30])
+    assert not any(e[2] and e[3] for e in events)  # never both at once
+    gaps = np.diff(sorted(frames + keeps))
+    assert gaps.max() < 1 / 30 + 1e-9  # the controller ticks at least every keep_s
+    same = Schedule.starting(1.0, 1 / 30, 0.03, keep_s=1 / 30)
+    assert same.keep_s is None  # frames at the keep-alive pace: the schedule of before, bit for bit
+
+
+def test_a_keep_alive_tick_in_a_servo_stage_waits_for_the_controller_and_its_command():
+    ls = Lockstep(timeout_s=5.0)
+    ls.start_run("r1")
+    ls.keepalive_published(10.0, 0.0)
+    assert ls.pending() == []  # no frame answered yet in this run: not servoing, nothing to wait for
+    ls.done_with_step()
+    ls.frame_published(10.1, 0.0)
+    for a in (_ack("perception", 10.1, soi_seq=1), _ack("planner", 10.1, soi_seq=1, stage="bagging"),
+              _ack("controller", 10.1, cmd_seq=5, status_seq=5), _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, stage="bagging")):
+        ls.on_ack(a, 0.0)
+    assert ls.pending() == []
+    ls.done_with_step()
+    ls.keepalive_published(10.13, 0.0)
+    assert ls.pending() == ["controller: frame 10.130"]
+    ls.on_ack(_ack("controller", 10.13, cmd_seq=6), 0.0)
+    assert ls.pending() == ["arm-driver: command 6"]
+    ls.on_ack(_ack("arm-driver", cmd_seq=6), 0.0)
+    assert ls.pending() == []

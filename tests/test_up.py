@@ -114,6 +114,27 @@ def test_a_full_simulated_run_through_bagit_up_is_bagit_runs_run_bit_for_bit(tmp
     assert res.arm_events == alone.arm_events and res.arms == alone.arms == "cr5"
 
 
+def test_a_camera_slower_than_the_keep_alive_pace_in_lockstep_gives_keep_alives_not_watchdog_stops(tmp_path):
+    # At 10 frames/s a tick per frame leaves 100 ms between commands, past the watchdog's 90 ms gap:
+    # the simulator schedules keep-alive ticks between frames (as `bagit run` steps), the controller
+    # answers each with a zero increment on its last SOI, and the run is `bagit run --fps 10`'s, bit for bit.
+    r = subprocess.run(
+        [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--speed", "50", "--fps", "10",
+         "--timeout", "380"],
+        capture_output=True, text=True, env=ENV, timeout=420,
+    )
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert "watchdog" not in r.stderr and "no longer waiting" not in r.stderr, _why(r.stderr)
+    ref = subprocess.run([sys.executable, "-m", "bagit.cli", "run", "exp02", "--fps", "10", "--json"], capture_output=True, text=True, env=ENV,
+                         timeout=300)
+    assert ref.returncode == 0, ref.stderr[-2000:]
+    alone = RunResult.model_validate_json(ref.stdout.strip().splitlines()[-1])
+    res = RunResult.model_validate(out)
+    assert r.returncode == 0 and res.success and res.arm_events["watchdog_stops"] == 0, (res.reason, res.arm_events, _why(r.stderr))
+    assert alone.arm_events["watchdog_stops"] == 0 and alone.ticks > 0
+    assert (res.ticks, res.duration_s, res.error_cm, res.final_rim) == (alone.ticks, alone.duration_s, alone.error_cm, alone.final_rim)
+
+
 def test_a_service_killed_in_lockstep_fails_the_run_with_the_reason_in_bounded_wall_time(tmp_path):
     # The simulator waits for the controller's answer to each frame; a dead controller's liveliness
     # token goes within ~1 s, the simulator stops waiting for it (and says so), the world steps on and

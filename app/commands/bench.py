@@ -21,7 +21,7 @@ HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `dep
         "`probes` (issue 25's findings re-run), or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
-STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency"]
+STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency", "up_wall", "camera_modes"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -106,6 +106,10 @@ def stages_markdown(results: dict[str, Any]) -> str:
         "",
     ]
     for name, res in results["stages"].items():
+        table = getattr(importlib.import_module(f"bagit.bench.{name}"), "markdown", None)  # a stage's own table from its record
+        if table is not None:
+            lines += [f"## {name}", "", table(res).split("\n", 2)[-1].strip(), ""]
+            continue
         lines += [f"## {name}", "", "| metric | value |", "| --- | --- |"]
         for k, v in flatten(res).items():
             lines.append(f"| {k} | {v:.4g} |")

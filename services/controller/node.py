@@ -5,8 +5,9 @@
 
 It follows `run/state`. When `planner/path` for the current run arrives (with `planner/goal`,
 whose perimeter is C6's R), it builds the run's controller (`RunState.controller`, default mpc;
-params = the scenario's `params:` overlaid with `RunState.params`) and servos on the wall clock at
-the control rate. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
+params = the scenario's `params:` overlaid with `RunState.params`) and servos on the wall clock:
+a tick as soon as a new SOI arrives (at most one per 3/4 of a control period), and one a control
+period after the last tick while none comes. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
 (`arm/<side>/state` tool_pose: world [x y z roll pitch yaw], the driver's convention), calls the
 pure controller, and publishes a `Command` on `controller/cmd` and a `ControllerStatus` on
 `controller/status`. A tick without a new SOI (but a fresh one) learns nothing and sends a zero
@@ -24,7 +25,11 @@ With `clock="sim"` (a lockstep simulator) there is no timer: the controller tick
 frame, when the coordinator has answered it on sim/ack (so on the stage that frame led to), on that
 frame's SOI (if it made one) and the arms' states of that step, with ages on the simulator's clock;
 then it answers the frame on sim/ack with the command it sent. A tick per frame is the control
-rate when the camera runs at it, as in `bagit run`.
+rate when the camera runs at it, as in `bagit run`. With frames further apart than the keep-alive
+pace the simulator also sends keep-alive ticks on sim/clock between them (`ClockTick.keepalive`, by
+the `Schedule` `bagit run` steps by): while the run is servoed the controller ticks on its last SOI
+(a keep-alive, or a hold once that SOI is stale) and answers each as it answers a frame, so a slow
+camera gives slower motion, never a watchdog stop, and the same run as `bagit run`'s.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.clock import ClockKind
-from bagit.common.messages import ArmState, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
+from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS
@@ -61,7 +66,9 @@ from bagit.services.controller.session import (
 log = logging.getLogger("bagit.controller")
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
+SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at least this share of a period after the last one
 LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
+KEEPALIVE_TICK = "sim-keepalive"  # lockstep: a keep-alive tick from sim/clock, queued with the frames to tick on
 
 
 class ControllerServiceConfig(BaseModel):
@@ -109,7 +116,8 @@ class ControllerNode:
         self.runs_done: list[dict[str, Any]] = []
         self._cmd = Publisher(session, keys.controller_cmd, Command)
         self._status = Publisher(session, keys.controller_status, ControllerStatus)
-        self.soi = LatestCache(session, keys.perception_soi, SoiState)
+        self._soi_new = threading.Event()  # wall clock: a new SOI wakes the loop for a tick at once
+        self.soi = LatestCache(session, keys.perception_soi, SoiState, None if self.lockstep else lambda _m: self._soi_new.set())
         self.arms = LatestCache(session, keys.arm_state_any, ArmState)
         self._subs = [
             Subscriber(session, keys.run_state, RunState, self._on_run_state),
@@ -123,9 +131,11 @@ class ControllerNode:
         self._ack: Publisher[StepAck] | None = None
         self._sent: int | None = None  # the seq of the last command a tick sent
         self._status_sent: int | None = None  # ... and of its status
+        self._keep_answered: tuple[float, int | None, int | None] | None = None  # lockstep: the last keep-alive tick, its command and status
         if self.lockstep:
             self._ack = Publisher(session, keys.sim_ack, StepAck)
             self._subs.append(Subscriber(session, keys.sim_ack, StepAck, self._on_ack))
+            self._subs.append(Subscriber(session, keys.sim_clock, ClockTick, self._on_clock))
         self._thread = threading.Thread(target=self._lockstep_loop if self.lockstep else self._loop, name="controller-loop", daemon=True)
         self._thread.start()
 
@@ -156,6 +166,13 @@ class ControllerNode:
                 self._frames.append(ack)
                 self._frames_cond.notify()
 
+    def _on_clock(self, tick: ClockTick) -> None:
+        """A keep-alive tick (frames sparser than the keep-alive pace): ticked and answered as a frame is."""
+        if tick.keepalive:
+            with self._frames_cond:
+                self._frames.append(StepAck(service=KEEPALIVE_TICK, run_id=tick.run_id, frame=tick.t, stamp=tick.t))
+                self._frames_cond.notify()
+
     # -- the loop ----------------------------------------------------------------------------------
 
     def _lockstep_loop(self) -> None:
@@ -170,16 +187,39 @@ class ControllerNode:
                     self._frames.popleft()
                 ack = self._frames.popleft()
             assert ack.frame is not None
-            self._sent = self._status_sent = None
+            if ack.service == KEEPALIVE_TICK and self._keep_answered is not None and self._keep_answered[0] == ack.frame:
+                self._sent, self._status_sent = self._keep_answered[1:]  # sent again (its answer lost?): answered again, not redone
+            else:
+                self._sent = self._status_sent = None
             try:
-                self._await_frame(ack)
-                self._tick(ack.frame)
+                if ack.service == KEEPALIVE_TICK:
+                    if self._keep_answered is None or self._keep_answered[0] != ack.frame:
+                        self._keepalive_tick(ack.frame, ack.run_id)
+                        self._keep_answered = (ack.frame, self._sent, self._status_sent)
+                else:
+                    self._await_frame(ack)
+                    self._tick(ack.frame)
             except Exception as e:  # noqa: BLE001 - a bug here must hold the arms, never kill the loop
                 self.counters["errors"] += 1
                 self._hold(f"controller node error: {type(e).__name__}: {e}", self._run, ack.frame)
             assert self._ack is not None
             self._ack.put(StepAck(service="controller", run_id=ack.run_id, frame=ack.frame, cmd_seq=self._sent,
                                   status_seq=self._status_sent, stamp=ack.frame))
+
+    def _keepalive_tick(self, t: float, run_id: str | None) -> None:
+        """A lockstep keep-alive tick at `t`: while run `run_id` is servoed, a tick on the last SOI (a
+        keep-alive, or a hold when it has gone stale) with both arms' states of that step, as `bagit run`
+        ticks (before the run's first control tick, or after its end, there is nothing to tick)."""
+        run = self._run
+        if run is None or run.finished is not None or run.run_id != run_id:
+            return
+        deadline = time.monotonic() + LOCKSTEP_WAIT_S
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            arms = [self.arms.get(self.keys.arm_state(a)) for a in ARMS]
+            if all(m is not None and m.stamp >= t - 1e-6 for m in arms):
+                break
+            time.sleep(0.0005)
+        self._tick(t)
 
     def _await_frame(self, ack: StepAck) -> None:
         """In a servo stage: until run/state shows that run servoing, the frame's SOI is in and both arms
@@ -207,19 +247,31 @@ class ControllerNode:
             log.warning(f"lockstep: frame {t:.3f} ticked without {', '.join(missing)} after {LOCKSTEP_WAIT_S:g} s")
 
     def _loop(self) -> None:
-        next_t = time.monotonic()
+        """Ticks on the wall clock: at once when a new SOI arrives (its frame waits for no timer), but
+        no sooner than SOI_TICK_SHARE of a period after the last tick on a new SOI (a camera faster than
+        the control rate does not tick faster than it), and a period after the last tick without one
+        (`_period`: keep-alives between SOIs, so the driver's watchdog never sees a gap)."""
+        last_soi_tick = -float("inf")
         while not self._stop.is_set():
             period = self._period()
+            started = time.monotonic()
+            if self._soi_new.is_set():
+                last_soi_tick = started
+            self._soi_new.clear()
             try:
                 self._tick()
             except Exception as e:  # noqa: BLE001 - a bug here must hold the arms, never kill the loop
                 self.counters["errors"] += 1
                 self._hold(f"controller node error: {type(e).__name__}: {e}", self._run)
-            next_t += period
-            now = time.monotonic()
-            if next_t < now - period:
-                next_t = now  # late: never catch up with a burst of ticks
-            self._stop.wait(max(0.0, next_t - now))
+            deadline, soonest = started + period, last_soi_tick + SOI_TICK_SHARE * period
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if now >= deadline or (self._soi_new.is_set() and now >= soonest):
+                    break
+                if self._soi_new.is_set():
+                    self._stop.wait(min(deadline, soonest) - now)
+                else:
+                    self._soi_new.wait(deadline - now)
 
     def _period(self) -> float:
         run = self._run

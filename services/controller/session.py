@@ -48,6 +48,13 @@ SOI_MAX_AGE_S = 0.5  # a SOI older than this (by its camera stamp): hold
 ARM_MAX_AGE_S = 0.3  # an arm state older than this: hold
 
 
+def tick_period(rate_hz: float, watchdog_s: float = DRIVER_WATCHDOG_S) -> float:
+    """How often a host ticks a session at control rate `rate_hz` (`ServoSession.tick_s`): the control
+    period, or the keep-alive pace (KEEPALIVE_SHARE of the watchdog) when that is shorter. A lockstep
+    simulator schedules keep-alive ticks at this pace between sparser camera frames (`Schedule`)."""
+    return min(1.0 / rate_hz, KEEPALIVE_SHARE * watchdog_s)
+
+
 def _finite_or_none(v: float | None) -> float | None:
     return float(v) if v is not None and math.isfinite(v) else None
 
@@ -226,7 +233,7 @@ class ServoSession:
     def tick_s(self) -> float:
         """How often the host ticks the session: the control period, or the keep-alive pace when the
         control rate is slower than that (then most ticks are keep-alives)."""
-        return min(self.dt, self.keepalive_s)
+        return min(self.dt, self.keepalive_s)  # = tick_period(rate_hz, watchdog_s), bit for bit
 
     def control_due(self, now: float) -> bool:
         """A new SOI may be acted on at `now`: always when the host ticks at the control rate; with a

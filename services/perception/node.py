@@ -13,7 +13,8 @@ Per frame: the rim cloud (the bag's segmenter: red-edged, or solid with its colo
 `max_jump_m` from the previous one, it starts again cold (point 0 nearest the left gripper when
 arm/left/state is fresh). Out: `SoiState` on perception/soi (seq, source_stamp = the frame's
 stamp, solve_ms, the share of rim-cloud points within `inlier_m` of the SOI) and, at most
-`cloud_rate_hz`, a down-sampled coloured `PointCloud` of the scene on perception/cloud.
+`cloud_rate_hz`, a down-sampled coloured `PointCloud` of the scene on perception/cloud (after the
+SOI: the display never delays the control loop).
 n_x and the bag (kind, colour) come from the config, else from the current run's scenario
 (run/state's scenario_doc), else 32 and red-edged. A bad frame is counted with its reason and
 reported on stderr (rate-limited); it never stops the node.
@@ -364,13 +365,13 @@ class PerceptionNode:
         t0 = time.perf_counter()
         tracker = self._tracker()
         self.counters["processed"] += 1
-        self._maybe_cloud(frame)
         cold = tracker.cold
         try:
             rim, cloud = tracker.update(frame, hint=self._hint(frame))
         except BagItError as e:
             self.counters["cold"] += tracker.cold - cold
             self._bad(frame, f"no SOI: {e}")
+            self._maybe_cloud(frame)
             return None
         self.counters["cold"] += tracker.cold - cold
         inl = float(np.mean(points_to_polyline_distance(cloud, rim) <= self.cfg.inlier_m)) if len(cloud) else 0.0
@@ -380,6 +381,7 @@ class PerceptionNode:
         self._soi_pub.put(SoiState(seq=frame.seq, source_stamp=frame.stamp, rim=rim, n_points=len(cloud),
                                    inlier_fraction=inl, solve_ms=ms, stamp=frame.stamp if self.lockstep else time.time()))
         self.counters["published"] += 1
+        self._maybe_cloud(frame)  # after the SOI: the display never delays the control loop
         return frame.seq
 
     def _maybe_cloud(self, frame: RgbdFrame) -> None:

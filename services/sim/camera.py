@@ -56,22 +56,32 @@ def _slope(z: np.ndarray, axis: int, rel: float) -> tuple[np.ndarray, np.ndarray
     """Along `axis` of `z (H, W)`: the pixel's own slope (smaller one-sided difference, per pixel),
     and whether a step (a difference over `rel` * z on one side, over three times the other) is next to it."""
     d = np.diff(z, axis=axis)
-    pad = [(0, 0), (0, 0)]
-    pad[axis] = (1, 0)
-    before = np.pad(d, pad, mode="edge")  # z[i] - z[i-1]
-    pad[axis] = (0, 1)
-    after = np.pad(d, pad, mode="edge")  # z[i+1] - z[i]
+    n = z.shape[axis]
+    before = np.empty_like(z)  # z[i] - z[i-1], the first pixel taking its neighbour's
+    after = np.empty_like(z)  # z[i+1] - z[i], the last pixel taking its neighbour's
+    sl = lambda a, b: (slice(a, b), slice(None)) if axis == 0 else (slice(None), slice(a, b))  # noqa: E731
+    before[sl(1, n)] = d
+    before[sl(0, 1)] = d[sl(0, 1)]
+    after[sl(0, n - 1)] = d
+    after[sl(n - 1, n)] = d[sl(n - 2, n - 1)]
     ab, aa = np.abs(before), np.abs(after)
     own = np.where(ab < aa, before, after)
-    big, small = np.maximum(ab, aa), np.minimum(ab, aa)
-    return own, (big > rel * z) & (big > 3.0 * small)
+    big = np.maximum(ab, aa)
+    small = np.minimum(ab, aa, out=ab)
+    small *= 3.0
+    step = big > small
+    big_rel = big > rel * z
+    step &= big_rel
+    return own, step
 
 
 def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generator, rays: _PixelRays) -> np.ndarray:
     """Noisy metric depth `(H, W)` float32 from true metric depth `(H, W)` (0 = no return).
 
     Noise std sigma_at_1m * z^2; holes at depth edges, at grazing incidence (from the true surface's
-    normal, estimated from the depth slope) and a few anywhere; flying pixels at edges.
+    normal, estimated from the depth slope) and a few anywhere; flying pixels at edges. (Computed in
+    place where it can be: the same float32 operations in the same order as the plain formulas in
+    the comments, so the same bits; `tests/test_sim_camera.py` checks it against them.)
     """
     z = np.asarray(depth, dtype=np.float32)
     valid = (z >= noise.min_range_m) & (z <= noise.max_range_m)
@@ -82,19 +92,40 @@ def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generat
     # belongs to one side of a step); a step is a big difference on one side only.
     zu, edge_u = _slope(z, axis=1, rel=noise.edge_jump)
     zv, edge_v = _slope(z, axis=0, rel=noise.edge_jump)
-    edge = valid & (edge_u | edge_v)
+    edge = edge_u
+    edge |= edge_v
+    edge &= valid
     # Surface normal from the slope (n ~ (-fx z_u, -fy z_v, fx z_u x + fy z_v y + z)): cos of incidence.
-    a = rays.fx * zu
-    b = rays.fy * zv
-    nz = a * rays.x + b * rays.y + z
-    cos_inc = z / (np.sqrt(a * a + b * b + nz * nz) * rays.norm + np.float32(1e-12))
+    a = np.multiply(rays.fx, zu, out=zu)  # a = fx * zu
+    b = np.multiply(rays.fy, zv, out=zv)  # b = fy * zv
+    nz = a * rays.x  # nz = a * x + b * y + z
+    nz += b * rays.y
+    nz += z
+    den = a * a  # den = sqrt(a * a + b * b + nz * nz) * norm + 1e-12
+    den += b * b
+    nz *= nz
+    den += nz
+    np.sqrt(den, out=den)
+    den *= rays.norm
+    den += np.float32(1e-12)
+    cos_inc = np.divide(z, den, out=den)
     cos_start = np.cos(np.radians(noise.grazing_start_deg))
     cos_full = np.cos(np.radians(noise.grazing_full_deg))
     p_graze = np.clip((cos_start - cos_inc) / (cos_start - cos_full), 0.0, 1.0)
     u = rng.random(z.shape, dtype=np.float32)
-    out = z + rng.standard_normal(z.shape, dtype=np.float32) * np.float32(noise.sigma_at_1m) * z * z
-    drop = (edge & (u < noise.edge_dropout)) | (u < p_graze) | (u > 1.0 - noise.speckle_dropout)
-    fly = edge & (u >= noise.edge_dropout) & (u < noise.edge_dropout + noise.flying_fraction * (1.0 - noise.edge_dropout))
+    out = rng.standard_normal(z.shape, dtype=np.float32)  # out = z + normal * sigma * z * z
+    out *= np.float32(noise.sigma_at_1m)
+    out *= z
+    out *= z
+    out += z
+    drop = u < p_graze  # drop = (edge & (u < edge_dropout)) | (u < p_graze) | (u > 1 - speckle_dropout)
+    drop |= u > 1.0 - noise.speckle_dropout
+    low = u < noise.edge_dropout
+    drop |= edge & low
+    # fly = edge & (u >= edge_dropout) & (u < edge_dropout + flying_fraction * (1 - edge_dropout))
+    fly = u < noise.edge_dropout + noise.flying_fraction * (1.0 - noise.edge_dropout)
+    fly &= ~low
+    fly &= edge
     r, c = np.nonzero(fly)
     if len(r):
         # somewhere between the nearest and the farthest surface around the pixel
@@ -104,7 +135,8 @@ def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generat
         w = (u[r, c] - noise.edge_dropout) / (noise.flying_fraction * (1.0 - noise.edge_dropout))  # uniform in [0, 1)
         lo, hi = nb.min(axis=0), nb.max(axis=0)
         out[r, c] = lo + w * (hi - lo)
-    out[drop | ~valid] = 0.0
+    drop |= ~valid
+    out[drop] = 0.0
     return out
 
 

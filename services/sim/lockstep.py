@@ -32,18 +32,23 @@ STAMP_TOL_S = 1e-6  # a frame's stamp matched in an answer
 
 @dataclass
 class Schedule:
-    """The simulated times of the next frame and the next servo tick (period None: no arms to tick)."""
+    """The simulated times of the next frame, the next servo tick (period None: no arms to tick) and,
+    with frames further apart than the controller's keep-alive pace `keep_s`, its keep-alive ticks
+    between them (`keep_due`): at a frame's time plus k * keep_s, k = 1, 2, ... before the next frame."""
 
     frame_dt: float
     period: float | None
     next_frame: float
     next_servo: float
     ticks: int = 0  # servo ticks so far
+    keep_s: float | None = None  # None: frames come at least that often, no keep-alive ticks
+    next_keep: float = float("inf")
 
     @classmethod
-    def starting(cls, now: float, frame_dt: float, period: float | None, ticks: int = 0) -> Schedule:
-        """Both events due at `now`; servo ticks numbered on from `ticks` (their numbers never repeat)."""
-        return cls(frame_dt, period, now, now, ticks)
+    def starting(cls, now: float, frame_dt: float, period: float | None, ticks: int = 0, keep_s: float | None = None) -> Schedule:
+        """Both events due at `now`; servo ticks numbered on from `ticks` (their numbers never repeat);
+        keep-alive ticks every `keep_s` between frames further apart than that."""
+        return cls(frame_dt, period, now, now, ticks, keep_s if keep_s is not None and frame_dt > keep_s + EPS_S else None)
 
     def servo_due(self, now: float) -> int | None:
         """The number of the servo tick due at `now` (and the schedule moves past it), else None."""
@@ -57,13 +62,27 @@ class Schedule:
         """Whether a frame is due at `now` (and the schedule moves past it)."""
         if now < self.next_frame - EPS_S:
             return False
+        frame = self.next_frame
         self.next_frame += self.frame_dt
+        if self.keep_s is not None:
+            self.next_keep = self._before_frame(frame + self.keep_s)
         return True
+
+    def keep_due(self, now: float) -> bool:
+        """Whether a keep-alive tick is due at `now` (and the schedule moves past it); never at a frame's time."""
+        if self.keep_s is None or now < self.next_keep - EPS_S:
+            return False
+        self.next_keep = self._before_frame(self.next_keep + self.keep_s)
+        return True
+
+    def _before_frame(self, t: float) -> float:
+        """`t` if it falls before the next frame, else never (the frame's own tick comes first)."""
+        return t if t < self.next_frame - EPS_S else float("inf")
 
     def until_next(self, now: float) -> float:
         """Simulated seconds to step before the next event (> 0)."""
         due = min(self.next_frame, self.next_servo) if self.period is not None else self.next_frame
-        return max(due - now, EPS_S)
+        return max(min(due, self.next_keep) - now, EPS_S)
 
 
 @dataclass
@@ -93,12 +112,14 @@ class Lockstep:
     commands: deque[int] = field(default_factory=lambda: deque(maxlen=64))  # seqs of the commands the driver has received
     since: float = 0.0  # wall time the current wait began
     notes: list[str] = field(default_factory=list)  # what the host should say (drops)
+    stage: str | None = None  # the coordinator's stage after the last frame (or keep-alive tick) answered
 
     # -- what the simulator does ------------------------------------------------------------------
 
     def start_run(self, run_id: str | None) -> None:
         """A new run (None: no run, nothing waited for)."""
         self.run_id, self.dropped, self.frame, self.tick, self.tick_sent = run_id, {}, None, None, None
+        self.stage = None
         self.commands.clear()
 
     @property
@@ -111,6 +132,12 @@ class Lockstep:
 
     def frame_published(self, stamp: float, wall: float) -> None:
         self.frame, self.since = _Frame(stamp), wall
+
+    def keepalive_published(self, stamp: float, wall: float) -> None:
+        """A keep-alive tick at `stamp` (frames sparser than the controller's keep-alive pace): in a
+        servo stage (as the last frame left it) the controller's answer, its command's receipt and
+        the coordinator's answer to its status (a hold's) are waited for, as for a frame's."""
+        self.frame, self.since = _Frame(stamp, soi=True, stage=self.stage or "idle"), wall
 
     def controllers(self, counts: dict[str, int]) -> None:
         """The simulated controllers' servo command counts now."""
@@ -197,5 +224,8 @@ class Lockstep:
         return waiting
 
     def done_with_step(self) -> None:
-        """The simulator steps on: the tick and frame answered are forgotten."""
+        """The simulator steps on: the tick and frame answered are forgotten (the stage they left kept)."""
+        f = self.frame
+        if f is not None:
+            self.stage = f.after or f.stage or self.stage
         self.tick, self.tick_sent, self.frame = None, None, None

@@ -16,7 +16,8 @@ Ground truth goes on sim/truth (tests and benchmarks only; no service subscribes
 
 With `clock="sim"` (the bus config's `clock: sim`, `bagit up`'s default) the node runs lockstep
 instead (`run` -> `_run_lockstep`): the rig's clock is the simulated controllers' time, published
-on sim/clock at every event of the `Schedule` (a servo tick, then a frame, stamped with that time),
+on sim/clock at every event of the `Schedule` (a servo tick, then a frame, stamped with that time;
+with frames sparser than the run's controller keep-alive pace, keep-alive ticks between them),
 and while a run is active the world steps on only when the rig has answered (`Lockstep`, from the
 services' sim/ack and the controllers' servo counts). A loaded machine then makes a run slower,
 never different. Between runs, and in any case no faster than `speed`, it is paced to the wall clock.
@@ -39,11 +40,13 @@ from bagit.common.dobot import describe_alarm
 from bagit.common.errors import BagItError
 from bagit.common.messages import ClockTick, RgbdFrame, RunState, SimTruth, StepAck
 from bagit.common.names import FINAL_STAGES
+from bagit.common.params import merge_params
 from bagit.common.scenario import Scenario
+from bagit.services.controller.session import tick_period
 from bagit.services.sim.lockstep import Lockstep, Schedule
 from bagit.services.sim.rig_sim import SETTLE_S, SimRig
 
-FRAME_RESEND_S = 1.0  # a frame perception has not answered in this long (wall) is sent again: camera/rgbd may drop
+FRAME_RESEND_S = 1.0  # a frame perception (or a keep-alive tick the controller) has not answered in this long (wall) is sent again
 
 SERVICE_NAME = "sim"
 
@@ -95,7 +98,8 @@ class SimNode:
         self.stats = SimStats()
         self._rtf_window = 1.0
         self._lock = threading.Lock()
-        self._pending: tuple[str, dict[str, Any], int, str | None] | None = None
+        self._pending: tuple[str, dict[str, Any], int, str | None, dict[str, Any]] | None = None
+        self._keep_s: float | None = None  # lockstep: the run's controller keep-alive pace (`tick_period`)
         self._seen_runs: set[str] = set()
         self._world_frames = 0  # frames of the current world (lockstep numbers frames per world)
         self._ended: str | None = None  # the last run whose final truth went out (or is due)
@@ -140,12 +144,13 @@ class SimNode:
             if s.run_id in self._seen_runs:
                 return
             self._seen_runs.add(s.run_id)
-            self._pending = (s.run_id, s.scenario_doc, int(s.seed or 0), s.scenario)
+            self._pending = (s.run_id, s.scenario_doc, int(s.seed or 0), s.scenario, dict(s.params or {}))
 
-    def _reset(self, run_id: str, doc: dict[str, Any], seed: int, name: str | None) -> None:
+    def _reset(self, run_id: str, doc: dict[str, Any], seed: int, name: str | None, params: dict[str, Any] | None = None) -> None:
         t0 = time.monotonic()
         try:
             scenario = Scenario.from_dict(doc, "run/state scenario_doc")
+            rate = self._control_rate(scenario, params)
             self.rig.reset(scenario, seed)
         except (BagItError, ValueError) as e:
             # frames of the old world would be taken for this run's: publish none until a good reset
@@ -155,10 +160,20 @@ class SimNode:
         self.rig.step(self.cfg.settle_s) if self.cfg.settle_s > 0 else None
         self._camera_paused = None
         self._world_frames = 0
+        self._keep_s = tick_period(rate, self.rig.rig.safety.watchdog_s)
         self.run_id = run_id
         self.scenario_name = name or scenario.name
         self.stats.resets += 1
         self.say(f"run {run_id}: world reset to {self.scenario_name} (seed {seed}) in {time.monotonic() - t0:.2f} s")
+
+    @staticmethod
+    def _control_rate(scenario: Scenario, params: dict[str, Any] | None) -> float:
+        """The run's control rate as the controller takes it: the scenario's parameters with the run's on top
+        (parameters the coordinator let through; should they not merge, the scenario's rate)."""
+        try:
+            return merge_params(scenario.params, params or {}).controller.control_rate_hz
+        except BagItError:
+            return scenario.params.controller.control_rate_hz
 
     def _publish_truth(self, final: bool = False) -> None:
         gt = self.rig.ground_truth()
@@ -264,7 +279,7 @@ class SimNode:
                     with self._cond:
                         self.lockstep.start_run(self.run_id)
                 rig.push_feedback()
-                sched = Schedule.starting(rig.time, 1.0 / cfg.fps, period, sched.ticks)
+                sched = Schedule.starting(rig.time, 1.0 / cfg.fps, period, sched.ticks, keep_s=self._keep_s)
                 t_sim0, t_wall0 = rig.clock_s, time.monotonic()
                 continue
             now, world_t = rig.clock_s, rig.time
@@ -286,6 +301,11 @@ class SimNode:
                     self._frame_pub.put(frame)
                     self.stats.frames += 1
                     self._wait(stop, frame)
+            elif sched.keep_due(world_t):  # frames sparser than the controller's keep-alive pace
+                self._publish_clock(now, None, keepalive=True)
+                with self._cond:
+                    self.lockstep.keepalive_published(now, time.monotonic())
+                self._wait(stop, None, keepalive=now)
             wall = time.monotonic()
             next_truth = self._truths(wall, next_truth)
             if wall >= next_report:
@@ -304,11 +324,12 @@ class SimNode:
         self.stats.realtime_factor = self.stats.sim_s / wall if wall > 0 else 0.0
         return self.stats
 
-    def _publish_clock(self, t: float, servo_tick: int | None) -> None:
-        self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t))
+    def _publish_clock(self, t: float, servo_tick: int | None, keepalive: bool = False) -> None:
+        self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive))
 
-    def _wait(self, stop: threading.Event, frame: RgbdFrame | None) -> None:
-        """Until the rig has answered this step (or a new run, or `stop`); a frame not answered is resent."""
+    def _wait(self, stop: threading.Event, frame: RgbdFrame | None, keepalive: float | None = None) -> None:
+        """Until the rig has answered this step (or a new run, or `stop`); a frame or keep-alive tick not
+        answered is resent (their answers come again; the work is not redone)."""
         sent = time.monotonic()
         with self._cond:
             while not stop.is_set() and self._pending is None:
@@ -326,6 +347,9 @@ class SimNode:
                 if frame is not None and waiting[0].startswith("perception") and time.monotonic() - sent > FRAME_RESEND_S:
                     sent = time.monotonic()
                     self._frame_pub.put(frame)
+                if keepalive is not None and waiting[0].startswith("controller") and time.monotonic() - sent > FRAME_RESEND_S:
+                    sent = time.monotonic()
+                    self._publish_clock(keepalive, None, keepalive=True)
                 # the controllers' counts move without telling: look again soon while only they are awaited
                 self._cond.wait(0.001 if all("CR5" in w for w in waiting) else 0.05)
             self.lockstep.done_with_step()
