@@ -91,7 +91,8 @@ class Hogs:
     """`n` busy processes, one core's worth of work each, for as long as the `with` lasts: a loaded machine."""
 
     def __init__(self, n: int) -> None:
-        self.n, self.procs = n, []
+        self.n = n
+        self.procs: list[subprocess.Popen[bytes]] = []
 
     def __enter__(self) -> Hogs:
         self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.n)]

@@ -9,6 +9,7 @@ rx, ry, rz; scipy's `Rotation.from_euler("xyz", ...)` is the same convention.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -53,7 +54,7 @@ def rotvec_between(R_from: np.ndarray, R_to: np.ndarray) -> np.ndarray:
     return so3_log(R_to @ R_from.T)
 
 
-def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
+def rpy_to_matrix(rpy: np.ndarray | Sequence[float]) -> np.ndarray:
     """Rotation `(3, 3)` of roll, pitch, yaw `(3,)` (radians, extrinsic x, y, z)."""
     cr, sr = math.cos(rpy[0]), math.sin(rpy[0])
     cp, sp = math.cos(rpy[1]), math.sin(rpy[1])

@@ -48,7 +48,7 @@ class ClosedCurve:
         if len(idx) < k:
             nxt = np.roll(idx, -1)
             for g in np.flatnonzero((nxt - idx) % k > 1):
-                seg[g] = _gap_arc_length(knots, g, seg[g])
+                seg[g] = _gap_arc_length(knots, int(g), seg[g])
         t = np.concatenate([[0.0], np.cumsum(np.maximum(seg, 1e-9))])
         spline = CubicSpline(t, closed, bc_type="periodic")
         pts = spline(np.linspace(0.0, t[-1], k * SAMPLES_PER_MEAN, endpoint=False))

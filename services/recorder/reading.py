@@ -146,7 +146,7 @@ def file_summary(path: str | Path) -> dict[str, Any]:
         last = _state_from_metadata(meta.get(RUN_METADATA))
     else:
         rec = Recording(p)
-        last: RunState | None = None
+        last = None
         start = end = None
         for r in rec.records():
             start = r.log_time_ns if start is None else min(start, r.log_time_ns)
