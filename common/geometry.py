@@ -7,6 +7,8 @@ homogeneous matrices named `T_a_b` (frame b expressed in frame a, i.e. a <- b).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -225,7 +227,7 @@ def make_transform(R: np.ndarray | None = None, t: np.ndarray | None = None) -> 
     return T
 
 
-def pose_to_matrix(position: np.ndarray | list[float], rpy: np.ndarray | list[float]) -> np.ndarray:
+def pose_to_matrix(position: np.ndarray | Sequence[float], rpy: np.ndarray | Sequence[float]) -> np.ndarray:
     """4x4 transform of a pose given as position `(3,)` and roll-pitch-yaw `(3,)`."""
     return make_transform(rpy_to_matrix(rpy), np.asarray(position, dtype=float))
 

@@ -33,7 +33,7 @@ def poses_to_arrays(poses: Poses) -> tuple[np.ndarray, np.ndarray]:
 
 def arrays_to_poses(p: np.ndarray, R: np.ndarray) -> Poses:
     """'left'/'right' -> (4, 4) from positions `(2, 3)` and rotations `(2, 3, 3)`."""
-    out = {}
+    out: dict[str, np.ndarray] = {}
     for i, a in enumerate(ARMS):
         T = np.eye(4)
         T[:3, :3] = R[i]

@@ -44,7 +44,7 @@ class Reach:
 
 def interpolate(prev: Poses, cmd: Poses, s: float) -> Poses:
     """Poses a fraction `s` of the way from `prev` to `cmd`: positions linearly, rotations along the geodesic."""
-    out = {}
+    out: dict[str, np.ndarray] = {}
     for a in ARMS:
         T = np.eye(4)
         T[:3, 3] = prev[a][:3, 3] + s * (cmd[a][:3, 3] - prev[a][:3, 3])

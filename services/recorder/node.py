@@ -151,7 +151,7 @@ class RecorderNode:
         """Decode and write one payload. Whatever a payload holds, it is recorded or counted as
         malformed; an exception from the writer itself (not the message) propagates: a writer fault."""
         try:
-            msg = wire.decode(payload)
+            msg: Message = wire.decode(payload)
         except Exception as e:  # noqa: BLE001 - BadMessage, or anything else a hostile payload provokes
             self._malformed(key, e if isinstance(e, BadMessage) else f"undecodable: {type(e).__name__}: {_first_line(e)}")
             return
