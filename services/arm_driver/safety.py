@@ -232,11 +232,11 @@ def check_and_clip(target: Poses, previous: Poses | None, dt: float, env: Envelo
     if found[0].kind == "non_finite":
         return _hold(previous, env, found)
     p, R = poses_to_arrays(target)
-    prev_p = prev_R = None
-    if previous is not None:
+    if previous is None:
+        p = clip_static(p, R, env, None)
+    else:
         prev_p, prev_R = poses_to_arrays(previous)
-    p = clip_static(p, R, env, prev_p)
-    if previous is not None:
+        p = clip_static(p, R, env, prev_p)
         p, R = clip_speed(p, R, prev_p, prev_R, dt, env)
     out = arrays_to_poses(p, R)
     if violations(out, previous, dt, env):

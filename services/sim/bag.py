@@ -50,8 +50,7 @@ def bag_layout(perimeter: float, depth: float, frame: np.ndarray, aspect: float 
         shrink = 1.0 - BOTTOM_TAPER * f**2
         local.append(np.stack([b * shrink * np.cos(t), a * shrink * np.sin(t), np.full(N_AROUND, -depth * 0.9 * f)], 1))
     local.append(np.array([[0.0, 0.0, -depth]]))
-    local = np.vstack(local)
-    verts = local @ frame[:3, :3].T + frame[:3, 3]
+    verts = np.vstack(local) @ frame[:3, :3].T + frame[:3, 3]
     tris = []
     for r in range(N_RINGS - 1):
         for k in range(N_AROUND):
