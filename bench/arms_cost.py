@@ -48,7 +48,8 @@ def measure(scenario: str, seed: int, arms: str) -> dict[str, Any]:
     res = RunResult.model_validate_json(out.stdout)
     return {"scenario": scenario, "seed": seed, "arms": arms, "cpu_s": round(cpu, 3), "wall_s": round(wall, 3),
             "duration_s": res.duration_s, "ticks": res.ticks, "success": res.success, "error_cm": res.error_cm,
-            "load_1min": round(os.getloadavg()[0], 2), "provenance": provenance().model_dump(mode="json")}
+            "load_1min": round(os.getloadavg()[0], 2),
+            "provenance": (res.provenance or provenance()).model_dump(mode="json")}  # the run's own: its effective parameters
 
 
 def summary(rows: list[dict[str, Any]]) -> str:
