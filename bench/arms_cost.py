@@ -52,7 +52,7 @@ def measure(scenario: str, seed: int, arms: str) -> dict[str, Any]:
             "provenance": (res.provenance or provenance()).model_dump(mode="json")}  # the run's own: its effective parameters
 
 
-def summary(rows: list[dict[str, Any]]) -> str:
+def summary(rows: list[dict[str, Any]], source: str = RESULTS.name) -> str:
     """Markdown: per scenario, CPU and ticks with each arm side, and the ratios (from the records)."""
     by = {(r["scenario"], r["seed"], r["arms"]): r for r in rows}
     lines = ["| scenario | seed | cr5 CPU s | ideal CPU s | CPU cr5/ideal | cr5 ticks | ideal ticks | CPU ms per tick cr5/ideal |",
@@ -69,7 +69,7 @@ def summary(rows: list[dict[str, Any]]) -> str:
     if tot["ideal"]:
         lines.append(f"| all | | {tot['cr5']:.1f} | {tot['ideal']:.1f} | {tot['cr5'] / tot['ideal']:.2f} | | | |")
     commits = sorted({(r.get("provenance") or {}).get("commit", "?")[:10] for r in rows})
-    lines.append(f"\nRecords: `{RESULTS.name}`, commit {', '.join(commits)}; CPU is the child's user + system time.")
+    lines.append(f"\nRecords: `{source}`, commit {', '.join(commits)}; CPU is the child's user + system time.")
     return "\n".join(lines)
 
 
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
             with args.jsonl.open("a") as f:
                 f.write(json.dumps(row) + "\n")
             rows.append(row)
-    print(summary(rows))
+    print(summary(rows, args.jsonl.name))
     return 0
 
 
