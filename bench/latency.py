@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from bagit.common.rig import ArmName
+
 RIG = "benchlat"
 _SEQ = itertools.count(1)  # frame seqs stay new across measurements
 
@@ -78,7 +80,7 @@ def _stage(role: str, connect: str, data: Path) -> int:
         from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
 
         pub = Publisher(s, keys.perception_soi, SoiState)
-        prev: dict[str, np.ndarray] = {}
+        prev: dict[ArmName, np.ndarray] = {}
 
         def perceive(f: RgbdFrame) -> None:
             t0 = time.perf_counter()

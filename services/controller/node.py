@@ -49,7 +49,7 @@ from bagit.common.clock import ClockKind
 from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
-from bagit.common.rig import ARMS
+from bagit.common.rig import ARMS, ArmName
 from bagit.services.controller.controller import CONTROLLERS
 from bagit.services.controller.session import (
     ARM_MAX_AGE_S,
@@ -322,7 +322,7 @@ class ControllerNode:
         self._seq += 1
         return self._seq
 
-    def _states(self, now: float) -> tuple[dict[str, ArmState], str | None]:
+    def _states(self, now: float) -> tuple[dict[ArmName, ArmState], str | None]:
         """Both arms' newest states, or why there are none fresh enough (lockstep: by their stamps at `now`)."""
         out = {}
         for a in ARMS:

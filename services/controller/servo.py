@@ -20,6 +20,7 @@ from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import Command
 from bagit.common.params import MethodParams
+from bagit.common.rig import ArmName
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
@@ -172,7 +173,7 @@ class ServoBase:
         self,
         x0: np.ndarray | None,
         path: Any,
-        gripper_poses: dict[str, np.ndarray] | None,
+        gripper_poses: dict[ArmName, np.ndarray] | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
     ) -> None:
@@ -205,7 +206,7 @@ class ServoBase:
         self.exploration = Exploration(self.u_max, self.explore_push_ticks, self.explore_settle_ticks)
         self.jacobian = None
         self._x_prev: np.ndarray | None = None
-        self._poses_prev: dict[str, np.ndarray] | None = None  # the grippers at the last tick with a valid SOI
+        self._poses_prev: dict[ArmName, np.ndarray] | None = None  # the grippers at the last tick with a valid SOI
         self._win_u = np.zeros(12)
         self._win_s = np.zeros(3 * self.n_x)
         self._win_n = 0
@@ -223,7 +224,7 @@ class ServoBase:
         """Per-run state of the law (e.g. the MPC's solver)."""
 
     def _law(
-        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, grippers: dict[str, np.ndarray]
+        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, grippers: dict[ArmName, np.ndarray]
     ) -> tuple[np.ndarray, float, str | None]:
         """u `(12,)`, solve time (ms) and a reason to hold (None to servo) for SOI `x (3 n_x,)` towards
         `target (3 n_x,)` with the estimate `J (3 n_x, 12)`."""
@@ -235,7 +236,7 @@ class ServoBase:
         self,
         x: np.ndarray | None,
         now: float,
-        gripper_poses: dict[str, np.ndarray],
+        gripper_poses: dict[ArmName, np.ndarray],
         source_stamp: float | None = None,
         pending: np.ndarray | None = None,
         slowed: bool = False,
@@ -298,8 +299,8 @@ class ServoBase:
         return out
 
     def _predicted(
-        self, xf: np.ndarray, grippers: dict[str, np.ndarray], pending: np.ndarray | None
-    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        self, xf: np.ndarray, grippers: dict[ArmName, np.ndarray], pending: np.ndarray | None
+    ) -> tuple[np.ndarray, dict[ArmName, np.ndarray]]:
         """The SOI `(3 n_x,)` and gripper poses this tick's input will act on: the measured ones moved by
         the motion `pending (12,)` still in flight (x + J p; the grippers at the arm side's aim).
 
@@ -350,7 +351,7 @@ class ServoBase:
         """The direction `(12,)` (unit, in C7 units) the controller does not ask for, or None."""
         return None if self._barred is None else self._barred.copy()
 
-    def _learn_separation_offset(self, x: np.ndarray, grippers: dict[str, np.ndarray]) -> None:
+    def _learn_separation_offset(self, x: np.ndarray, grippers: dict[ArmName, np.ndarray]) -> None:
         """How far inside the rim's ends the mounts hold it: the rim's extent along the grippers' axis
         less their separation, from the first SOI `x (n_x, 3)` (the bag hangs taut from its mounts)."""
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]

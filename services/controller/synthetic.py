@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from bagit.common.geometry import make_transform, ramanujan_perimeter
+from bagit.common.rig import ArmName
 
 
 class SyntheticRim:
@@ -32,10 +33,10 @@ class SyntheticRim:
             "right": make_transform(None, self.center + [0, a, 0]),
         }
 
-    def home(self) -> dict[str, np.ndarray]:
+    def home(self) -> dict[ArmName, np.ndarray]:
         return {k: v.copy() for k, v in self._home.items()}
 
-    def rim(self, grippers: dict[str, np.ndarray]) -> np.ndarray:
+    def rim(self, grippers: dict[ArmName, np.ndarray]) -> np.ndarray:
         """`(n_x, 3)` rim for gripper poses (4x4, world)."""
         out = np.zeros_like(self.rest)
         for name, w in (("left", self.w_left), ("right", self.w_right)):
