@@ -386,12 +386,19 @@ class ServoBase:
             self.jacobian.update(self._win_u, self._win_s)
             self._win_u[:], self._win_s[:], self._win_n = 0.0, 0.0, 0
 
+    def _path_tracker(self) -> SubgoalTracker:
+        """The subgoal tracker of the path `reset` gave; BadControlInput before that."""
+        if self.tracker is None:
+            raise BadControlInput("step() before reset(): the controller has no path")
+        return self.tracker
+
     def _finished(self, x: np.ndarray) -> bool:
         """At g*: within goal_tol, or as close as the bag gets (no progress for GOAL_STALL_TICKS
         within 2x subgoal_tol; the run is then judged on what the rim really does)."""
+        tr = self._path_tracker()
         if not self.aims_at_goal:
-            return self.tracker.done(x)
-        e = self.tracker.error(x, len(self.path) - 1)
+            return tr.done(x)
+        e = tr.error(x, len(self.path) - 1)
         if e < self._goal_best - 1e-3:
             self._goal_best, self._goal_since = e, 0
         else:
@@ -402,8 +409,9 @@ class ServoBase:
         return self._out(np.zeros(12), "hold", reason, x)
 
     def _out(self, u: np.ndarray, mode: str, reason: str | None, x: np.ndarray | None, done: bool = False) -> ControlOutput:
-        tr = self.tracker
-        ok = x is not None and np.all(np.isfinite(x))
-        e_sub = tr.error(x, tr.index) if ok else float("nan")
-        e_goal = tr.error(x, len(self.path) - 1) if ok else float("nan")
+        tr = self._path_tracker()
+        if x is not None and np.all(np.isfinite(x)):
+            e_sub, e_goal = tr.error(x, tr.index), tr.error(x, len(self.path) - 1)
+        else:
+            e_sub = e_goal = float("nan")
         return ControlOutput(np.asarray(u, dtype=float), mode, reason, tr.index, tr.stage, e_sub, e_goal, 0.0, done, tr.progress())

@@ -211,22 +211,22 @@ class ServoSession:
                 perimeter = goal.perimeter if goal is not None and goal.perimeter > 0 else None
                 c.reset(x, path, grippers, perimeter=perimeter)
                 self.reset_done = True
-            out = c.step(x, now, grippers, pending=pending, slowed=slowed)
+            ctl = c.step(x, now, grippers, pending=pending, slowed=slowed)
         except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so
             return self.hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", now)
         self.ticks = c.ticks
         self.final_soi = x
-        self.error_to_goal = _finite_or_none(out.error_to_goal)
+        self.error_to_goal = _finite_or_none(ctl.error_to_goal)
         self.seq = self.next_seq()
-        cmd = out.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp, stamp=now)
-        self.servoing = cmd.mode == "servo" and not out.done
-        self.last_reason = out.reason
-        status = self._status(mode=out.mode, stage=out.stage, reason=out.reason, subgoal_index=out.subgoal_index,
-                              progress=out.progress, error_to_subgoal=_finite_or_none(out.error_to_subgoal),
-                              error_to_goal=self.error_to_goal, solve_ms=out.solve_ms, done=out.done, ticks=self.ticks)
-        if out.done:
+        cmd = ctl.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp, stamp=now)
+        self.servoing = cmd.mode == "servo" and not ctl.done
+        self.last_reason = ctl.reason
+        status = self._status(mode=ctl.mode, stage=ctl.stage, reason=ctl.reason, subgoal_index=ctl.subgoal_index,
+                              progress=ctl.progress, error_to_subgoal=_finite_or_none(ctl.error_to_subgoal),
+                              error_to_goal=self.error_to_goal, solve_ms=ctl.solve_ms, done=ctl.done, ticks=self.ticks)
+        if ctl.done:
             self.finished = "done"
-            report = f"run {self.run_id}: at g* (error {out.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"
+            report = f"run {self.run_id}: at g* (error {ctl.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"
         return Outbox(cmd, status, report)
 
     @property

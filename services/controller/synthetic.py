@@ -28,7 +28,7 @@ class SyntheticRim:
         self.free = (self.w_right > 0) & (self.w_right < 1)
         self.sep0 = 2 * a
         self.sag_gain = sag_gain
-        self._home = {
+        self._home: dict[ArmName, np.ndarray] = {
             "left": make_transform(None, self.center + [0, -a, 0]),
             "right": make_transform(None, self.center + [0, a, 0]),
         }
@@ -39,7 +39,8 @@ class SyntheticRim:
     def rim(self, grippers: dict[ArmName, np.ndarray]) -> np.ndarray:
         """`(n_x, 3)` rim for gripper poses (4x4, world)."""
         out = np.zeros_like(self.rest)
-        for name, w in (("left", self.w_left), ("right", self.w_right)):
+        weights: tuple[tuple[ArmName, np.ndarray], ...] = (("left", self.w_left), ("right", self.w_right))
+        for name, w in weights:
             D = grippers[name] @ np.linalg.inv(self._home[name])  # the gripper's motion from home
             out += w[:, None] * (self.rest @ D[:3, :3].T + D[:3, 3])
         sep = np.linalg.norm(grippers["right"][:3, 3] - grippers["left"][:3, 3])
