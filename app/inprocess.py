@@ -118,7 +118,8 @@ class _Run:
         self.arms: Cr5Arms | IdealArms = Cr5Arms.of(sim) if opts.arms == "cr5" else IdealArms(sim)
         self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.clock_s,
                                  rig=sim.rig)
-        self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, tuple(sc.bag.color))
+        r, g, b = sc.bag.color
+        self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, (r, g, b))
         library = ObjectLibrary.from_scenarios()
         try:
             library = with_run_object(library, sc)
