@@ -31,7 +31,7 @@ from bagit.common.messages import ArmState, Goal, ObjectDetection, Path, RunCont
 from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, PERCEIVE_STAGES, SERVO_STAGES, ArmsMode
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
-from bagit.common.rig import RigConfig
+from bagit.common.rig import ArmName, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.controller.session import (
     SOI_MAX_AGE_S,
@@ -118,7 +118,8 @@ class _Run:
         self.arms: Cr5Arms | IdealArms = Cr5Arms.of(sim) if opts.arms == "cr5" else IdealArms(sim)
         self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.clock_s,
                                  rig=sim.rig)
-        self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, tuple(sc.bag.color))
+        r, g, b = sc.bag.color
+        self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, (r, g, b))
         library = ObjectLibrary.from_scenarios()
         try:
             library = with_run_object(library, sc)
@@ -232,7 +233,7 @@ class _Run:
             elif e.kind == "publish_path" and isinstance(e.message, Path):
                 self.path = e.message
 
-    def _control(self, states: dict[str, ArmState], now: float) -> None:
+    def _control(self, states: dict[ArmName, ArmState], now: float) -> None:
         """One control tick on the newest SOI and the arms' `states`, as the controller node makes it."""
         st = self.coord.state
         if st.stage not in SERVO_STAGES or self.path is None or self.path.run_id != st.run_id:

@@ -25,7 +25,7 @@ from bagit.common.dobot import describe_alarm
 from bagit.common.dual_arm import apply_increment
 from bagit.common.messages import ArmState, Command
 from bagit.common.results import ARM_EVENT_KINDS
-from bagit.common.rig import ARMS, RigConfig
+from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import controller_fault, feedback_state
@@ -41,7 +41,7 @@ class Cr5Arms:
 
     name = "cr5"
 
-    def __init__(self, rig: RigConfig, robots: dict[str, SimulatedCR5], step: Callable[[float], None], cfg: DriverConfig | None = None):
+    def __init__(self, rig: RigConfig, robots: dict[ArmName, SimulatedCR5], step: Callable[[float], None], cfg: DriverConfig | None = None):
         """`robots`: the simulated controllers by arm; `step(dt)`: advances them (and the world they move)."""
         self.rig, self.robots, self._step = rig, robots, step
         self.cfg = cfg or DriverConfig()
@@ -77,7 +77,7 @@ class Cr5Arms:
         if found is None or found:
             self._set_fault("the arms start outside the safety envelope: " + "; ".join(map(str, found or [])))
 
-    def _records(self) -> dict[str, np.ndarray]:
+    def _records(self) -> dict[ArmName, np.ndarray]:
         return {a: self.robots[a].fill_feedback() for a in ARMS}
 
     def _set_fault(self, why: str) -> None:
@@ -131,7 +131,7 @@ class Cr5Arms:
                 self._set_fault(f"{a}: {self.cfg.servo_command} refused ({code})")
                 return
 
-    def states(self) -> dict[str, ArmState]:
+    def states(self) -> dict[ArmName, ArmState]:
         """Each arm as its controller reports it, the driver's fault laid over (as the arm-driver node does)."""
         out = {}
         aim = self.motion.aim()
@@ -176,7 +176,7 @@ class IdealArms:
     def servo(self, now: float) -> None:
         return None
 
-    def states(self) -> dict[str, ArmState]:
+    def states(self) -> dict[ArmName, ArmState]:
         return {a: ArmState(arm=a, q=np.zeros(6), qd=np.zeros(6), enabled=True, robot_mode=5,
                             tool_pose=np.concatenate([T[:3, 3], matrix_to_rpy(T[:3, :3])])) for a, T in self.poses.items()}
 

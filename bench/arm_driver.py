@@ -22,7 +22,8 @@ import numpy as np
 
 from bagit.bench.common import stats_ms, timeit
 from bagit.common import cr5
-from bagit.common.rig import ARMS, RigConfig
+from bagit.common.dual_arm import Poses
+from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.services.arm_driver.client import DobotClient
 from bagit.services.arm_driver.frames import ArmFrames
 from bagit.services.arm_driver.pipeline import MotionPipeline
@@ -77,12 +78,14 @@ def _offline(n: int) -> dict:
         u[5] = 0.1 * np.sin(k / 50) / 30
         return u
 
-    def pipeline_step() -> dict:
-        k = state["k"]
+    def pipeline_step() -> Poses:
+        k = int(state["k"])  # (a count: the dict holds the clock's float too)
         pipe.submit(u_at(k), 1 / 30, state["now"])
         tick = pipe.tick(state["now"])
         state["k"] += 1
         state["now"] += PERIOD
+        if tick.command is None:
+            raise RuntimeError("the motion pipeline gave no poses for a streamed period")
         return tick.command
 
     last = {"cmd": pipeline_step()}
@@ -121,7 +124,7 @@ def _live(seconds: float, estops: int) -> dict:
 
     sims = start_sims()
     rig, servers = sims.rig, sims.servers
-    latency = {a: [] for a in ARMS}
+    latency: dict[ArmName, list[float]] = {a: [] for a in ARMS}
     try:
         drv = ArmDriver(rig, DriverConfig(feedback_timeout_s=0.5)).start()
         try:

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from bagit.common.logs import configure_logging
+from bagit.common.rig import ArmName
 
 log = logging.getLogger("bagit.bench.camera_modes")
 
@@ -38,9 +39,9 @@ def _camera(width: int, height: int) -> Any:
     return base.model_copy(update={"width": width, "height": height, "fx": base.fx * s, "fy": base.fy * s})
 
 
-def _moved(homes: dict[str, np.ndarray], f: float) -> dict[str, np.ndarray]:
+def _moved(homes: dict[ArmName, np.ndarray], f: float) -> dict[ArmName, np.ndarray]:
     """The mounts lifted 8 cm and brought 4 cm together, a share `f` of the way."""
-    out = {}
+    out: dict[ArmName, np.ndarray] = {}
     for name, T in homes.items():
         T2 = T.copy()
         T2[:3, 3] += f * np.array([0.0, 0.04 if name == "left" else -0.04, 0.08])

@@ -20,10 +20,11 @@ import scipy.sparse as sp
 
 from bagit.bench.common import stats_ms
 from bagit.common.dual_arm import apply_increment
+from bagit.common.errors import BadControlInput
 from bagit.common.names import CONTROLLER_NAMES
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits, make_controller
-from bagit.services.controller.mpc import separation_bounds, separation_gradient, uncondensed_qp
+from bagit.services.controller.mpc import MpcController, separation_bounds, separation_gradient, uncondensed_qp
 from bagit.services.controller.subgoal import rms_error, slide_to
 from bagit.services.controller.synthetic import SyntheticRim
 
@@ -43,13 +44,15 @@ def closed_loop(kind: str, p: MethodParams, scale: float = 1.0, noise: float = 0
     g = m.home()
     c.reset(m.rim(g), path, g, dagger_index=5)
     if record is not None:
+        if not isinstance(c, MpcController):
+            raise BadControlInput(f"only the mpc controller has a QP to record, not {kind}")
         solve = c.solver.solve
 
         def spy(*args):
             record.append(tuple(np.copy(a) if isinstance(a, np.ndarray) else a for a in args))
             return solve(*args)
 
-        c.solver.solve = spy
+        setattr(c.solver, "solve", spy)  # noqa: B010 - a spy shadowing the method on this instance only
     rng = np.random.default_rng(seed)
     t, out, ms, servo_ms = 0.0, None, [], []
     for k in range(1, 1500):  # noqa: B007 - the count is read after the loop
@@ -64,6 +67,8 @@ def closed_loop(kind: str, p: MethodParams, scale: float = 1.0, noise: float = 0
         t += c.dt
         if out.done:
             break
+    if out is None:
+        raise AssertionError("the loop ran no tick")
     final = m.rim(g)  # the noise-free rim, compared as the tracker does (points may slide along it)
     err_true = rms_error(final, slide_to(path[-1], final))
     return {"done": bool(out.done), "ticks": k, "sim_time_s": k * c.dt, "error_mm": out.error_to_goal * 1e3,

@@ -116,12 +116,12 @@ def run(quick: bool = False, seconds: float | None = None, browser: bool = True)
     from bagit.common import cr5
     from bagit.common.geometry import matrix_to_rpy
     from bagit.common.messages import ArmState
-    from bagit.common.rig import RigConfig
+    from bagit.common.rig import ArmName, RigConfig
 
     rig = RigConfig()
     q_home = np.radians([0.0, -20.0, -100.0, 30.0, 90.0, 0.0])
 
-    def arm_msg(arm: str, i: int) -> ArmState:
+    def arm_msg(arm: ArmName, i: int) -> ArmState:
         q = q_home + 0.2 * np.sin(i / 30 + np.arange(6))
         T = rig.arms[arm].T_world_base() @ cr5.fk(q)
         return ArmState(arm=arm, q=q, qd=np.full(6, 0.05), tool_pose=np.r_[T[:3, 3], matrix_to_rpy(T[:3, :3])])
@@ -129,6 +129,8 @@ def run(quick: bool = False, seconds: float | None = None, browser: bool = True)
     dash = Dashboard(_Link(), DashboardConfig(port=0, max_cloud_points=CLOUD_POINTS, draw_without_viewers=True))
     page = None
     try:
+        if r.goal is None:
+            raise RuntimeError("the exp01 plan has no goal")
         dash.on_goal(r.goal.to_message("bench", 0.15))
         dash.on_path(r.to_message("bench"))
         if browser and chromium_available():

@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from bagit.common.dual_arm import Poses
+
 RIG = "benchlat"
 _SEQ = itertools.count(1)  # frame seqs stay new across measurements
 
@@ -74,10 +76,11 @@ def _stage(role: str, connect: str, data: Path) -> int:
     d = np.load(data, allow_pickle=False)
     keys = Keys(RIG)
     s = open_session(BusConfig(rig=RIG, connect=[connect]))
+    keep: Subscriber[Any]
     if role == "perception":
         from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
 
-        pub = Publisher(s, keys.perception_soi, SoiState)
+        soi_pub = Publisher(s, keys.perception_soi, SoiState)
         prev: dict[str, np.ndarray] = {}
 
         def perceive(f: RgbdFrame) -> None:
@@ -87,7 +90,7 @@ def _stage(role: str, connect: str, data: Path) -> int:
             except Exception:  # noqa: BLE001 - a frame without a rim is skipped, as the service would
                 return
             prev["x"] = rim
-            pub.put(SoiState(seq=f.seq, source_stamp=f.stamp, rim=rim, solve_ms=(time.perf_counter() - t0) * 1e3))
+            soi_pub.put(SoiState(seq=f.seq, source_stamp=f.stamp, rim=rim, solve_ms=(time.perf_counter() - t0) * 1e3))
 
         keep = Subscriber(s, keys.camera_rgbd, RgbdFrame, _latest_worker(perceive))
     else:
@@ -96,14 +99,14 @@ def _stage(role: str, connect: str, data: Path) -> int:
         from bagit.services.controller import ShapeServo
 
         servo = ShapeServo("mpc", MethodParams(), d["path"], int(d["dagger_index"]), float(d["R"]))
-        grippers = {"left": d["left"], "right": d["right"]}
-        pub = Publisher(s, keys.controller_cmd, Command)
+        grippers: Poses = {"left": d["left"], "right": d["right"]}
+        cmd_pub = Publisher(s, keys.controller_cmd, Command)
 
         def control(soi: SoiState) -> None:
             now = time.time()
             out = servo.step(soi.rim, now, grippers, source_stamp=soi.source_stamp)
             grippers.update(apply_increment(grippers, out.u))
-            pub.put(Command(seq=soi.seq, u=out.u, mode="hold" if out.mode == "hold" else "servo", reason=getattr(out, "reason", None),
+            cmd_pub.put(Command(seq=soi.seq, u=out.u, mode="hold" if out.mode == "hold" else "servo", reason=getattr(out, "reason", None),
                             source_stamp=soi.source_stamp))
 
         keep = Subscriber(s, keys.perception_soi, SoiState, _latest_worker(control))
@@ -221,7 +224,7 @@ class _RigFeed:
         self.arms = {a: ArmState(arm=a, q=np.zeros(6), qd=np.zeros(6), enabled=True,
                                  tool_pose=np.r_[T[:3, 3], matrix_to_rpy(T[:3, :3])]) for a, T in prep["homes"].items()}
         self.goal, self.path = prep["goal"], prep["path"]
-        self.pubs = {"run": Publisher(session, keys.run_state, RunState), "goal": Publisher(session, keys.planner_goal, Goal),
+        self.pubs: dict[str, Publisher[Any]] = {"run": Publisher(session, keys.run_state, RunState), "goal": Publisher(session, keys.planner_goal, Goal),
                      "path": Publisher(session, keys.planner_path, PathMsg),
                      **{a: Publisher(session, keys.arm_state(a), ArmState) for a in ("left", "right")}}
         self._stop = threading.Event()
@@ -292,7 +295,7 @@ def run(quick: bool = False, nodes: bool = True) -> dict[str, Any]:
                 try:
                     if nodes:
                         p.send_signal(signal.SIGTERM)
-                    else:
+                    elif p.stdin is not None:  # (always: the stand-ins are started with stdin=PIPE)
                         p.stdin.close()
                     p.wait(10)
                 except Exception:  # noqa: BLE001

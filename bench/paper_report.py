@@ -21,7 +21,7 @@ def _exp(stem: str) -> str:
     return stem[:5] if stem.startswith("exp") else stem
 
 
-def _ratio_ok(ours: dict[str, Any], paper: tuple[int, ...] | None) -> str:
+def _ratio_ok(ours: dict[str, Any], paper: tuple[float, ...] | None) -> str:
     """Is our success rate at least the paper's? ('—' where the paper gives none)."""
     if paper is None:
         return "—"
@@ -173,7 +173,7 @@ def table1(r: dict[str, Any]) -> list[str]:
     lines = ["| method | success | time s | error cm | source |", "|---|---|---|---|---|"]
     for name, (k, n, tm, ts, em, es) in P.TABLE1.items():
         lines.append(f"| {name} | {k}/{n} | {tm:.2f} ± {ts:.2f} | {em:.2f} ± {es:.2f} | paper (real rig) |")
-    exp01 = next((v for s, v in r["manipulation"].items() if s.startswith("exp01")), {})
+    exp01: dict[str, Any] = next((v for s, v in r["manipulation"].items() if s.startswith("exp01")), {})
     for method in P.CONTROLLERS:
         c = exp01.get(method)
         label = f"ours: {method}" + (" (the paper's Ours)" if method == "mpc" else "")

@@ -55,10 +55,10 @@ def _sklearn(cloud: np.ndarray, rim: np.ndarray, repeat: int, cleaned: bool = Tr
     cloud our EM sees after clean-up (or, `cleaned=False`, only voxel down-sampled: outliers left in)."""
     from sklearn.mixture import GaussianMixture
 
-    cleaned = clean_cloud(cloud) if cleaned else voxel_down(subsample(cloud))
+    pts = clean_cloud(cloud) if cleaned else voxel_down(subsample(cloud))
     gm = GaussianMixture(n_components=N_X, covariance_type="spherical", max_iter=100, random_state=0)
-    t = timeit(lambda: gm.fit(cleaned), repeat=repeat, warmup=0)
-    return {"time": t, "accuracy": _accuracy(gm.means_, rim), "points": int(len(cleaned)), "converged": bool(gm.converged_)}
+    t = timeit(lambda: gm.fit(pts), repeat=repeat, warmup=0)
+    return {"time": t, "accuracy": _accuracy(gm.means_, rim), "points": int(len(pts)), "converged": bool(gm.converged_)}
 
 
 def _cleanup(cloud: np.ndarray, repeat: int) -> dict:

@@ -667,6 +667,9 @@ def _start_run(session: Any, keys: Any, watch: ArmWatch, timeout: float = 150.0,
     rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
     if not rep.accepted:
         raise RuntimeError(f"run not started: {rep.reason}")
+    if rep.run_id is None:
+        raise RuntimeError("run accepted without a run id")
+    run_id = rep.run_id
     t0 = time.time()
 
     def servoing() -> bool:
@@ -677,7 +680,7 @@ def _start_run(session: Any, keys: Any, watch: ArmWatch, timeout: float = 150.0,
 
     wait_until(lambda: servoing() or over(), timeout, 0.05)
     if not servoing():
-        why = _wait_run_over(watch, rep.run_id, 0.0)
+        why = _wait_run_over(watch, run_id, 0.0)
         if retry and ("not up" in why or "gone" in why):  # a liveliness lease missed on an overloaded machine: once more
             log.info("run %s: %s; starting another in 5 s", rep.run_id, why)
             time.sleep(5.0)
@@ -721,7 +724,8 @@ def _stage_flips(watch: ArmWatch) -> list[str]:
     from bagit.common.names import STAGES
 
     order = {s: i for i, s in enumerate(STAGES)}
-    flips, seen = [], {}
+    flips: list[str] = []
+    seen: dict[str, str] = {}
     for m in list(watch.runs):
         if m.run_id is None:
             continue
@@ -797,8 +801,11 @@ def _outsiders(rows: Rows, rig: Any, watch: ArmWatch) -> None:
         recent = watch.since(time.time() - 0.3)
         c.check(bool(recent) and all(m.estopped for m in recent), "releases from `probe`, `controller`: still latched")
         estop.put(EStop(engage=False, source="cli"))
-        c.check(wait_until(lambda: (r := watch.since(time.time() - 0.2)) and not any(m.estopped for m in r), 15.0, 0.05),
-                "released by `cli`")
+        def released() -> bool:
+            r = watch.since(time.time() - 0.2)
+            return bool(r) and not any(m.estopped for m in r)
+
+        c.check(wait_until(released, 15.0, 0.05), "released by `cli`")
         time.sleep(1.0)  # the coordinator and the controller hear the release too
 
 
@@ -833,7 +840,10 @@ def _killed(rows: Rows, rig: Any, watch: ArmWatch, clock: ControllerClock, servi
             c.check(outcome.startswith("failed") and service in outcome, f"run {outcome[:70]}")
         else:
             holds = [h.reason for t, h in list(watch.cmds) if t > t_kill and h.mode == "hold"]
-            c.check(any("SOI" in (h or "") for h in holds), f"the controller holds: `{(holds or ['no hold'])[0][:40]}`")
+            first = (holds or ["no hold"])[0]
+            if first is None:
+                raise RuntimeError("the controller's first hold after the kill has no reason")
+            c.check(any("SOI" in (h or "") for h in holds), f"the controller holds: `{first[:40]}`")
             from_kill = clock.still_after(t_kill)
             c.check(True, f"from the kill: still {_ms_s(from_kill, 1)} on the controllers' clock ({_ms_s(from_kill, 0)} wall)")
             _stop_run(rig, watch, run_id)  # perception comes back within the coordinator's 5 s: end the run here

@@ -40,7 +40,7 @@ from bagit.bench.common import RESULTS_DIR
 from bagit.common.logs import configure_logging
 from bagit.common.messages import Command
 from bagit.common.results import provenance
-from bagit.common.rig import ARMS
+from bagit.common.rig import ARMS, ArmName
 from bagit.harness import ENV, stop_process, wait_until
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.sim.harness import FeedbackRecorder, RecordingServer, servo_parameter, servo_positions, start_sims
@@ -65,7 +65,7 @@ def increment(direction: float) -> np.ndarray:
     return u
 
 
-def still_after(rec: dict[str, FeedbackRecorder], last: float, horizon: float = 2.0) -> float:
+def still_after(rec: dict[ArmName, FeedbackRecorder], last: float, horizon: float = 2.0) -> float:
     """Seconds from `last` until both arms' feedback is below STILL_MM_S for good (the later arm)."""
     out = []
     for a in ARMS:
@@ -78,7 +78,7 @@ def still_after(rec: dict[str, FeedbackRecorder], last: float, horizon: float = 
     return float(max(out))
 
 
-def servo_times(servers: dict[str, RecordingServer], last: float, halt_aheadtime: float) -> tuple[float, float]:
+def servo_times(servers: dict[ArmName, RecordingServer], last: float, halt_aheadtime: float) -> tuple[float, float]:
     """(first braking ServoP, last ServoP that moved a mount), seconds after `last`, the later arm.
     A braking ServoP is one sent with the halting aheadtime (`DriverConfig.servo_params`)."""
     halt, moved = [], []
@@ -189,7 +189,10 @@ def sigkill_trials(trials: int, workdir: Path) -> list[dict[str, float]]:
             ctl = subprocess.Popen([sys.executable, "-m", "bagit.bench.stop_time", "--stand-in", connect, rig.name,
                                     str(1.0 if trial % 2 == 0 else -1.0)], env=ENV)
             try:
-                moving = wait_until(lambda n0=n0: len(cmds) > n0 and _speed(rec) > 0.5 * V0 * 1000, 30.0, 0.01)
+                def streaming(n0: int = n0) -> bool:
+                    return len(cmds) > n0 and _speed(rec) > 0.5 * V0 * 1000
+
+                moving = wait_until(streaming, 30.0, 0.01)
                 if not moving:
                     raise RuntimeError(f"trial {trial}: the stand-in controller's commands do not move the arms")
                 time.sleep(STREAM_S - 0.2)
@@ -213,7 +216,7 @@ def sigkill_trials(trials: int, workdir: Path) -> list[dict[str, float]]:
     return out
 
 
-def _speed(rec: dict[str, FeedbackRecorder]) -> float:
+def _speed(rec: dict[ArmName, FeedbackRecorder]) -> float:
     """Both arms' newest feedback TCP speed (mm/s), the faster."""
     v = 0.0
     for r in rec.values():

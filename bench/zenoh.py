@@ -113,12 +113,12 @@ def _child(args: argparse.Namespace) -> int:
     s = open_session(BusConfig(rig=RIG, connect=[args.connect]))
     keys = Keys(RIG)
     cols = {"rgbd": _Collector(), "soi": _Collector()}
-    subs = [Subscriber(s, keys.camera_rgbd, RgbdFrame, cols["rgbd"]), Subscriber(s, keys.perception_soi, SoiState, cols["soi"])]
+    subs: list[Subscriber[Any]] = [Subscriber(s, keys.camera_rgbd, RgbdFrame, cols["rgbd"]), Subscriber(s, keys.perception_soi, SoiState, cols["soi"])]
     print("ready", flush=True)
     # the parent says when it is done sending by closing our stdin
     sys.stdin.read()
     time.sleep(0.5)
-    out = {}
+    out: dict[str, Any] = {}
     for k, c in cols.items():
         lat, seqs = c.snapshot()
         out[k] = {"lat_ms": lat, "seqs": seqs}
@@ -138,6 +138,8 @@ class _Remote:
             [sys.executable, "-m", "bagit.bench.zenoh", "--role", "sub", "--connect", endpoint],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
         )
+        if self.p.stdout is None:  # (stdout=PIPE)
+            raise RuntimeError("benchmark child has no stdout pipe")
         line = self.p.stdout.readline().strip()
         if line != "ready":
             self.p.kill()

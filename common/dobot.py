@@ -64,6 +64,8 @@ import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
+from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 
@@ -250,13 +252,23 @@ FEEDBACK_DTYPE = np.dtype(
 )
 
 
+def _struct_fields(dt: np.dtype) -> MappingProxyType[str, tuple[Any, ...]]:
+    """A structured dtype's fields: name -> (dtype, offset); TypeError for a plain dtype."""
+    if dt.fields is None:
+        raise TypeError(f"{dt} is not a structured dtype")
+    return dt.fields
+
+
+FEEDBACK_DTYPE_FIELDS = _struct_fields(FEEDBACK_DTYPE)  # name -> (dtype, offset in the packet)
+
+
 def _check_layout() -> None:
     """The table leaves no gap and no overlap: each field starts where the previous one ends."""
     end = 0
     for name, _, off in FEEDBACK_FIELDS:
         if off != end:
             raise AssertionError(f"feedback field {name} at {off}, expected {end}")
-        end = off + FEEDBACK_DTYPE.fields[name][0].itemsize
+        end = off + FEEDBACK_DTYPE_FIELDS[name][0].itemsize
     if end != FEEDBACK_SIZE:
         raise AssertionError(f"feedback fields end at {end}, not {FEEDBACK_SIZE}")
 
@@ -373,7 +385,7 @@ _NUMBER_RE = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 _INT_RE = re.compile(r"[+-]?\d+")
 
 
-def _parse_scalar(tok: str) -> Value:
+def _parse_scalar(tok: str) -> int | float | str:
     tok = tok.strip()
     if _INT_RE.fullmatch(tok):
         return int(tok)
@@ -405,7 +417,9 @@ def _parse_value(tok: str) -> Value:
 
 def _split_top(s: str) -> list[str]:
     """`s` split at commas outside braces."""
-    parts, depth, cur = [], 0, []
+    parts: list[str] = []
+    cur: list[str] = []
+    depth = 0
     for ch in s:
         if ch == "{":
             depth += 1

@@ -20,13 +20,13 @@ from bagit.common.rig import ARMS, ArmName
 from bagit.common.so3 import rotvec_between
 
 # 'left' / 'right' -> (4, 4) world <- mount (the gripper's pose)
-Poses = dict[str, np.ndarray]
+Poses = dict[ArmName, np.ndarray]
 
 INCREMENT_SIZE = 12  # u (12,)
 ARM_SIZE = 6  # each arm's (6,) = [dp (3,), drotvec (3,)]
-ARM_SLICE: dict[str, slice] = {"left": slice(0, 6), "right": slice(6, 12)}
-TRANSLATION: dict[str, slice] = {"left": slice(0, 3), "right": slice(6, 9)}
-ROTATION: dict[str, slice] = {"left": slice(3, 6), "right": slice(9, 12)}
+ARM_SLICE: dict[ArmName, slice] = {"left": slice(0, 6), "right": slice(6, 12)}
+TRANSLATION: dict[ArmName, slice] = {"left": slice(0, 3), "right": slice(6, 9)}
+ROTATION: dict[ArmName, slice] = {"left": slice(3, 6), "right": slice(9, 12)}
 POSITION_COLUMNS: tuple[int, ...] = (0, 1, 2, 6, 7, 8)  # both grippers' translations inside u (12,)
 
 
@@ -38,7 +38,7 @@ def check_increment(u: np.ndarray, what: str = "u") -> np.ndarray:
     return a
 
 
-def check_poses(poses: Mapping[str, np.ndarray], what: str = "poses") -> None:
+def check_poses(poses: Mapping[ArmName, np.ndarray], what: str = "poses") -> None:
     """ValueError unless `poses` holds a `(4, 4)` transform for each arm."""
     for a in ARMS:
         shape = np.shape(poses[a]) if a in poses else None
@@ -87,7 +87,7 @@ class DualArmIncrement:
         return self.arm(name)[3:]
 
 
-def apply_increment(poses: Mapping[str, np.ndarray], u: DualArmIncrement | np.ndarray) -> Poses:
+def apply_increment(poses: Mapping[ArmName, np.ndarray], u: DualArmIncrement | np.ndarray) -> Poses:
     """The poses `{'left', 'right'}: (4, 4)` after the increment: each mount translated by its dp and
     turned by its drotvec, both in the world frame (T' = [exp(drot) R, p + dp])."""
     check_poses(poses)
@@ -101,7 +101,7 @@ def apply_increment(poses: Mapping[str, np.ndarray], u: DualArmIncrement | np.nd
     return out
 
 
-def pose_increment(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray]) -> np.ndarray:
+def pose_increment(before: Mapping[ArmName, np.ndarray], after: Mapping[ArmName, np.ndarray]) -> np.ndarray:
     """The increment u `(12,)` that takes `before` to `after` (apply_increment's inverse)."""
     u = np.empty(INCREMENT_SIZE)
     for name in ARMS:

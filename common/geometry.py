@@ -201,8 +201,11 @@ def fit_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return centroid, normal, rms
 
 
-def ellipse_points_2d(center: np.ndarray, a: float, b: float, alpha: float, theta: np.ndarray) -> np.ndarray:
-    """Points `(len(theta), 2)` of the ellipse centred at `center (2,)`, semi-axes a, b, rotated by alpha."""
+def ellipse_points_2d(
+    center: np.ndarray, a: np.ndarray | float, b: np.ndarray | float, alpha: np.ndarray | float, theta: np.ndarray
+) -> np.ndarray:
+    """Points `(len(theta), 2)` of the ellipse centred at `center (2,)`, semi-axes a, b, rotated by alpha
+    (arrays of them broadcast against theta: points of several ellipses at once)."""
     c, s = np.cos(alpha), np.sin(alpha)
     ct, st = np.cos(theta), np.sin(theta)
     x = center[0] + a * ct * c - b * st * s

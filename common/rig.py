@@ -101,7 +101,7 @@ class CameraConfig(BaseModel):
         )
 
 
-def _default_arms() -> dict[str, ArmConfig]:
+def _default_arms() -> dict[ArmName, ArmConfig]:
     return {
         # Bases 0.6 m either side of the object, facing each other (the right arm turned by pi).
         "left": ArmConfig(base_position=(0.0, -0.6, 0.0), base_rpy=(0.0, 0.0, np.pi / 2)),

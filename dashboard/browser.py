@@ -163,6 +163,8 @@ class BrowserPage:
 
         png = self.page.locator("canvas").first.screenshot()
         img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            raise RuntimeError("the canvas screenshot did not decode as an image")
         return np.ascontiguousarray(img[:, :, ::-1])
 
     def js_heap_mb(self) -> float | None:

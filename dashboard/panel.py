@@ -15,7 +15,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path as FilePath
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import viser
@@ -39,6 +39,9 @@ ARM_STOPPED_RAD_S = 1e-3  # every joint slower than this: the arm has stopped
 MAX_UPLOAD_BYTES = 1_000_000
 UPLOAD_PREFIX = "upload: "
 ESTOP_REASON = "E-STOP pressed on the dashboard"
+# the colours viser's notifications take
+NotificationColor = Literal["dark", "gray", "red", "pink", "grape", "violet", "indigo", "blue", "cyan", "green", "lime", "yellow", "orange",
+                            "teal"]
 
 
 def _one_line(e: BaseException) -> str:
@@ -87,7 +90,7 @@ class Panel:
         self._arms: dict[str, ArmState] = {}
         self._estop: dict[str, Any] = {"engaged": False}
         self._message = ("Pick a scenario and press Start.", "info")
-        self._notices: deque[tuple[str, str, str]] = deque(maxlen=20)
+        self._notices: deque[tuple[str, str, NotificationColor]] = deque(maxlen=20)
         self._bundled = {p.stem: p for p in scenarios}
         self._uploads: dict[str, Scenario] = {}
         self._scenario: Scenario | None = None
@@ -124,15 +127,15 @@ class Panel:
 
         with gui.add_folder("Run"):
             self.picker = gui.add_dropdown("Scenario", tuple(self._bundled) or ("(none)",))
-            self.picker.on_update(lambda _e: None if self._filling else self.select_scenario(str(self.picker.value)))
+            self.picker.on_update(self._on_pick)
             self.upload = gui.add_upload_button("Upload scenario", icon=viser.Icon.UPLOAD, mime_type=".yaml,.yml,.json,text/yaml,application/json")
-            self.upload.on_upload(lambda _e: self.upload_scenario(self.upload.value.name, self.upload.value.content))
+            self.upload.on_upload(self._on_upload)
             self.start_button = gui.add_button("Start", color="green", icon=viser.Icon.PLAYER_PLAY)
-            self.start_button.on_click(lambda _e: self.press_start())
+            self.start_button.on_click(self._on_start)
             self.stop_button = gui.add_button("Stop", color="orange", icon=viser.Icon.PLAYER_STOP)
-            self.stop_button.on_click(lambda _e: self.press_stop())
+            self.stop_button.on_click(self._on_stop)
             self.reset_button = gui.add_button("Reset", icon=viser.Icon.REFRESH)
-            self.reset_button.on_click(lambda _e: self.press_reset())
+            self.reset_button.on_click(self._on_reset)
 
         with gui.add_folder("Live plots"):
             axes = (viser.uplot.Axis(label="time since the run started (s)"), viser.uplot.Axis())
@@ -183,7 +186,7 @@ class Panel:
             self.layer_boxes = {}
             for layer in LAYERS:
                 cb = gui.add_checkbox(LAYER_LABELS[layer], True)
-                cb.on_update(lambda e, layer=layer: self.scene.set_layer_visible(layer, bool(e.target.value)))
+                cb.on_update(self._layer_toggle(layer))
                 self.layer_boxes[layer] = cb
             self.reset_view_button = gui.add_button("Reset camera view", icon=viser.Icon.CAMERA)
             self.reset_view_button.on_click(lambda _e: self.scene.reset_view())
@@ -223,6 +226,30 @@ class Panel:
         self._say("E-stop released.", "info")
 
     # --- run control ---------------------------------------------------------------------------
+
+    # viser's callbacks return None (or a coroutine): the handlers' results are not theirs to see
+
+    def _on_pick(self, _e: object) -> None:
+        if not self._filling:
+            self.select_scenario(str(self.picker.value))
+
+    def _on_upload(self, _e: object) -> None:
+        self.upload_scenario(self.upload.value.name, self.upload.value.content)
+
+    def _on_start(self, _e: object) -> None:
+        self.press_start()
+
+    def _on_stop(self, _e: object) -> None:
+        self.press_stop()
+
+    def _on_reset(self, _e: object) -> None:
+        self.press_reset()
+
+    def _layer_toggle(self, layer: str) -> Callable[[viser.GuiEvent[viser.GuiCheckboxHandle]], None]:
+        def toggle(e: viser.GuiEvent[viser.GuiCheckboxHandle]) -> None:
+            self.scene.set_layer_visible(layer, bool(e.target.value))
+
+        return toggle
 
     def _say(self, text: str, level: str = "info") -> None:
         with self._lock:
@@ -325,7 +352,7 @@ class Panel:
         if str(self.picker.value) != choice:
             self._filling = True
             try:
-                self.picker.value = choice
+                self.picker.value = choice  # type: ignore[misc]  # viser declares value's setter apart from its getter: mypy sees no setter
             finally:
                 self._filling = False
         self._fill_params(s.params)
@@ -372,7 +399,7 @@ class Panel:
             for f in FIELDS:
                 v = p.get(f.name)
                 if f.name == "lambda_d":
-                    self.lambda_d_auto.value = v is None
+                    self.lambda_d_auto.value = v is None  # type: ignore[misc]  # (viser's value setter, as above)
                     v = LAMBDA_D_AUTO_VALUE if v is None else v
                 self.param_inputs[f.name].value = v
         finally:
@@ -494,7 +521,7 @@ class Panel:
             self._set(self.warning_md, "content", "  \n".join(f"**Warning: {w}**" for w in warnings))
             self._set(self.history_md, "content", history_markdown(self.history))
 
-    def _notify(self, title: str, body: str, color: str) -> None:
+    def _notify(self, title: str, body: str, color: NotificationColor) -> None:
         for client in self.server.get_clients().values():
             try:
                 client.add_notification(title, body, color=color, auto_close_seconds=15.0)

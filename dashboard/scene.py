@@ -9,7 +9,7 @@ dashboard's render thread): they do the geometry and the viser calls.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import viser
@@ -107,7 +107,7 @@ class SceneView:
             h.visible = True
         return True
 
-    def _points(self, name: str, points: np.ndarray, colors: np.ndarray, size: float, precision: str = "float32") -> None:
+    def _points(self, name: str, points: np.ndarray, colors: np.ndarray, size: float, precision: Literal["float16", "float32"] = "float32") -> None:
         """Clouds go as float16 (half the bytes; 0.5 mm steps at 1 m), rims and outlines as float32."""
         pts = np.ascontiguousarray(points, dtype=np.float32)
         cols = np.ascontiguousarray(colors, dtype=np.uint8)
@@ -130,10 +130,11 @@ class SceneView:
 
     def _label(self, name: str, text: str, at: np.ndarray) -> None:
         h = self._nodes.get(name)
+        x, y, z = (float(v) for v in at)
         if h is None:
-            self._nodes[name] = self.server.scene.add_label(name, text, position=tuple(float(v) for v in at))
+            self._nodes[name] = self.server.scene.add_label(name, text, position=(x, y, z))
         else:
-            h.position = tuple(float(v) for v in at)
+            h.position = (x, y, z)
             h.visible = True
 
     def set_layer_visible(self, layer: str, visible: bool) -> None:

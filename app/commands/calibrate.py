@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.common.geometry import matrix_to_rpy
     from bagit.common.rig import RigConfig
     from bagit.services.perception.calibration import calibrate_extrinsics
-    from bagit.services.perception.sources import SourceConfig, open_source
+    from bagit.services.perception.sources import RealSenseSource, SourceConfig
 
     rig = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
     if args.print_board:
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     else:
         cfg = SourceConfig(kind="realsense-file" if args.file else "realsense", path=args.file, serial=args.serial or camera.serial,
                            width=camera.width, height=camera.height, fps=int(round(camera.fps)), real_time=False)
-        with open_source(cfg) as src:
+        with RealSenseSource(cfg) as src:  # (open_source without the zenoh case)
             frames = []
             while len(frames) < args.frames and (f := src.read()) is not None:
                 frames.append(f)

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.common.errors import CameraError
     from bagit.common.messages import RgbdFrame
     from bagit.common.rig import RigConfig
-    from bagit.services.perception.sources import SourceConfig, open_source
+    from bagit.services.perception.sources import RealSenseSource, SourceConfig
 
     rig = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
     cam = rig.camera
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
     n, size, t0 = 0, 0, time.monotonic()
     try:
-        with open_source(cfg, cam.T_world_camera()) as source:  # no camera: CameraError before the bus opens
+        with RealSenseSource(cfg, cam.T_world_camera()) as source:  # no camera: CameraError before the bus opens
             session = open_session(bus)
             try:
                 pub = Publisher(session, keys.camera_rgbd, RgbdFrame)

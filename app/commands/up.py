@@ -104,6 +104,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             run_id = rep.run_id
             up.say(f"run {run_id} started: {args.scenario}")
         if args.exit_when_done:
+            if run_id is None:  # no SCENARIO is refused with the arguments; an accepted run always has an id
+                raise BadScenario("--exit-when-done: no run to follow (the run was started without a run id)")
             state = up.wait_run(run_id, stop, timeout=args.timeout)
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
             up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
@@ -124,7 +126,7 @@ def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argpars
     from bagit.common.results import ARM_EVENT_KINDS, RunResult, points_list, provenance
 
     if state is None:
-        reason = "interrupted" if stop.is_set() else f"no end of run {run_id} within {args.timeout:g} s"
+        reason: str | None = "interrupted" if stop.is_set() else f"no end of run {run_id} within {args.timeout:g} s"
         return RunResult(run_id=run_id, scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed,
                          arms="cr5", reason=reason, wall_s=round(wall_s, 3), provenance=provenance())
     res = RunResult.model_validate(state.result) if state.result else RunResult(

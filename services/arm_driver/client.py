@@ -38,7 +38,7 @@ from bagit.common.errors import ProtocolError
 MAX_REPLY_BUFFER = 65536  # a reply longer than this without its ';' is garbage
 _HEADER_SIZE = dobot.FEEDBACK_SIZE.to_bytes(2, "little")
 _TEST_BYTES = dobot.TEST_VALUE.to_bytes(8, "little")
-_TEST_OFFSET = dobot.FEEDBACK_DTYPE.fields["TestValue"][1]
+_TEST_OFFSET = dobot.FEEDBACK_DTYPE_FIELDS["TestValue"][1]
 
 _ERROR_NAMES = {
     int(ErrorId.FAILED): "not executed",

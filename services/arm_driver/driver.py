@@ -57,7 +57,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -67,7 +67,7 @@ from bagit.common.clock import Clock, SimClock, WallClock
 from bagit.common.dobot import RobotMode, describe_alarm
 from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
 from bagit.common.messages import ArmState, Command, EStop
-from bagit.common.rig import ARMS, RigConfig
+from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver import machine as m
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
@@ -132,7 +132,7 @@ class ArmDriver:
         self.state = DriverState()
         self._seen_epoch = {a: 0 for a in ARMS}
         self._last_seq: int | None = None
-        self._in_flight: dict[str, deque[PendingReply]] = {a: deque() for a in ARMS}
+        self._in_flight: dict[ArmName, deque[PendingReply]] = {a: deque() for a in ARMS}
         self._last_send = -np.inf
         self.violation_counts = self.motion.violation_counts
         self.rejections: Counter[str] = Counter()
@@ -198,13 +198,14 @@ class ArmDriver:
             self._threads.append(t)
         return self
 
-    def _bring_up(self, arm: str) -> None:
+    def _bring_up(self, arm: ArmName) -> None:
         c, conf = self.clients[arm], self.rig.arms[arm]
         c.clear_error()
-        c.enable(conf.payload_kg, tuple(1000.0 * x for x in conf.mount_offset))
+        x, y, z = conf.mount_offset
+        c.enable(conf.payload_kg, (1000.0 * x, 1000.0 * y, 1000.0 * z))
         c.speed_factor(conf.speed_factor)
 
-    def _wait_enabled(self, arms: tuple[str, ...] | list[str]) -> None:
+    def _wait_enabled(self, arms: Sequence[ArmName]) -> None:
         deadline = time.monotonic() + self.cfg.enable_timeout_s
         while True:
             waiting = []
@@ -341,7 +342,7 @@ class ArmDriver:
 
     # -- e-stop ----------------------------------------------------------------------------------
 
-    def estop(self, reason: str = "e-stop") -> dict[str, bool]:
+    def estop(self, reason: str = "e-stop") -> dict[ArmName, bool]:
         """Latch the e-stop and send EmergencyStop(1) to both controllers at once.
 
         Returns, per arm, whether its controller confirmed. The latch holds whatever the answer.
@@ -349,7 +350,7 @@ class ArmDriver:
         with self._lock:
             self._dispatch(m.EstopEngaged(reason))  # the pipeline halts: the controllers stop the arms; nothing more is streamed
         text = self.clients[ARMS[0]].emergency_stop_text(True)
-        pending: dict[str, PendingReply] = {}
+        pending: dict[ArmName, PendingReply] = {}
         reached = {a: False for a in ARMS}
         for a in ARMS:  # both first, then wait: neither controller waits for the other's reply
             try:
@@ -403,7 +404,7 @@ class ArmDriver:
 
     # -- state -----------------------------------------------------------------------------------
 
-    def _feedback_callback(self, arm: str) -> Callable[[np.ndarray, float], None]:
+    def _feedback_callback(self, arm: ArmName) -> Callable[[np.ndarray, float], None]:
         def on_packet(rec: np.ndarray, t: float) -> None:
             cb = self.on_state
             if cb is not None:
@@ -428,7 +429,7 @@ class ArmDriver:
             update["target_pose"] = np.concatenate([T[:3, 3], matrix_to_rpy(T[:3, :3])])
         return state.model_copy(update=update)
 
-    def states(self) -> dict[str, ArmState]:
+    def states(self) -> dict[ArmName, ArmState]:
         """The latest state of each arm that has reported since (re)connecting."""
         out = {}
         for a in ARMS:
@@ -549,8 +550,9 @@ class ArmDriver:
         Not the actual poses: an arm still following its last target (a restart waits at most
         SETTLE_TIMEOUT_S for it to settle) would get a first target back behind it, a jump the
         controller alarms on (joint overspeed) or a jerk the other way."""
-        recs = {a: self.clients[a].latest()[0] for a in ARMS}
-        if any(r is None for r in recs.values()):
+        latest = {a: self.clients[a].latest()[0] for a in ARMS}
+        recs = {a: r for a, r in latest.items() if r is not None}
+        if len(recs) != len(latest):
             self._dispatch(m.Restarted("no_feedback"))
             return False
         found = self.motion.restart(recs)
@@ -633,7 +635,7 @@ class ArmDriver:
     def _cycle(self, t0: float) -> bool:
         """One servo period; True if motion commands went out."""
         self._check_replies(time.monotonic())
-        sends: dict[str, str] = {}
+        sends: dict[ArmName, str] = {}
         with self._lock:
             now = self._now()  # under the lock: a cycle that waited for it must not act on an old clock
             wall_now = time.monotonic()
@@ -681,7 +683,7 @@ class ArmDriver:
                     self._link_lost(a, str(e))
         return bool(sends)
 
-    def _servo_text(self, arm: str, T_world_mount: np.ndarray, q: np.ndarray | None, halting: bool = False) -> str:
+    def _servo_text(self, arm: ArmName, T_world_mount: np.ndarray, q: np.ndarray | None, halting: bool = False) -> str:
         """The ServoP for one arm's mount pose, or the ServoJ for its joints `q (6,)` (rad); `halting`:
         a braking pose, sent with the halting servo parameters (`DriverConfig.servo_params`)."""
         cfg = self.cfg
@@ -734,7 +736,7 @@ class ArmDriver:
                 return False
         return True
 
-    def _arm_in_error(self, arm: str) -> bool:
+    def _arm_in_error(self, arm: ArmName) -> bool:
         rec, _ = self.clients[arm].latest()
         return rec is None or controller_fault(rec) is not None
 
@@ -775,10 +777,10 @@ class ArmDriver:
             return c.silent_for()
         return max(0.0, self.clock.now() - self._stamp(rec))
 
-    def _link_lost(self, arm: str, why: str) -> None:
+    def _link_lost(self, arm: ArmName, why: str) -> None:
         self._dispatch(m.LinkLost(arm, why))
 
-    def _link_back(self, arm: str) -> None:
+    def _link_back(self, arm: ArmName) -> None:
         """A reconnected controller: re-assert a latched e-stop, or restart from the measured pose."""
         self._seen_epoch[arm] = self.clients[arm].epoch
         self._dispatch(m.LinkBack(arm))

@@ -21,7 +21,7 @@ from bagit.common.dobot import RobotMode
 from bagit.common.dual_arm import Poses
 from bagit.common.geometry import invert_transform, matrix_to_rpy
 from bagit.common.messages import ArmState
-from bagit.common.rig import ARMS, ArmConfig
+from bagit.common.rig import ARMS, ArmConfig, ArmName
 
 
 def poses_to_arrays(poses: Poses) -> tuple[np.ndarray, np.ndarray]:
@@ -33,7 +33,7 @@ def poses_to_arrays(poses: Poses) -> tuple[np.ndarray, np.ndarray]:
 
 def arrays_to_poses(p: np.ndarray, R: np.ndarray) -> Poses:
     """'left'/'right' -> (4, 4) from positions `(2, 3)` and rotations `(2, 3, 3)`."""
-    out: dict[str, np.ndarray] = {}
+    out: dict[ArmName, np.ndarray] = {}
     for i, a in enumerate(ARMS):
         T = np.eye(4)
         T[:3, :3] = R[i]

@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Literal
 
-from bagit.common.rig import ARMS
+from bagit.common.rig import ARMS, ArmName
 
 SETTLE_TIMEOUT_S = 1.0  # a restart waits at most this long for the arms to report idle
 
@@ -37,12 +37,12 @@ class DriverState:
     closing: bool = False
     estop: bool = False
     estop_reason: str | None = None
-    estop_unconfirmed: frozenset[str] = frozenset()  # arms whose controller did not confirm EmergencyStop(1)
+    estop_unconfirmed: frozenset[ArmName] = frozenset()  # arms whose controller did not confirm EmergencyStop(1)
     fault: str | None = None
     fault_alarms_asked: bool = False  # GetErrorID asked since the fault latched (once per fault)
     links_down: tuple[tuple[str, str], ...] = ()  # (arm, why), in the order they went down
     needs_reset: bool = False  # the stream restarts from the measured poses before anything moves
-    stale: frozenset[str] = frozenset()  # arms not to command until that restart
+    stale: frozenset[ArmName] = frozenset()  # arms not to command until that restart
     reset_asked: float = -math.inf  # when the restart first became possible (it waits for the arms to settle)
     failed_requests: tuple[tuple[str, int], ...] = tuple((a, 0) for a in ARMS)  # motion requests in a row without a good reply
 
@@ -50,7 +50,7 @@ class DriverState:
     def links(self) -> dict[str, str]:
         return dict(self.links_down)
 
-    def failed(self, arm: str) -> int:
+    def failed(self, arm: ArmName) -> int:
         return dict(self.failed_requests)[arm]
 
 
@@ -76,14 +76,14 @@ class Restart:
 class ClearInFlight:
     """Forget the ServoP replies still awaited from `arm` (its link is gone)."""
 
-    arm: str
+    arm: ArmName
 
 
 @dataclass(frozen=True)
 class ResendEstop:
     """Send EmergencyStop(1) to `arm` again (it reconnected without having confirmed it); report `EstopResent`."""
 
-    arm: str
+    arm: ArmName
 
 
 @dataclass(frozen=True)
@@ -136,7 +136,7 @@ class EstopEngaged:
 class EstopSent:
     """EmergencyStop(1) went out; `unconfirmed`: the arms whose controller did not confirm it."""
 
-    unconfirmed: frozenset[str]
+    unconfirmed: frozenset[ArmName]
 
 
 @dataclass(frozen=True)
@@ -146,7 +146,7 @@ class EstopReleased:
 
 @dataclass(frozen=True)
 class EstopResent:
-    arm: str
+    arm: ArmName
     error: str | None = None  # None: sent
 
 
@@ -159,7 +159,7 @@ class FaultRaised:
 class ArmAlarm:
     """An arm's feedback reports its controller in error (counted once per latched fault)."""
 
-    arm: str
+    arm: ArmName
     why: str
 
 
@@ -170,7 +170,7 @@ class FaultCleared:
 
 @dataclass(frozen=True)
 class LinkLost:
-    arm: str
+    arm: ArmName
     why: str
 
 
@@ -178,7 +178,7 @@ class LinkLost:
 class LinkBack:
     """`arm`'s controller reconnected and its first feedback packet arrived."""
 
-    arm: str
+    arm: ArmName
 
 
 @dataclass(frozen=True)
@@ -202,7 +202,7 @@ class Cycle:
 
 @dataclass(frozen=True)
 class ReplyOk:
-    arm: str
+    arm: ArmName
 
 
 @dataclass(frozen=True)
@@ -216,7 +216,7 @@ class ReplyRejected:
 class ReplyFailed:
     """A ServoP answered with garbage or not at all."""
 
-    arm: str
+    arm: ArmName
     why: str
     max_failed: int
 
@@ -270,7 +270,7 @@ def mode(s: DriverState, pipe_mode: str) -> Mode:
     return "streaming" if pipe_mode == "position" else "stopping" if pipe_mode == "stopping" else "holding"
 
 
-def commandable(s: DriverState, arm: str) -> bool:
+def commandable(s: DriverState, arm: ArmName) -> bool:
     """May `arm` be sent motion (its link is up and it is not waiting for the restart)?"""
     return arm not in s.links and arm not in s.stale
 
@@ -285,7 +285,7 @@ def _fault(s: DriverState, why: str) -> tuple[DriverState, list[Effect]]:
     return s, [StopPipe()]
 
 
-def _with_failed(s: DriverState, arm: str, n: int) -> DriverState:
+def _with_failed(s: DriverState, arm: ArmName, n: int) -> DriverState:
     return replace(s, failed_requests=tuple((a, n if a == arm else k) for a, k in s.failed_requests))
 
 

@@ -18,13 +18,13 @@ Every event (clip, slow-down, watchdog stop) is counted in `counters` and told t
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from bagit.common import cr5
-from bagit.common.rig import ARMS, RigConfig
+from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses
 from bagit.services.arm_driver.pipeline import MotionPipeline
@@ -100,7 +100,7 @@ class ArmMotion:
             return None
         return self.pipe.targets.end() if self.pipe.mode == "position" else self.pipe.streamer.poses()
 
-    def restart(self, records: dict[str, np.ndarray]) -> list[Violation] | None:
+    def restart(self, records: dict[ArmName, np.ndarray]) -> list[Violation] | None:
         """At rest at the poses the controllers command (feedback `ToolVectorTarget`, `QTarget`: the
         measured ones once the arms settle). None if a record reports a non-finite pose; else the
         limits those poses already break (the host faults on any).
@@ -151,7 +151,7 @@ class ArmMotion:
 
     # -- output ----------------------------------------------------------------------------------
 
-    def cycle(self, now: float, active: list[str] | tuple[str, ...] = ARMS, check_reach: bool = True) -> Cycle:
+    def cycle(self, now: float, active: Sequence[ArmName] = ARMS, check_reach: bool = True) -> Cycle:
         """The poses (and joints) to send to the `active` arms for the period starting at `now`."""
         prev = self.pipe.last_sent
         tick = self.pipe.tick(now)  # a stop in progress carries on whatever else is wrong
@@ -163,7 +163,7 @@ class ArmMotion:
         poses, joints, fault = self.within_reach(prev, tick.command, list(active))
         return Cycle(poses, joints, fault, tick.violations, tick.halting)
 
-    def within_reach(self, prev: Poses, cmd: Poses, active: list[str]) -> tuple[Poses | None, Joints | None, str | None]:
+    def within_reach(self, prev: Poses, cmd: Poses, active: list[ArmName]) -> tuple[Poses | None, Joints | None, str | None]:
         """`cmd`, or the longest part of the step from `prev` the joints of the `active` arms can follow,
         with their joints; or a fault when not even the last command can be held.
 
@@ -179,17 +179,19 @@ class ArmMotion:
             limit,
         )
         r = solve_within(prev, cmd, solve)
-        if r.poses is None:
+        if r.poses is None or r.joints is None:  # (solve_within finds both or neither)
             self.pipe.stop()
             return None, None, f"cannot hold the last command either: {r.why}"
+        poses, joints = r.poses, r.joints
         if r.why is not None:
-            if r.fraction > 0 and violations(r.poses, prev, self.period, self.env):
-                r = solve_within(prev, prev, solve)  # the shortened step left the envelope (it never should): hold
-                if r.poses is None:
+            if r.fraction > 0 and violations(poses, prev, self.period, self.env):
+                held = solve_within(prev, prev, solve)  # the shortened step left the envelope (it never should): hold
+                if held.poses is None or held.joints is None:
                     self.pipe.stop()
                     return None, None, "cannot hold the last command either: its joints are unreachable now"
-                r = Reach(prev, r.joints, 0.0, "the shortened step left the safety envelope")
-            self.pipe.replace_last(r.poses, prev)
+                r = Reach(prev, held.joints, 0.0, "the shortened step left the safety envelope")
+                poses, joints = prev, held.joints
+            self.pipe.replace_last(poses, prev)
             self.counters["slowed"] += 1
             if not self.slowing:
                 self._event("slowed", f"{r.why}: {r.fraction:.0%} of the step sent")
@@ -197,5 +199,5 @@ class ArmMotion:
             self._event("slowed", f"full speed again after {self.counters['slowed']} slowed periods in all")
         self.slowing = r.why is not None
         for a in active:
-            self.q_seed[a] = r.joints[a]
-        return r.poses, r.joints, None
+            self.q_seed[a] = joints[a]
+        return poses, joints, None

@@ -21,11 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from bagit.common import cr5
-from bagit.common.rig import ARMS
+from bagit.common.rig import ARMS, ArmName
 from bagit.common.so3 import rotvec_between, so3_exp
 from bagit.services.arm_driver.frames import ArmFrames, Poses
 
-Joints = dict[str, np.ndarray]  # arm -> (6,) rad
+Joints = dict[ArmName, np.ndarray]  # arm -> (6,) rad
 Solver = Callable[[Poses], tuple[Joints | None, str | None]]
 
 BISECTIONS = 10  # the fraction sent is within 1/1024 of the longest that can be followed
@@ -44,7 +44,7 @@ class Reach:
 
 def interpolate(prev: Poses, cmd: Poses, s: float) -> Poses:
     """Poses a fraction `s` of the way from `prev` to `cmd`: positions linearly, rotations along the geodesic."""
-    out: dict[str, np.ndarray] = {}
+    out: dict[ArmName, np.ndarray] = {}
     for a in ARMS:
         T = np.eye(4)
         T[:3, 3] = prev[a][:3, 3] + s * (cmd[a][:3, 3] - prev[a][:3, 3])
@@ -54,7 +54,7 @@ def interpolate(prev: Poses, cmd: Poses, s: float) -> Poses:
 
 
 def joint_solver(
-    frames: dict[str, ArmFrames], seeds: Joints, mount_offsets: dict[str, np.ndarray], max_joint_step_rad: float
+    frames: dict[ArmName, ArmFrames], seeds: Joints, mount_offsets: dict[ArmName, np.ndarray], max_joint_step_rad: float
 ) -> Solver:
     """Solve each arm in `frames` nearest its `seeds`; refuse a step no joint could follow in a period.
 

@@ -211,14 +211,17 @@ class MpcSolver:
             self._setup(H, c, G, hl, hu, lb, ub)
             self._has_g = has_g
         elif self.backend == "dense":
-            Gd = self._dense_g(G) if has_g else None
+            Gd = self._dense_g(G) if G is not None else None  # (G is set exactly when has_g)
             self._solver.update(P=np.asfortranarray(H), c=c, G=Gd, h_l=hl, h_u=hu, x_l=lb, x_u=ub)
         else:
-            Gs = self._sparse_g(G) if has_g else None
+            Gs = self._sparse_g(G) if G is not None else None
             self._solver.update(P=self._sparse_p(H), c=c, G=Gs, h_l=hl, h_u=hu, x_l=lb, x_u=ub)
-        status = self._solver.solve()
-        u_bar = np.asarray(self._solver.result.x, dtype=float).copy()
-        iters = int(self._solver.result.info.iter)
+        solver = self._solver
+        if solver is None:
+            raise AssertionError("the MPC's QP solver is missing after its set-up")
+        status = solver.solve()
+        u_bar = np.asarray(solver.result.x, dtype=float).copy()
+        iters = int(solver.result.info.iter)
         if status != piqp.PIQP_SOLVED or not np.all(np.isfinite(u_bar)):
             if not np.all(np.isfinite(u_bar)):
                 self._solver = None  # a workspace holding NaN would poison the next tick's warm set-up

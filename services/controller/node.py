@@ -49,7 +49,7 @@ from bagit.common.clock import ClockKind
 from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
-from bagit.common.rig import ARMS
+from bagit.common.rig import ARMS, ArmName
 from bagit.services.controller.controller import CONTROLLERS
 from bagit.services.controller.session import (
     ARM_MAX_AGE_S,
@@ -119,7 +119,7 @@ class ControllerNode:
         self._soi_new = threading.Event()  # wall clock: a new SOI wakes the loop for a tick at once
         self.soi = LatestCache(session, keys.perception_soi, SoiState, None if self.lockstep else lambda _m: self._soi_new.set())
         self.arms = LatestCache(session, keys.arm_state_any, ArmState)
-        self._subs = [
+        self._subs: list[Subscriber[Any]] = [
             Subscriber(session, keys.run_state, RunState, self._on_run_state),
             Subscriber(session, keys.planner_path, Path, self._on_path),
             Subscriber(session, keys.planner_goal, Goal, self._on_goal),
@@ -322,9 +322,9 @@ class ControllerNode:
         self._seq += 1
         return self._seq
 
-    def _states(self, now: float) -> tuple[dict[str, ArmState], str | None]:
+    def _states(self, now: float) -> tuple[dict[ArmName, ArmState], str | None]:
         """Both arms' newest states, or why there are none fresh enough (lockstep: by their stamps at `now`)."""
-        out = {}
+        out: dict[ArmName, ArmState] = {}
         for a in ARMS:
             item = self.arms.get_with_time(self.keys.arm_state(a))
             if item is None:

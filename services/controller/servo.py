@@ -20,6 +20,7 @@ from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import Command
 from bagit.common.params import MethodParams
+from bagit.common.rig import ArmName
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.guard import SoiGuard
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
@@ -172,7 +173,7 @@ class ServoBase:
         self,
         x0: np.ndarray | None,
         path: Any,
-        gripper_poses: dict[str, np.ndarray] | None,
+        gripper_poses: dict[ArmName, np.ndarray] | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
     ) -> None:
@@ -205,7 +206,7 @@ class ServoBase:
         self.exploration = Exploration(self.u_max, self.explore_push_ticks, self.explore_settle_ticks)
         self.jacobian = None
         self._x_prev: np.ndarray | None = None
-        self._poses_prev: dict[str, np.ndarray] | None = None  # the grippers at the last tick with a valid SOI
+        self._poses_prev: dict[ArmName, np.ndarray] | None = None  # the grippers at the last tick with a valid SOI
         self._win_u = np.zeros(12)
         self._win_s = np.zeros(3 * self.n_x)
         self._win_n = 0
@@ -223,7 +224,7 @@ class ServoBase:
         """Per-run state of the law (e.g. the MPC's solver)."""
 
     def _law(
-        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, grippers: dict[str, np.ndarray]
+        self, J: np.ndarray, x: np.ndarray, target: np.ndarray, grippers: dict[ArmName, np.ndarray]
     ) -> tuple[np.ndarray, float, str | None]:
         """u `(12,)`, solve time (ms) and a reason to hold (None to servo) for SOI `x (3 n_x,)` towards
         `target (3 n_x,)` with the estimate `J (3 n_x, 12)`."""
@@ -235,7 +236,7 @@ class ServoBase:
         self,
         x: np.ndarray | None,
         now: float,
-        gripper_poses: dict[str, np.ndarray],
+        gripper_poses: dict[ArmName, np.ndarray],
         source_stamp: float | None = None,
         pending: np.ndarray | None = None,
         slowed: bool = False,
@@ -298,8 +299,8 @@ class ServoBase:
         return out
 
     def _predicted(
-        self, xf: np.ndarray, grippers: dict[str, np.ndarray], pending: np.ndarray | None
-    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        self, xf: np.ndarray, grippers: dict[ArmName, np.ndarray], pending: np.ndarray | None
+    ) -> tuple[np.ndarray, dict[ArmName, np.ndarray]]:
         """The SOI `(3 n_x,)` and gripper poses this tick's input will act on: the measured ones moved by
         the motion `pending (12,)` still in flight (x + J p; the grippers at the arm side's aim).
 
@@ -350,7 +351,7 @@ class ServoBase:
         """The direction `(12,)` (unit, in C7 units) the controller does not ask for, or None."""
         return None if self._barred is None else self._barred.copy()
 
-    def _learn_separation_offset(self, x: np.ndarray, grippers: dict[str, np.ndarray]) -> None:
+    def _learn_separation_offset(self, x: np.ndarray, grippers: dict[ArmName, np.ndarray]) -> None:
         """How far inside the rim's ends the mounts hold it: the rim's extent along the grippers' axis
         less their separation, from the first SOI `x (n_x, 3)` (the bag hangs taut from its mounts)."""
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
@@ -385,12 +386,19 @@ class ServoBase:
             self.jacobian.update(self._win_u, self._win_s)
             self._win_u[:], self._win_s[:], self._win_n = 0.0, 0.0, 0
 
+    def _path_tracker(self) -> SubgoalTracker:
+        """The subgoal tracker of the path `reset` gave; BadControlInput before that."""
+        if self.tracker is None:
+            raise BadControlInput("step() before reset(): the controller has no path")
+        return self.tracker
+
     def _finished(self, x: np.ndarray) -> bool:
         """At g*: within goal_tol, or as close as the bag gets (no progress for GOAL_STALL_TICKS
         within 2x subgoal_tol; the run is then judged on what the rim really does)."""
+        tr = self._path_tracker()
         if not self.aims_at_goal:
-            return self.tracker.done(x)
-        e = self.tracker.error(x, len(self.path) - 1)
+            return tr.done(x)
+        e = tr.error(x, len(self.path) - 1)
         if e < self._goal_best - 1e-3:
             self._goal_best, self._goal_since = e, 0
         else:
@@ -401,8 +409,9 @@ class ServoBase:
         return self._out(np.zeros(12), "hold", reason, x)
 
     def _out(self, u: np.ndarray, mode: str, reason: str | None, x: np.ndarray | None, done: bool = False) -> ControlOutput:
-        tr = self.tracker
-        ok = x is not None and np.all(np.isfinite(x))
-        e_sub = tr.error(x, tr.index) if ok else float("nan")
-        e_goal = tr.error(x, len(self.path) - 1) if ok else float("nan")
+        tr = self._path_tracker()
+        if x is not None and np.all(np.isfinite(x)):
+            e_sub, e_goal = tr.error(x, tr.index), tr.error(x, len(self.path) - 1)
+        else:
+            e_sub = e_goal = float("nan")
         return ControlOutput(np.asarray(u, dtype=float), mode, reason, tr.index, tr.stage, e_sub, e_goal, 0.0, done, tr.progress())

@@ -31,7 +31,7 @@ from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, Goal, Path, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams, merge_params
-from bagit.common.rig import ARMS, SafetyLimits
+from bagit.common.rig import ARMS, ArmName, SafetyLimits
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
 
@@ -69,7 +69,7 @@ class Outbox:
     keepalive: bool = False  # the command is a zero increment on an SOI already acted on
 
 
-def gripper_poses(states: dict[str, ArmState]) -> tuple[dict[str, np.ndarray] | None, str | None]:
+def gripper_poses(states: dict[ArmName, ArmState]) -> tuple[dict[ArmName, np.ndarray] | None, str | None]:
     """Both grippers' 4x4 world poses from the arms' states (tool_pose: world [x y z roll pitch yaw]),
     or why they cannot be used."""
     out = {}
@@ -86,7 +86,7 @@ def gripper_poses(states: dict[str, ArmState]) -> tuple[dict[str, np.ndarray] | 
     return out, None
 
 
-def pending_motion(states: dict[str, ArmState], grippers: dict[str, np.ndarray] | None) -> np.ndarray | None:
+def pending_motion(states: dict[ArmName, ArmState], grippers: dict[ArmName, np.ndarray] | None) -> np.ndarray | None:
     """The motion `(12,)` (the controller's u: world [dp, drotvec] left then right) the arm side has
     taken and not yet made: from each gripper's measured pose to the arm side's `target_pose`. None
     when an arm does not report one (the controller then predicts from the measured poses alone)."""
@@ -102,12 +102,12 @@ def pending_motion(states: dict[str, ArmState], grippers: dict[str, np.ndarray] 
     return pose_increment(grippers, aims)
 
 
-def arms_slowed(states: dict[str, ArmState]) -> bool:
+def arms_slowed(states: dict[ArmName, ArmState]) -> bool:
     """The arm side reports that its last step was cut short: the joints could not follow it."""
     return any(msg is not None and msg.slowed for msg in states.values())
 
 
-def arm_fault(states: dict[str, ArmState]) -> str | None:
+def arm_fault(states: dict[ArmName, ArmState]) -> str | None:
     """An arm reporting an error other than a lost link (which the driver reconnects by itself)."""
     for a in ARMS:
         msg = states.get(a)
@@ -175,7 +175,7 @@ class ServoSession:
 
     # -- one tick ----------------------------------------------------------------------------------
 
-    def tick(self, soi: SoiState | None, soi_age_s: float | None, soi_max_age_s: float, grippers: dict[str, np.ndarray] | None,
+    def tick(self, soi: SoiState | None, soi_age_s: float | None, soi_max_age_s: float, grippers: dict[ArmName, np.ndarray] | None,
              arm_problem: str | None, arm_fault: str | None, path: Path, goal: Goal | None, now: float,
              pending: np.ndarray | None = None, slowed: bool = False) -> Outbox:
         """The newest SOI (None: none yet) `soi_age_s` old, the grippers' poses (or why there are none),
@@ -211,22 +211,22 @@ class ServoSession:
                 perimeter = goal.perimeter if goal is not None and goal.perimeter > 0 else None
                 c.reset(x, path, grippers, perimeter=perimeter)
                 self.reset_done = True
-            out = c.step(x, now, grippers, pending=pending, slowed=slowed)
+            ctl = c.step(x, now, grippers, pending=pending, slowed=slowed)
         except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so
             return self.hold(f"controller error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", now)
         self.ticks = c.ticks
         self.final_soi = x
-        self.error_to_goal = _finite_or_none(out.error_to_goal)
+        self.error_to_goal = _finite_or_none(ctl.error_to_goal)
         self.seq = self.next_seq()
-        cmd = out.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp, stamp=now)
-        self.servoing = cmd.mode == "servo" and not out.done
-        self.last_reason = out.reason
-        status = self._status(mode=out.mode, stage=out.stage, reason=out.reason, subgoal_index=out.subgoal_index,
-                              progress=out.progress, error_to_subgoal=_finite_or_none(out.error_to_subgoal),
-                              error_to_goal=self.error_to_goal, solve_ms=out.solve_ms, done=out.done, ticks=self.ticks)
-        if out.done:
+        cmd = ctl.to_command(self.command_dt(now), seq=self.seq, run_id=self.run_id, source_stamp=soi.source_stamp, stamp=now)
+        self.servoing = cmd.mode == "servo" and not ctl.done
+        self.last_reason = ctl.reason
+        status = self._status(mode=ctl.mode, stage=ctl.stage, reason=ctl.reason, subgoal_index=ctl.subgoal_index,
+                              progress=ctl.progress, error_to_subgoal=_finite_or_none(ctl.error_to_subgoal),
+                              error_to_goal=self.error_to_goal, solve_ms=ctl.solve_ms, done=ctl.done, ticks=self.ticks)
+        if ctl.done:
             self.finished = "done"
-            report = f"run {self.run_id}: at g* (error {out.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"
+            report = f"run {self.run_id}: at g* (error {ctl.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"
         return Outbox(cmd, status, report)
 
     @property

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from bagit.common.geometry import make_transform, ramanujan_perimeter
+from bagit.common.rig import ArmName
 
 
 class SyntheticRim:
@@ -27,18 +28,19 @@ class SyntheticRim:
         self.free = (self.w_right > 0) & (self.w_right < 1)
         self.sep0 = 2 * a
         self.sag_gain = sag_gain
-        self._home = {
+        self._home: dict[ArmName, np.ndarray] = {
             "left": make_transform(None, self.center + [0, -a, 0]),
             "right": make_transform(None, self.center + [0, a, 0]),
         }
 
-    def home(self) -> dict[str, np.ndarray]:
+    def home(self) -> dict[ArmName, np.ndarray]:
         return {k: v.copy() for k, v in self._home.items()}
 
-    def rim(self, grippers: dict[str, np.ndarray]) -> np.ndarray:
+    def rim(self, grippers: dict[ArmName, np.ndarray]) -> np.ndarray:
         """`(n_x, 3)` rim for gripper poses (4x4, world)."""
         out = np.zeros_like(self.rest)
-        for name, w in (("left", self.w_left), ("right", self.w_right)):
+        weights: tuple[tuple[ArmName, np.ndarray], ...] = (("left", self.w_left), ("right", self.w_right))
+        for name, w in weights:
             D = grippers[name] @ np.linalg.inv(self._home[name])  # the gripper's motion from home
             out += w[:, None] * (self.rest @ D[:3, :3].T + D[:3, 3])
         sep = np.linalg.norm(grippers["right"][:3, 3] - grippers["left"][:3, 3])

@@ -167,7 +167,7 @@ def load_cloud(path: str | Path) -> np.ndarray:
         if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiu":
             raise BadCloud(f"{p}: expected a numeric array, got dtype {getattr(a, 'dtype', type(a))}")
     else:
-        pc = o3d.io.read_point_cloud(str(p), format="auto", print_progress=False)
+        pc = o3d.io.read_point_cloud(p, format="auto", print_progress=False)
         a = np.asarray(pc.points)
         if a.size == 0:
             raise BadCloud(f"{p} holds no points (or is not a valid {suffix[1:].upper()} file)")

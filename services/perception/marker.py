@@ -214,9 +214,9 @@ def refine_corners_by_edges(gray: np.ndarray, corners: np.ndarray, cells: int = 
             pts.append(q[k] + f * (q[k + 1] - q[k]))
         if len(pts) < 4:
             return c
-        pts = np.asarray(pts)
-        m = pts.mean(axis=0)
-        _, _, vt = np.linalg.svd(pts - m)
+        P = np.asarray(pts)
+        m = P.mean(axis=0)
+        _, _, vt = np.linalg.svd(P - m)
         lines.append((m, vt[0]))
     out = np.empty((4, 2))
     for i in range(4):

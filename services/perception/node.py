@@ -55,7 +55,7 @@ from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import back_project
 from bagit.services.perception.soi import SoiParams
-from bagit.services.perception.sources import SourceConfig, open_source
+from bagit.services.perception.sources import RealSenseSource, SourceConfig, open_source
 from bagit.services.perception.tracker import RimTracker
 
 log = logging.getLogger("bagit.perception")
@@ -85,6 +85,12 @@ class PerceptionServiceConfig(BaseModel):
     object_library: list[str] | None = Field(None, description="scenario files whose objects (with markers) form the library; None: the bundled ones")
     marker_rate_hz: float = Field(1.0, gt=0.0, le=30.0, description="marker detection at most this often")
     marker_settle_s: float = Field(0.5, ge=0.0, le=30.0, description="a new run's first detection: on a frame this much newer than its start")
+
+
+def _rgb(color: tuple[float, float, float]) -> tuple[float, float, float]:
+    """A bag colour as a plain 3-tuple."""
+    r, g, b = color
+    return r, g, b
 
 
 def scene_cloud(frame: RgbdFrame, max_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -145,14 +151,14 @@ class PerceptionNode:
         self._object_pub = Publisher(session, keys.perception_object, ObjectDetection) if self._library is not None else None
         self._ack = Publisher(session, keys.sim_ack, StepAck) if self.lockstep else None
         self._arm = LatestCache(session, keys.arm_state("left"), ArmState)
-        self._subs = [Subscriber(session, keys.run_state, RunState, self._on_run_state)]
+        self._subs: list[Subscriber[Any]] = [Subscriber(session, keys.run_state, RunState, self._on_run_state)]
         if self._source is None:
             self._subs.append(Subscriber(session, keys.camera_rgbd, RgbdFrame, self._offer))
         self._threads = [threading.Thread(target=self._work, name="perception-worker", daemon=True)]
         if self._library is not None and not self.lockstep:
             self._threads.append(threading.Thread(target=self._marker_work, name="perception-marker", daemon=True))
         if self._source is not None:
-            self._threads.append(threading.Thread(target=self._read, name="perception-reader", daemon=True))
+            self._threads.append(threading.Thread(target=self._read, args=(self._source,), name="perception-reader", daemon=True))
         for t in self._threads:
             t.start()
 
@@ -205,9 +211,10 @@ class PerceptionNode:
             with self._mcond:
                 while self._mpending is None and not self._stop.is_set():
                     self._mcond.wait(0.1)
-                if self._stop.is_set():
+                frame = self._mpending
+                if self._stop.is_set() or frame is None:  # (the wait ends on a frame or on the stop)
                     return
-                frame, self._mpending = self._mpending, None
+                self._mpending = None
             self._detect(frame)
 
     def _detect(self, frame: RgbdFrame) -> None:
@@ -239,8 +246,7 @@ class PerceptionNode:
         except BagItError as e:
             log.warning(f"the run's object is not added to the library: {e}")
 
-    def _read(self) -> None:
-        src = self._source
+    def _read(self, src: RealSenseSource) -> None:
         try:
             while not self._stop.is_set():
                 frame = src.read()
@@ -290,7 +296,7 @@ class PerceptionNode:
         s = self._scenario
         n_x = self.cfg.n_x or (s.bag.n_x if s is not None else 32)
         kind = self.cfg.bag_kind or (s.bag.kind if s is not None else "red-edged")
-        color = self.cfg.bag_color or (tuple(s.bag.color) if s is not None else (0.15, 0.35, 0.75))
+        color = self.cfg.bag_color or (_rgb(s.bag.color) if s is not None else (0.15, 0.35, 0.75))
         return n_x, kind, color
 
     def _work(self) -> None:
@@ -298,9 +304,10 @@ class PerceptionNode:
             with self._cond:
                 while self._pending is None and not self._stop.is_set():
                     self._cond.wait(0.1)
-                if self._stop.is_set():
+                frame = self._pending
+                if self._stop.is_set() or frame is None:  # (the wait ends on a frame or on the stop)
                     return
-                frame, self._pending = self._pending, None
+                self._pending = None
                 self._busy = True
             try:
                 self._process(frame)

@@ -123,7 +123,7 @@ def solid_rim_segmenter(
     and within `depth_m` of the bag's highest point (the bag's bottom, seen through its opening, is a
     local top too, but far lower). A single global top band would keep only the upper arc of a rim
     tilted by more than `band_m`, as it is whenever the grippers lift it round an object."""
-    rgb = np.uint8([[[int(c * 255) for c in color_rgb]]])
+    rgb = np.array([[[int(c * 255) for c in color_rgb]]], dtype=np.uint8)
     hue = int(cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)[0, 0, 0])
 
     def mask(frame: RgbdFrame) -> np.ndarray:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -272,6 +272,8 @@ class RealSenseSource:
         import queue
 
         rs, cfg = self._rs, self.cfg
+        if cfg.path is None:
+            raise CameraError("no RealSense recording given (the camera config's path is empty)")
         path = Path(cfg.path)
         if not path.is_file():
             raise CameraError(f"no RealSense recording at {path}")
@@ -303,7 +305,7 @@ class RealSenseSource:
             self._align_args = (_K(di), _K(ci), _T_to(dprof, cprof), (ci.width, ci.height), self.depth_scale)
         self._set_info(ci)
         self._pair_tol_ms = 500.0 / max(cprof.fps(), 1)
-        self._sensors = {}
+        self._sensors: dict[int, tuple[Any, list[Any]]] = {}  # id(sensor) -> (sensor, its profiles to open)
         for st in (rs.stream.depth, rs.stream.color):
             sensor, prof = picks[st]
             self._sensors.setdefault(id(sensor), (sensor, []))[1].append(prof)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypedDict, Unpack
 
 import numpy as np
 
@@ -49,6 +49,20 @@ def true_rim(
     pts = np.stack([x, y, z], axis=1)
     pts *= perimeter / closed_polyline_length(pts)
     return pts @ rpy_to_matrix(rpy).T + np.asarray(center)
+
+
+class RimCloudOptions(TypedDict, total=False):
+    """`rim_cloud`'s options, for the functions that pass them on."""
+
+    n_points: int
+    band_m: float
+    noise_m: float
+    outlier_fraction: float
+    density_ratio: float
+    occlusion: float
+    occlusion_at: float | Sequence[float]
+    seed: int
+    margin_m: float
 
 
 def rim_cloud(
@@ -101,7 +115,7 @@ def make_rim_cloud(
     center: tuple[float, float, float] = (0.0, 0.0, 0.4),
     rpy: tuple[float, float, float] = (0.0, 0.0, 0.0),
     aspect: float = 0.7,
-    **cloud_options: object,
+    **cloud_options: Unpack[RimCloudOptions],
 ) -> tuple[np.ndarray, np.ndarray]:
     """A rim of `kind` and a noisy cloud of it: (cloud `(n, 3)`, true rim polyline `(m, 3)`).
 
@@ -144,7 +158,7 @@ def write_sample_cloud(path: str | Path) -> Path:
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pc.colors = o3d.utility.Vector3dVector(colors)
     p = Path(path)
-    if not o3d.io.write_point_cloud(str(p), pc, write_ascii=False):
+    if not o3d.io.write_point_cloud(p, pc, write_ascii=False):
         raise OSError(f"could not write {p}")
     return p
 

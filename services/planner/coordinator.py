@@ -211,7 +211,7 @@ class Coordinator:
         st, goal = r.last_status, r.goal
         V = np.asarray(goal.vertices, dtype=float) if goal is not None else None
         perceived = None
-        if r.last_rim is not None and goal is not None:
+        if r.last_rim is not None and V is not None and goal is not None:
             perceived = round(axis_error_cm(r.last_rim, V, np.asarray(goal.frame, dtype=float)[:3, 2]), 4)
         info = dict(r.extra.get("object", {}))
         object_from, object_reason = info.pop("object_from", None), info.pop("object_reason", None)
@@ -333,7 +333,7 @@ class Coordinator:
         if self.cfg.object_source == "marker" and self.objects_heard and r.detection is None and not self._marker_wait_over(now):
             r.waiting_soi = soi  # the newest g0 candidate
             return []
-        return self._begin_goal(soi, now)
+        return self._begin_goal(r, soi, now)
 
     def on_object(self, det: ObjectDetection, now: float) -> list[Effect]:
         """A marker detection (perception/object): kept when it is of this run and names its object;
@@ -357,16 +357,16 @@ class Coordinator:
         r.detection = det
         if self.state.stage == "perceiving" and r.waiting_soi is not None and self.cfg.object_source == "marker":
             soi, r.waiting_soi = r.waiting_soi, None
-            return self._begin_goal(soi, now)
+            return self._begin_goal(r, soi, now)
         return []
 
     def _marker_wait_over(self, now: float) -> bool:
         r = self.run
         return r is not None and now - r.t_start >= self.cfg.settle_s + self.cfg.marker_wait_s
 
-    def _begin_goal(self, soi: SoiState, now: float) -> list[Effect]:
-        """Stage goal with g0 = soi and the object from the marker or the scenario (stated in the result)."""
-        r = self.run
+    def _begin_goal(self, r: _Run, soi: SoiState, now: float) -> list[Effect]:
+        """Stage goal for the run `r` (the current one) with g0 = soi and the object from the marker or
+        the scenario (stated in the result)."""
         r.waiting_soi = None
         scenario, info = self._object_for_plan(r)
         r.extra["object"] = info
@@ -380,6 +380,8 @@ class Coordinator:
         det = r.detection
         info: dict[str, Any] = {}
         if det is not None:
+            if det.vertices is None or det.height is None:
+                raise ValueError(f"marker detection {det.marker_id} is kept as usable but has no vertices or height")
             V_sc = r.scenario.object.bottom_vertices()
             info.update(marker_id=det.marker_id, marker_object=det.name, marker_height_m=round(float(det.height), 5))
             if det.vertices.shape == V_sc.shape:
@@ -387,7 +389,7 @@ class Coordinator:
             else:
                 info["marker_v_error_m"] = None
                 info["marker_v_note"] = f"marker V has {len(det.vertices)} vertices, the scenario's {len(V_sc)}"
-        if det is not None and self.cfg.object_source == "marker":
+        if det is not None and det.vertices is not None and det.height is not None and self.cfg.object_source == "marker":
             obj = r.scenario.object.model_copy(update={"vertices": det.vertices.tolist(), "height": float(det.height)})
             info.update(object_from="marker", object_reason=None)
             return r.scenario.model_copy(update={"object": obj}), info
@@ -471,7 +473,7 @@ class Coordinator:
             return []
         stage = self.state.stage
         if stage == "perceiving" and r.waiting_soi is not None and self._marker_wait_over(now):
-            return self._begin_goal(r.waiting_soi, now)
+            return self._begin_goal(r, r.waiting_soi, now)
         if stage == "perceiving" and now - r.t_start > self.cfg.perceive_timeout_s:
             who = "" if self.cfg.perception_service in self.alive else f" (the {self.cfg.perception_service} service is not up)"
             self._finish(now, "failed", f"no fresh SOI from perception within {self.cfg.perceive_timeout_s:g} s{who}")

@@ -115,7 +115,7 @@ def bottom_frame(vertices: np.ndarray) -> np.ndarray:
     return make_transform(np.column_stack([x, np.cross(z, x), z]), centroid)
 
 
-def _f_e(xy: np.ndarray, center: np.ndarray, a: float, b: float, alpha: float) -> np.ndarray:
+def _f_e(xy: np.ndarray, center: np.ndarray, a: np.ndarray | float, b: np.ndarray | float, alpha: np.ndarray | float) -> np.ndarray:
     """F_e of points `xy (n, 2)` for the ellipse (centre, a, b, alpha): < 1 inside."""
     c, s = np.cos(alpha), np.sin(alpha)
     d = xy - center
@@ -179,6 +179,8 @@ def smallest_ellipse_moved(
         res = minimize(perim, np.array(start), method="Nelder-Mead", options={"xatol": 1e-5, "fatol": 1e-7, "maxiter": 800})
         if best is None or res.fun < best.fun:
             best = res
+    if best is None:
+        raise AssertionError("no Nelder-Mead start was tried")
     centre, alpha, q = unpack(best.x)
     c, s = np.cos(alpha), np.sin(alpha)
     d = xy - centre
@@ -244,11 +246,12 @@ def bag_ellipse(
     alphas = np.radians(np.arange(0.0, 180.0, 1.0))
     qs = np.exp(np.linspace(0.0, np.log(MAX_BAG_ASPECT), 81))
     A, Q = (g.ravel() for g in np.meshgrid(alphas, qs, indexing="ij"))
-    b = perimeter / ramanujan_perimeter(Q, 1.0)
+    b = perimeter / np.asarray(ramanujan_perimeter(Q, 1.0))  # (an array: Q is one)
     a = Q * b
     fits = _f_e(hull, np.zeros(2), a[:, None], b[:, None], A[:, None]).max(axis=1) <= lambda_1
     distance = np.linalg.norm(shape_matrix(a, b, A) - opening, axis=(-2, -1))
-    need = margin_share * float(signed_margins(hull, *(np.array([v]) for v in reference))[0])
+    ref_a, ref_b, ref_alpha = reference
+    need = margin_share * float(signed_margins(hull, np.array([ref_a]), np.array([ref_b]), np.array([ref_alpha]))[0])
     order = np.flatnonzero(fits)[np.argsort(distance[fits], kind="stable")]
     for start in range(0, len(order), 64):  # nearest first; the first batch nearly always holds one
         k = order[start : start + 64]

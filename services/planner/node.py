@@ -96,7 +96,7 @@ class PlannerNode:
         self._closed = False
         self._last_stage: tuple[str | None, str] | None = None
         self._watcher = LivelinessWatcher(session, keys, self._on_alive)
-        self._subs = [
+        self._subs: list[Subscriber[Any]] = [
             Subscriber(session, keys.perception_soi, SoiState, self._on_soi),
             Subscriber(session, keys.perception_object, ObjectDetection, self._on_object),
             Subscriber(session, keys.controller_status, ControllerStatus, self._on_status),
@@ -294,11 +294,14 @@ class PlannerNode:
     def close(self) -> None:
         self._stop.set()
         self._ticker.join(timeout=2.0)
-        for x in (self._server, *self._subs, self._watcher):
-            x.close()
+        self._server.close()
+        for sub in self._subs:
+            sub.close()
+        self._watcher.close()
         with self._pub_lock:  # never undeclare a publisher in the middle of a put
             self._closed = True
-            for p in (self._state_pub, self._goal_pub, self._path_pub, *([self._ack_pub] if self.lockstep else [])):
+            pubs: list[Publisher[Any]] = [self._state_pub, self._goal_pub, self._path_pub, *([self._ack_pub] if self.lockstep else [])]
+            for p in pubs:
                 p.close()
         try:
             self._token.undeclare()

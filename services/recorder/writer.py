@@ -361,7 +361,8 @@ class RecordingWriter:
         fh = self.opener(path)
         try:
             compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[self.cfg.compression]
-            w = Writer(fh, chunk_size=_NEVER, compression=compression)  # chunks are closed here, not by mcap
+            # chunks are closed here, not by mcap. mcap's Writer declares IO[Any] but only writes, tells and flushes: _RawFile does those
+            w = Writer(fh, chunk_size=_NEVER, compression=compression)  # type: ignore[arg-type]
             w.start(profile="", library=f"bagit {self.version}".strip())
             w.add_metadata(RECORDING_METADATA, {
                 "rig": self.rig, "kind": kind, "run_id": rid or "", "part": str(part),

@@ -16,6 +16,7 @@ import numpy as np
 
 from bagit.common.geometry import ramanujan_perimeter
 from bagit.common.mounts import mount_rotation
+from bagit.common.rig import ArmName
 
 N_AROUND = 24
 N_RINGS = 5
@@ -31,8 +32,8 @@ class BagLayout:
     vertices: np.ndarray  # (n, 3) at rest
     elements: np.ndarray  # (m, 3) triangles, counter-clockwise seen from outside
     rim: np.ndarray  # (N_AROUND,) vertex ids of the rim, in order
-    handles: dict[str, np.ndarray]  # 'left'/'right' -> rim vertex ids clamped by that mount
-    mount_home: dict[str, np.ndarray]  # 'left'/'right' -> (4, 4) world <- mount
+    handles: dict[ArmName, np.ndarray]  # 'left'/'right' -> rim vertex ids clamped by that mount
+    mount_home: dict[ArmName, np.ndarray]  # 'left'/'right' -> (4, 4) world <- mount
     frame: np.ndarray  # (4, 4) world <- rim frame: x across the bag, y along the handles, z the rim normal (up)
 
 
@@ -61,8 +62,10 @@ def bag_layout(perimeter: float, depth: float, frame: np.ndarray, aspect: float 
     last = (N_RINGS - 1) * N_AROUND
     tris += [[last + k, c, last + (k + 1) % N_AROUND] for k in range(N_AROUND)]
     rim = np.arange(N_AROUND)
-    handles, home = {}, {}
-    for name, side in (("left", -np.pi / 2), ("right", np.pi / 2)):
+    handles: dict[ArmName, np.ndarray] = {}
+    home: dict[ArmName, np.ndarray] = {}
+    sides: tuple[tuple[ArmName, float], ...] = (("left", -np.pi / 2), ("right", np.pi / 2))
+    for name, side in sides:
         ids = rim[np.abs(np.angle(np.exp(1j * (t - side)))) <= HANDLE_HALF_ANGLE + 1e-9]
         handles[name] = ids
         T = np.eye(4)

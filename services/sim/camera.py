@@ -145,7 +145,9 @@ def _gl_context(width: int, height: int):
     display when MuJoCo was imported before MUJOCO_GL could default to it."""
     cls = mujoco.GLContext
     if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and "glfw" in getattr(cls, "__module__", ""):
-        from mujoco.osmesa import GLContext as cls  # noqa: N813
+        from mujoco.osmesa import GLContext as OsmesaContext
+
+        return OsmesaContext(width, height)
     return cls(width, height)
 
 

@@ -303,9 +303,11 @@ class SimulatedCR5:
                 q = np.radians(np.asarray(joint_deg, dtype=float))
                 alarm = self._check_joint_target(q)
                 T1 = cr5.fk(q)
-            else:
+            elif pose6 is not None:
                 T1 = cr5.pose6_to_matrix(pose6)
                 q, alarm = self._solve_pose(T1, self._queue_seed())
+            else:
+                raise ValueError(f"{kind}: a move needs a joint target or a pose")
             if alarm is not None:
                 self._raise(alarm)
                 return int(ErrorId.FAILED), 0

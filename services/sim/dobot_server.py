@@ -30,7 +30,8 @@ import math
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Self
 
 import numpy as np
 
@@ -109,7 +110,7 @@ _OPTIONS: dict[str, Spec] = {
 }  # fmt: skip
 
 
-def _named_options(named: dict[str, object], spec: Spec, out: dict | None = None) -> dict[str, float | np.ndarray]:
+def _named_options(named: Mapping[str, object], spec: Spec, out: dict | None = None) -> dict[str, float | np.ndarray]:
     """Named optional parameters (`key=value`) checked against `spec`, added to `out`.
 
     The manual numbers a named parameter's errors -50001 (unknown name, given twice, wrong type) and
@@ -132,9 +133,20 @@ def _positional_options(args: list, names: list[str], spec: Spec) -> dict[str, f
     """Optional parameters given by position (`names` in order): the k-th one's errors are -5000k / -6000k."""
     out = {}
     for k, (name, v) in enumerate(zip(names, args, strict=False), start=1):
-        lo, hi, integer = spec[name]
+        rng = spec[name]
+        if rng is VEC6:
+            raise TypeError(f"option {name!r} takes six numbers: it cannot be given by position")
+        lo, hi, integer = rng
         out[name] = _in(_num(v, param_error(ErrorId.OPTIONAL_TYPE, k), integer), lo, hi, param_error(ErrorId.OPTIONAL_RANGE, k))
     return out
+
+
+def _scalar_option(opts: Mapping[str, float | np.ndarray], key: str, default: float) -> float:
+    """A number option's value (one whose spec is a range, not VEC6), or `default` when not given."""
+    v = opts.get(key, default)
+    if isinstance(v, np.ndarray):
+        raise TypeError(f"option {key!r} takes a number, not six")
+    return v
 
 
 class DobotControllerServer:
@@ -212,7 +224,7 @@ class DobotControllerServer:
         s.settimeout(0.1)
         return s
 
-    def start(self) -> DobotControllerServer:
+    def start(self) -> Self:
         self._dash_sock = self._listen(self._ports[0])
         try:
             self._fb_sock = self._listen(self._ports[1])
@@ -255,7 +267,7 @@ class DobotControllerServer:
             if t is not threading.current_thread():
                 t.join(timeout=2.0)
 
-    def __enter__(self) -> DobotControllerServer:
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -441,7 +453,7 @@ class DobotControllerServer:
             raise _ParamError(param_error(ErrorId.REQUIRED_TYPE, 1))
         kind, target = named[0][0].lower(), _vec6(named[0][1], param_error(ErrorId.REQUIRED_TYPE, 1))
         opts = _named_options(dict(named[1:]), _OPTIONS[cmd.key])
-        v, a = opts.get("v", 100.0), opts.get("a", 100.0)
+        v, a = _scalar_option(opts, "v", 100.0), _scalar_option(opts, "a", 100.0)
         move = self.robot.mov_j if cmd.key == "movj" else self.robot.mov_l
         code, cmd_id = move(joint_deg=target, v=v, a=a) if kind == "joint" else move(pose6=target, v=v, a=a)
         return code, [cmd_id]
@@ -452,6 +464,6 @@ class DobotControllerServer:
         target = _positional6(cmd)
         spec = _OPTIONS["servo"]
         opts = _named_options(cmd.named, spec, _positional_options(cmd.args[6:], ["t", "aheadtime", "gain"], spec))
-        t, ahead, gain = opts.get("t", 0.1), opts.get("aheadtime", 50.0), opts.get("gain", 500.0)
+        t, ahead, gain = _scalar_option(opts, "t", 0.1), _scalar_option(opts, "aheadtime", 50.0), _scalar_option(opts, "gain", 500.0)
         code, cmd_id = self.robot.servo("joint" if cmd.key == "servoj" else "pose", target, t, ahead, gain)
         return code, [cmd_id]

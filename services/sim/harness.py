@@ -19,7 +19,7 @@ import numpy as np
 
 from bagit.common import dobot
 from bagit.common.geometry import invert_transform
-from bagit.common.rig import ARMS, RigConfig
+from bagit.common.rig import ARMS, ArmConfig, ArmName, RigConfig
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
 from bagit.services.sim.rig_sim import natural_ik
@@ -29,11 +29,12 @@ HOME_CENTRE = np.array([0.15, 0.0, 0.475])
 HOME_HALF_SEPARATION = 0.106
 
 
-def home_poses(centre: np.ndarray = HOME_CENTRE, half_sep: float = HOME_HALF_SEPARATION) -> dict[str, np.ndarray]:
+def home_poses(centre: np.ndarray = HOME_CENTRE, half_sep: float = HOME_HALF_SEPARATION) -> dict[ArmName, np.ndarray]:
     """'left'/'right' -> 4x4 world <- mount, as the simulated bag's layout places them on a level rim:
     each mount's z (the tool axis) points along world y into the bag, its y points down."""
-    out = {}
-    for name, s in (("left", -1.0), ("right", 1.0)):
+    out: dict[ArmName, np.ndarray] = {}
+    sides: tuple[tuple[ArmName, float], ...] = (("left", -1.0), ("right", 1.0))
+    for name, s in sides:
         z = np.array([0.0, -s, 0.0])
         x = np.array([-s, 0.0, 0.0])
         T = np.eye(4)
@@ -171,9 +172,9 @@ class SimPair:
     """Two simulated CR5s serving on ephemeral loopback ports, and the rig config that points at them."""
 
     rig: RigConfig
-    robots: dict[str, SimulatedCR5]
-    servers: dict[str, RecordingServer]
-    proxies: dict[str, TcpProxy] = field(default_factory=dict)
+    robots: dict[ArmName, SimulatedCR5]
+    servers: dict[ArmName, RecordingServer]
+    proxies: dict[ArmName, TcpProxy] = field(default_factory=dict)
 
     def close(self) -> None:
         for p in self.proxies.values():
@@ -182,11 +183,14 @@ class SimPair:
             s.stop()
 
 
-def start_sims(rig: RigConfig | None = None, poses: dict[str, np.ndarray] | None = None, proxy: bool = False) -> SimPair:
+def start_sims(rig: RigConfig | None = None, poses: dict[ArmName, np.ndarray] | None = None, proxy: bool = False) -> SimPair:
     """Start both controllers holding `poses` (default `home_poses()`); with `proxy`, the rig goes through TcpProxy."""
     rig = rig or RigConfig()
     poses = poses or home_poses()
-    robots, servers, proxies, arms = {}, {}, {}, {}
+    robots: dict[ArmName, SimulatedCR5] = {}
+    servers: dict[ArmName, RecordingServer] = {}
+    proxies: dict[ArmName, TcpProxy] = {}
+    arms: dict[ArmName, ArmConfig] = {}
     try:
         for a in ARMS:
             conf = rig.arms[a]

@@ -187,10 +187,11 @@ def object_mjcf(obj: ObjectSpec, contact: str = 'condim="3" friction="0.6"', rou
         names = ["object"]
     parts = object_parts(obj)
     card = ""
-    if obj.marker is not None:
-        card, card_assets = _marker_card(obj.marker, obj.T_world_marker())
+    T_world_marker = obj.T_world_marker()  # None without a marker
+    if obj.marker is not None and T_world_marker is not None:
+        card, card_assets = _marker_card(obj.marker, T_world_marker)
         assets = assets + card_assets
-    base = _rod_foot(parts, obj.T_world_marker(), _card_side(obj.marker) if obj.marker is not None else 0.0)
+    base = _rod_foot(parts, T_world_marker, _card_side(obj.marker) if obj.marker is not None else 0.0)
     # The rod comes straight down onto the top of the object, beside the marker if there is one.
     rod = (
         f'<geom name="object_rod" type="cylinder" fromto="{_v(base - [0, 0, 0.01])} {_v(base + [0, 0, ROD_LENGTH_M])}" '

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -28,7 +28,7 @@ from bagit.common.clock import SIM_EPOCH0_S, next_epoch, sim_time
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import invert_transform
 from bagit.common.messages import RgbdFrame
-from bagit.common.rig import ARMS, RigConfig
+from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
@@ -40,14 +40,16 @@ SETTLE_S = 1.0  # simulated seconds the bag hangs still after a (re)set before t
 class World(Protocol):
     """What SimRig needs of the physics world (SimWorld provides it)."""
 
-    time: float
+    @property
+    def time(self) -> float: ...
 
     def step(self, dt: float) -> None: ...
-    def mount_home_poses(self) -> dict[str, np.ndarray]: ...
-    def set_mount_targets(self, T_world_mount: dict[str, np.ndarray]) -> None: ...
-    def mount_poses(self) -> dict[str, np.ndarray]: ...
+    def mount_home_poses(self) -> dict[ArmName, np.ndarray]: ...
+    def set_mount_targets(self, T_world_mount: Mapping[ArmName, np.ndarray]) -> None: ...
+    def mount_poses(self) -> dict[ArmName, np.ndarray]: ...
     def render_rgbd(self, seq: int = 0) -> RgbdFrame: ...
     def ground_truth(self) -> Any: ...
+    def true_rim(self, n_x: int | None = None) -> np.ndarray: ...  # ground truth too (the in-process host's result)
     def close(self) -> None: ...
 
 
@@ -106,7 +108,7 @@ class SimRig:
             world = SimWorld(scenario, self.rig, seed, camera=camera)
         self.world: World = world
         self.camera = camera
-        self.arms: dict[str, SimulatedCR5] = {}
+        self.arms: dict[ArmName, SimulatedCR5] = {}
         try:
             start = self._start_angles(self.world)
         except BadScenario:
@@ -114,19 +116,19 @@ class SimRig:
             raise
         for name in ARMS:
             self.arms[name] = SimulatedCR5(self.rig.arms[name], q0=start[name], name=name)
-        self.servers: dict[str, DobotControllerServer] = {}
+        self.servers: dict[ArmName, DobotControllerServer] = {}
         self.epoch = SIM_EPOCH0_S  # the rig's clock when this world's time began (see `clock_s`)
         self._stamp_feedback = False
         self._loop_lock = threading.Lock()
-        self._synced_q: dict[str, np.ndarray] = {}
+        self._synced_q: dict[ArmName, np.ndarray] = {}
         if with_servers:
             self.start_servers(ephemeral_ports)
         self._sync_mounts()
 
-    def _start_angles(self, world: World) -> dict[str, np.ndarray]:
+    def _start_angles(self, world: World) -> dict[ArmName, np.ndarray]:
         """Each arm's joints holding its mount where `world` starts it; BadScenario if out of reach."""
         homes = world.mount_home_poses()
-        out = {}
+        out: dict[ArmName, np.ndarray] = {}
         for name in ARMS:
             arm = self.rig.arms[name]
             T_bf = invert_transform(arm.T_world_base()) @ homes[name] @ invert_transform(arm.T_flange_mount())
@@ -161,7 +163,7 @@ class SimRig:
 
     # -- servers ---------------------------------------------------------------------------------
 
-    def start_servers(self, ephemeral_ports: bool = False) -> dict[str, tuple[int, int]]:
+    def start_servers(self, ephemeral_ports: bool = False) -> dict[ArmName, tuple[int, int]]:
         """Serve both arms over TCP; returns 'left'/'right' -> (dashboard port, feedback port)."""
         for name, robot in self.arms.items():
             if name in self.servers:
@@ -175,7 +177,7 @@ class SimRig:
                 raise
         return self.ports()
 
-    def ports(self) -> dict[str, tuple[int, int]]:
+    def ports(self) -> dict[ArmName, tuple[int, int]]:
         return {name: (s.dashboard_port, s.feedback_port) for name, s in self.servers.items()}
 
     def stop_servers(self) -> None:
@@ -215,7 +217,7 @@ class SimRig:
 
     def _sync_mounts(self) -> None:
         """Mount targets from the flanges; only the arms whose joints moved are sent (setting one is not free)."""
-        moved = {}
+        moved: dict[ArmName, np.ndarray] = {}
         for name, robot in self.arms.items():
             q = robot.q
             if name not in self._synced_q or not np.array_equal(q, self._synced_q[name]):
@@ -244,7 +246,7 @@ class SimRig:
         """The world's ground truth (tests and benchmarks only)."""
         return self.world.ground_truth()
 
-    def flange_poses(self) -> dict[str, np.ndarray]:
+    def flange_poses(self) -> dict[ArmName, np.ndarray]:
         """'left'/'right' -> 4x4 world <- flange."""
         return {name: robot.flange_pose_world() for name, robot in self.arms.items()}
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bagit.common.rig import ArmName
 from bagit.services.sim.objects import ConvexPart
 
 PENETRATION_TOL_M = 0.008  # deeper than this inside the object: the fabric went through it (contact keeps it out)
@@ -30,7 +31,7 @@ class GroundTruth:
     passed_through: bool
     max_penetration_m: float
     clearance_m: float  # now: the fabric mid-surface's gap to the object (a lower bound; inf when far, < 0 inside)
-    mount_poses: dict[str, np.ndarray] = field(default_factory=dict)  # 'left'/'right' -> (4, 4) world <- mount
+    mount_poses: dict[ArmName, np.ndarray] = field(default_factory=dict)  # 'left'/'right' -> (4, 4) world <- mount
 
 
 def _barycentric_grid(level: int) -> np.ndarray:

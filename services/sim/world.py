@@ -13,6 +13,7 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
+from collections.abc import Mapping  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
 import mujoco  # noqa: E402
@@ -22,7 +23,7 @@ from bagit.common.errors import BadControlInput, BadScenario, SimulationFailed  
 from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed  # noqa: E402
 from bagit.common.messages import RgbdFrame  # noqa: E402
 from bagit.common.mounts import rim_frame  # noqa: E402
-from bagit.common.rig import ARMS, RigConfig  # noqa: E402
+from bagit.common.rig import ARMS, ArmName, RigConfig  # noqa: E402
 from bagit.common.scenario import Scenario  # noqa: E402
 from bagit.services.sim.bag import BagLayout, bag_layout  # noqa: E402
 from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise  # noqa: E402
@@ -73,8 +74,8 @@ class WorldState:
     """A snapshot of a SimWorld (physics state, mount targets, penetration record)."""
 
     data: mujoco.MjData
-    target_pos: dict[str, np.ndarray]
-    target_quat: dict[str, np.ndarray]
+    target_pos: dict[ArmName, np.ndarray]
+    target_quat: dict[ArmName, np.ndarray]
     max_depth: float
     passed: bool
 
@@ -213,13 +214,13 @@ class SimWorld:
         self._monitor.max_depth, self._monitor.passed = state.max_depth, state.passed
         self.failure = None  # a snapshot is a world that was still stable
 
-    def mount_home_poses(self) -> dict[str, np.ndarray]:
+    def mount_home_poses(self) -> dict[ArmName, np.ndarray]:
         """Where the mounts start: 'left'/'right' -> (4, 4) world <- mount (tool axis z into the bag)."""
         return {k: v.copy() for k, v in self.layout.mount_home.items()}
 
-    def set_mount_targets(self, T_world_mount: dict[str, np.ndarray]) -> None:
+    def set_mount_targets(self, T_world_mount: Mapping[ArmName, np.ndarray]) -> None:
         """The mounts go to these poses ('left'/'right' -> (4, 4) world <- mount) over the next step."""
-        checked = {}
+        checked: dict[ArmName, np.ndarray] = {}
         for name, T in T_world_mount.items():
             if name not in self._mocap:
                 raise BadControlInput(f"no mount named {name!r} (have {', '.join(self._mocap)})")
@@ -234,17 +235,17 @@ class SimWorld:
             self._target_pos[name] = T[:3, 3].copy()
             self._target_quat[name] = _quat_of(T[:3, :3])
 
-    def mount_poses(self) -> dict[str, np.ndarray]:
+    def mount_poses(self) -> dict[ArmName, np.ndarray]:
         """Where the mounts are now: 'left'/'right' -> (4, 4) world <- mount."""
         return {n: make_transform(_mat_of(self.data.mocap_quat[i]), self.data.mocap_pos[i].copy()) for n, i in self._mocap.items()}
 
-    def mount_forces(self) -> dict[str, np.ndarray]:
+    def mount_forces(self) -> dict[ArmName, np.ndarray]:
         """'left'/'right' -> (3,) the force (N, world) the bag pulls on each mount with, through its
         clamps: what an arm's joint torques would feel (about the bag's weight at rest; far more once
         the arms stretch the rim taut)."""
         d = self.data
         rows = np.nonzero(np.asarray(d.efc_type) == mujoco.mjtConstraint.mjCNSTR_EQUALITY)[0]
-        out = {}
+        out: dict[ArmName, np.ndarray] = {}
         for name in ARMS:
             mine = rows[self._eq_mount[np.asarray(d.efc_id)[rows]] == name]
             out[name] = np.asarray(d.efc_force)[mine].reshape(-1, 3).sum(axis=0) if len(mine) else np.zeros(3)
