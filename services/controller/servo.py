@@ -246,8 +246,7 @@ class ServoBase:
         `pending (12,)`: the motion the arm side has taken and not yet made (None: none known), which
         the law predicts from (see `_predicted`); `slowed`: the arm side could not make its last step
         (its joints), so that motion is not coming and is not asked for again (see `_bar_unmade`)."""
-        if self.tracker is None:
-            raise BadControlInput("step() before reset(): the controller has no path")
+        tracker = self._path_tracker()
         self.ticks += 1
         reason = self.guard.check(x, now, source_stamp) or pose_problem(gripper_poses)
         if reason is not None:
@@ -271,10 +270,10 @@ class ServoBase:
                 self.jacobian = BroydenJacobian(J0, self.p.controller.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
             except NUMERIC_ERRORS as e:
                 return self._hold(f"no Jacobian estimate from the exploration: {e}", x)
-        idx = self.tracker.update(x)
+        idx = tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
-        if self.tracker.settling:  # still at g†: the bag settles before the lift
+        if tracker.settling:  # still at g†: the bag settles before the lift
             return self._out(np.zeros(12), "settle", None, x)
         goal = self.path[-1] if self.aims_at_goal else self.path[idx]
         pending = self._valid_pending(pending)
