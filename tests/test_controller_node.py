@@ -1,7 +1,7 @@
 """The controller service on Zenoh with in-process peers: a synthetic deformable rim (its equations
 unknown to the controller) stands in for the bag, the camera and the arms, publishing SoiState and
-ArmState; the node servos it to the goal along the path, holds with a reason within a tick of the
-SOI going stale, stops on the run's end, and survives an exception in the control law."""
+ArmState; the node servos it to the goal along the path, holds with a reason once the SOI has gone
+stale, stops on the run's end, and survives an exception in the control law."""
 
 import sys
 import threading
@@ -182,7 +182,12 @@ def test_stale_soi_holds_within_a_tick_of_the_age_limit_and_the_run_end_stops_se
     assert wait_until(lambda: any(c.mode == "hold" and "stale" in (c.reason or "") for _, c in plant.cmds), 3.0)
     t_hold, hold = next((t, c) for t, c in plant.cmds if c.mode == "hold" and "stale" in (c.reason or ""))
     assert np.all(hold.u == 0) and hold.run_id == "r1"
-    assert 0.3 <= t_hold - t_last <= 0.3 + 1 / 60 + 0.1, t_hold - t_last  # within a tick (+ scheduling)
+    # never early, judged on the clocks the node itself reads (the camera stamp, its own stamp); how
+    # soon after the limit it holds is the session's rule, checked tick by tick with an injected `now`
+    # in test_controller_session (a wall-clock bound here would measure the machine's load)
+    age = float(hold.reason.split("(")[1].split(" s old")[0])
+    assert age > 0.3 and hold.stamp - max(plant.soi_stamps) > 0.3, (hold.reason, hold.stamp - max(plant.soi_stamps))
+    assert t_hold > t_last
     assert not any(c.mode == "servo" for t, c in plant.cmds if t > t_hold)
     assert wait_until(lambda: any(s.mode == "hold" and "stale" in (s.reason or "") for s in statuses), 1.0)
     # the run is aborted: one hold with the reason, then silence

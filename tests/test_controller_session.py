@@ -59,7 +59,9 @@ def test_the_same_soi_twice_is_a_keep_alive_that_moves_nothing():
     assert first.command.mode == "servo" and not first.keepalive and first.status is not None
     again = s.tick(soi, 0.05, SOI_MAX_AGE_S, g, None, None, path, None, 1.05)
     assert again.keepalive and again.status is None and again.command.reason == KEEPALIVE and not np.any(again.command.u)
-    stale = s.tick(soi, SOI_MAX_AGE_S + 0.1, SOI_MAX_AGE_S, g, None, None, path, None, 1.6)
+    at_limit = s.tick(soi, SOI_MAX_AGE_S, SOI_MAX_AGE_S, g, None, None, path, None, 1.1)
+    assert at_limit.keepalive  # up to the age limit the stream is kept alive ...
+    stale = s.tick(soi, SOI_MAX_AGE_S + 1e-6, SOI_MAX_AGE_S, g, None, None, path, None, 1.6)  # ... the first tick past it holds
     assert stale.command.mode == "hold" and "stale" in stale.command.reason
     after = s.tick(soi, 0.0, SOI_MAX_AGE_S, g, None, None, path, None, 1.65)
     assert after.command is None  # after a hold, no keep-alive restarts the stream: only a new SOI does
