@@ -128,6 +128,7 @@ class ServoSession:
         self.dt = 1.0 / rate_hz
         self.dt_max = max(WATCHDOG_MARGIN * watchdog_s, self.dt)
         self.keepalive_s = KEEPALIVE_SHARE * watchdog_s
+        self.tick_s = tick_period(rate_hz, watchdog_s)  # how often the host ticks it (most ticks keep-alives when the rate is slower)
         self.next_seq = next_seq
         self.seq = 0  # the last command's
         self.last_soi: tuple[int, float] | None = None  # (seq, source stamp) of the last SOI acted on
@@ -228,12 +229,6 @@ class ServoSession:
             self.finished = "done"
             report = f"run {self.run_id}: at g* (error {ctl.error_to_goal * 1000:.1f} mm after {c.ticks} ticks)"
         return Outbox(cmd, status, report)
-
-    @property
-    def tick_s(self) -> float:
-        """How often the host ticks the session: the control period, or the keep-alive pace when the
-        control rate is slower than that (then most ticks are keep-alives)."""
-        return min(self.dt, self.keepalive_s)  # = tick_period(rate_hz, watchdog_s), bit for bit
 
     def control_due(self, now: float) -> bool:
         """A new SOI may be acted on at `now`: always when the host ticks at the control rate; with a
