@@ -123,6 +123,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.json:
             print(f"bagit {args.command}: failed: {result.get('reason', 'unknown reason')}", file=sys.stderr)
         return 1
+    if result.get("exact") is False and not getattr(args, "allow_inexact", False):  # never a silent success
+        why = "; ".join(result.get("inexact") or []) or "unknown reason"
+        print(f"bagit {args.command}: the run is not exact (it may differ from `bagit run`'s): {why}", file=sys.stderr)
+        return 1
     return 0
 
 

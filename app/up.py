@@ -1,7 +1,8 @@
 """`bagit up`: the whole rig on one machine, every service its own process, on loopback.
 
 The composition root of the distributed rig. It writes, in a scratch folder, a Zenoh config
-(peers on 127.0.0.1, multicast scouting off, 1 s lease, every peer connected to the hub session
+(peers on 127.0.0.1, multicast scouting off, a 1 s lease on the wall clock and a 60 s one in lockstep,
+every peer connected to the hub session
 this process listens with), a rig YAML (free ports for the simulated CR5s) and an arm-driver
 config (link time-outs for controllers that share the CPU, `SIM_DRIVER_TIMEOUTS`), then starts
 the services as child processes (`python -m bagit.cli <service> ...`), streams their output with
@@ -35,6 +36,7 @@ from typing import Any, Literal, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
+from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
 from bagit.common.names import FINAL_STAGES
 from bagit.common.params import MethodParams
@@ -53,6 +55,7 @@ AFTER = {"arm-driver": "sim"}
 # pause. The watchdog on the controller's commands and every motion limit stay as they are.
 WALL_FPS = 10.0  # --clock wall: camera frames per second a 2-core machine keeps up with beside every service
 WALL_TIME_LIMIT_S = 360.0  # --clock wall: a run's servoing limit, wide for a simulator slower than real time
+WALL_LEASE_MS = 1000  # --clock wall: the links' lease (a silent service is declared gone after it)
 SIM_DRIVER_TIMEOUTS = {"feedback_timeout_s": 1.0, "reply_timeout_s": 2.0}
 
 
@@ -77,7 +80,7 @@ def free_ports(n: int) -> list[int]:
             s.close()
 
 
-def zenoh_config(hub: str, lease_ms: int = 1000) -> dict[str, Any]:
+def zenoh_config(hub: str, lease_ms: int = WALL_LEASE_MS) -> dict[str, Any]:
     """The children's Zenoh config: peers on loopback, connected to the hub, no multicast."""
     return {
         "mode": "peer",
@@ -175,11 +178,17 @@ class Up:
         if self.on_line is not None:
             self.on_line(who, text)
 
+    @property
+    def lease_ms(self) -> int:
+        """The links' lease: in lockstep longer than any pause a run survives exactly (`LOCKSTEP_LEASE_MS`),
+        so a stopped service keeps its links and its token; on the wall clock 1 s, so a hung one is seen."""
+        return LOCKSTEP_LEASE_MS if self.opts.clock == "lockstep" else WALL_LEASE_MS
+
     def _write_configs(self) -> tuple[Path, Path]:
         hub_port, *cr5 = free_ports(5)
         self.hub = f"tcp/127.0.0.1:{hub_port}"
         zpath = self.dir / "zenoh.json5"
-        zpath.write_text(json.dumps(zenoh_config(self.hub), indent=2), encoding="utf-8")
+        zpath.write_text(json.dumps(zenoh_config(self.hub, self.lease_ms), indent=2), encoding="utf-8")
         rig = RigConfig(name=self.opts.rig)
         arms = {
             "left": rig.arms["left"].model_copy(update={"dashboard_port": cr5[0], "feedback_port": cr5[1]}),
@@ -223,7 +232,7 @@ class Up:
         if missing:
             raise BusError(f"no `bagit {missing[0]}` command in this build: cannot start the {missing[0]} service")
         zpath, rpath = self._write_configs()
-        self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub]))
+        self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
         self.arm_states = LatestCache(self.session, self.keys.arm_state_any, ArmState)

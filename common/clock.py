@@ -84,6 +84,7 @@ class SimClock:
     def __init__(self, t0: float = 0.0) -> None:
         self._t = float(t0)
         self._tick: tuple[int, float] = (-1, float("-inf"))  # (servo tick number, its time)
+        self._event: tuple[float, int | None] = (float("-inf"), None)  # the newest step heard: (time, its servo tick or None)
         self._cond = threading.Condition()
 
     def now(self) -> float:
@@ -97,6 +98,9 @@ class SimClock:
                 self._t = float(t)
             if servo_tick is not None and servo_tick > self._tick[0]:
                 self._tick = (int(servo_tick), float(t))
+                self._event = (float(t), int(servo_tick))
+            elif t > self._event[0]:
+                self._event = (float(t), None)
             self._cond.notify_all()
 
     def wait_until(self, t: float, stop: threading.Event, timeout: float | None = None) -> bool:
@@ -120,6 +124,19 @@ class SimClock:
                     return None
                 self._cond.wait(left)
             return self._tick if self._tick[0] > after else None
+
+
+    def next_event(self, after: float, stop: threading.Event, timeout: float | None = None) -> tuple[float, int | None] | None:
+        """The newest step the simulator announced later than time `after`, as (t, servo tick number or
+        None); None on `stop` or `timeout` (wall s)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._event[0] <= after and not stop.is_set():
+                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+            return self._event if self._event[0] > after else None
 
 
 def make_clock(kind: ClockKind) -> WallClock | SimClock:

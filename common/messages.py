@@ -333,6 +333,8 @@ class StepAck(Message):
     status_seq: int | None = None  # controller: the status it sent for the frame; planner: that status handled
     tick: int | None = Field(None, ge=0)
     servo_sent: dict[str, int] | None = None
+    late: str | None = Field(None, max_length=1000, description="what this answer went without after waiting the lockstep time-out: "
+                             "the step may differ from `bagit run`'s")
 
 
 class SimTruth(Message):
@@ -350,6 +352,8 @@ class SimTruth(Message):
     max_penetration_m: float = 0.0
     clearance_m: float = 0.0
     final: bool = False  # the world as run `run_id` ended (published once, at that step), not a periodic sample
+    exact: bool | None = None  # lockstep: every step of the run was answered in full (None: not lockstep)
+    inexact: list[str] = Field(default_factory=list, max_length=100)  # lockstep: why it was not (drops, late answers)
 
     @field_validator("rim")
     @classmethod

@@ -49,7 +49,7 @@ class RunTruth(BaseModel):
     max_penetration_mm: float = 0.0
     lift_margin_cm: float | None = Field(
         None, description="the true rim's margin round V when the lift from g† began (cm; < 0: a vertex outside)")
-    realtime_factor: float | None = None
+    realtime_factor: float | None = Field(None, description="simulated over wall seconds, over the whole run (from its reset to its end)")
 
 
 class Provenance(BaseModel):
@@ -100,6 +100,9 @@ class RunResult(BaseModel):
     marker: dict[str, Any] | None = Field(None, description="the marker detection behind V: id, name, height, V error to the scenario's")
     lift_margin_cm: float | None = None
     truth: RunTruth | None = None
+    exact: bool | None = Field(None, description="bagit up in lockstep: every step was answered in full, so the run is "
+                               "`bagit run`'s computation; False: see `inexact`; None: not a lockstep run")
+    inexact: list[str] = Field(default_factory=list, description="why a lockstep run is not exact (a service dropped, a late answer)")
     provenance: Provenance | None = None
 
     def headline(self) -> str:

@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout", type=_args.positive_seconds, default=600.0, help="with --exit-when-done: give up after S seconds (default 600)")
     p.add_argument("--status-file", type=Path, help="write the rig's status (child PIDs, hub endpoint, URL) here as JSON")
     p.add_argument("--services", metavar="LIST", help="comma-separated subset of the services to start (default: all)")
+    p.add_argument("--allow-inexact", action="store_true",
+                   help="with --exit-when-done: exit 0 for a successful lockstep run that could not stay exact (a service "
+                        "dropped from the wait, an answer made without what it waited for); by default that exits 1")
     p.add_argument("--workdir", type=Path, help="folder for the generated Zenoh config and rig YAML (default: a temporary one)")
 
 
@@ -131,7 +134,7 @@ def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argpars
                          arms="cr5", reason=reason, wall_s=round(wall_s, 3), provenance=provenance())
     res = RunResult.model_validate(state.result) if state.result else RunResult(
         run_id=run_id, scenario=state.scenario, seed=args.seed, stage_reached=state.stage, reason=state.reason)
-    truth, final_rim = _truth(up, state, stop)
+    truth, final_rim, sim_truth = _truth(up, state, stop)
     arm = up.arm_states.get(up.keys.arm_state("left")) if up.arm_states is not None else None
     events = {k: int((arm.events if arm is not None else {}).get(k, 0)) for k in ARM_EVENT_KINDS}
     ok = res.success and (truth is None or truth.success)
@@ -146,12 +149,20 @@ def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argpars
     return res.model_copy(update=dict(
         arms="cr5", success=ok, reason=reason, truth=truth, error_cm=truth.error_cm if truth is not None else res.error_cm,
         final_rim=points_list(final_rim) if final_rim is not None else res.final_rim, wall_s=round(wall_s, 3), arm_events=events,
-        provenance=provenance(params)))
+        exact=_exact(sim_truth, args), inexact=list(sim_truth.inexact) if sim_truth is not None else [], provenance=provenance(params)))
 
 
-def _truth(up: Any, state: Any, stop: Any) -> tuple[Any, np.ndarray | None]:
-    """The run judged on the simulator's ground truth (`services.sim.judge`), and the true rim at `n_x`
-    points; (None, None) without a simulator (a real rig has no ground truth)."""
+def _exact(sim_truth: Any, args: argparse.Namespace) -> bool | None:
+    """Lockstep: whether the simulator answered every step of the run in full (False without its final truth);
+    None on the wall clock (a run there is never `bagit run`'s, bit for bit)."""
+    if getattr(args, "clock", "lockstep") != "lockstep":
+        return None
+    return bool(sim_truth is not None and sim_truth.final and sim_truth.exact)
+
+
+def _truth(up: Any, state: Any, stop: Any) -> tuple[Any, np.ndarray | None, Any]:
+    """The run judged on the simulator's ground truth (`services.sim.judge`), the true rim at `n_x` points
+    and the SimTruth it came from; (None, None, None) without a simulator (a real rig has no ground truth)."""
     import time
 
     from bagit.common.geometry import resample_closed
@@ -161,7 +172,7 @@ def _truth(up: Any, state: Any, stop: Any) -> tuple[Any, np.ndarray | None]:
     from bagit.services.sim.judge import truth_of
 
     if up.truth is None or state.scenario_doc is None:
-        return None, None
+        return None, None, None
     deadline = time.monotonic() + 3.0
     # the world as the run ended (the simulator's final truth); a periodic sample of the run only if none comes
     while (t := up.final_truths.get(state.run_id)) is None:
@@ -169,12 +180,12 @@ def _truth(up: Any, state: Any, stop: Any) -> tuple[Any, np.ndarray | None]:
             t = up.truth.get()
             if t is not None and t.run_id == state.run_id:
                 break
-            return RunTruth(success=False, reason="no ground truth from the simulator for this run"), None
+            return RunTruth(success=False, reason="no ground truth from the simulator for this run"), None, None
     scenario = Scenario.model_validate(state.scenario_doc)
     V = scenario.object.bottom_vertices()
     truth = truth_of(np.asarray(t.rim), t.passed_through, t.max_penetration_m, scenario, bottom_frame(V)[:3, 2],
                      realtime_factor=t.realtime_factor)
-    return truth, resample_closed(np.asarray(t.rim), scenario.bag.n_x)
+    return truth, resample_closed(np.asarray(t.rim), scenario.bag.n_x), t
 
 
 def human(r: dict[str, Any]) -> str:

@@ -52,6 +52,10 @@ class QoS:
     priority: PriorityName
     express: bool = False
 
+    def reliable(self) -> QoS:
+        """The same priority, but every sample delivered: reliable, and a full queue blocks the publisher."""
+        return QoS("reliable", "block", self.priority, self.express)
+
     def publisher_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for zenoh.Session.declare_publisher."""
         return {
@@ -89,23 +93,27 @@ class KeySpec:
     qos: QoS | None
     kind: Literal["pub", "query", "liveliness"]
     why: str
+    # A lockstep simulator's step waits for samples on this key (a frame, an SOI, an arm state...): under
+    # lockstep it is published reliable and blocking (`QoS.reliable`), since one dropped sample would
+    # leave a service waiting, or answering without it, and the run different from `bagit run`'s.
+    lockstep: bool = False
 
 
 # The key space and QoS, in one place (docs/architecture.md's "Zenoh key space and QoS" is generated from this).
 KEY_TABLE: tuple[KeySpec, ...] = (
-    KeySpec("camera/rgbd", RgbdFrame, STATE, "pub", "640x480 colour + depth, ~1.5 MB; a stale frame is useless"),
+    KeySpec("camera/rgbd", RgbdFrame, STATE, "pub", "640x480 colour + depth, ~1.5 MB; a stale frame is useless", lockstep=True),
     KeySpec("perception/cloud", PointCloud, DISPLAY, "pub", "down-sampled cloud, for display only"),
-    KeySpec("perception/soi", SoiState, STATE_HIGH, "pub", "rim estimate; the controller wants the newest"),
+    KeySpec("perception/soi", SoiState, STATE_HIGH, "pub", "rim estimate; the controller wants the newest", lockstep=True),
     KeySpec("perception/object", ObjectDetection, STATE, "pub",
-            "marker id, object and its outline V in the world, ~1 Hz while a run perceives; the newest replaces the last"),
+            "marker id, object and its outline V in the world, ~1 Hz while a run perceives; the newest replaces the last", lockstep=True),
     KeySpec("planner/goal", Goal, RESULT, "pub", "g† and g* of a run: once per run, must arrive"),
     KeySpec("planner/path", PathMsg, RESULT, "pub", "SOI path of a run: once per run, must arrive"),
     KeySpec("controller/cmd", Command, COMMAND, "pub",
             "arm increments: none may be lost or reordered; `source_stamp` = the camera stamp of the SOI it came from "
             "(0 for a hold without one); `run_id` must be the servoing run's"),
-    KeySpec("controller/status", ControllerStatus, DISPLAY, "pub", "per-tick errors and solve time, for live plots"),
-    KeySpec("arm/*/state", ArmState, STATE_HIGH, "pub", "joint and tool state of the left or right arm; newest wins"),
-    KeySpec("run/state", RunState, STATE, "pub", "run id, stage, progress, reason; republished periodically"),
+    KeySpec("controller/status", ControllerStatus, DISPLAY, "pub", "per-tick errors and solve time, for live plots", lockstep=True),
+    KeySpec("arm/*/state", ArmState, STATE_HIGH, "pub", "joint and tool state of the left or right arm; newest wins", lockstep=True),
+    KeySpec("run/state", RunState, STATE, "pub", "run id, stage, progress, reason; republished periodically", lockstep=True),
     KeySpec("run/control", RunControl, CONTROL, "query", "queryable: start, stop or reset; answered by a RunControlReply"),
     KeySpec("estop", EStop, ESTOP, "pub", "emergency stop: highest priority, express, reliable; released only by `source` dashboard or cli"),
     KeySpec("alive/*", None, None, "liveliness", "liveliness token per service; gone within ~1 s of its death"),
@@ -186,6 +194,8 @@ def key_table_markdown(rig: str = "<rig>") -> str:
             q = ["-", "-", "-", "-"]
         else:
             q = [r.qos.reliability.replace("_", "-"), r.qos.congestion, _priority_label(r.qos), "yes" if r.qos.express else "no"]
+            if r.lockstep and r.qos.reliability != "reliable":
+                q[0], q[1] = q[0] + " (lockstep: reliable)", q[1] + " (lockstep: block)"
         lines.append(f"| `{r.key}` | {msg} | {r.kind} | " + " | ".join(q) + f" | {r.why} |")
     return "\n".join(lines)
 

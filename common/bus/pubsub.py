@@ -26,7 +26,7 @@ log = logging.getLogger("bagit.bus")
 M = TypeVar("M", bound=Message)
 
 
-def _default_qos(key: str, msg_type: type[Message]) -> QoS:
+def _default_qos(key: str, msg_type: type[Message], lockstep: bool = False) -> QoS:
     parts = key.split("/")
     if len(parts) < 3 or parts[0] != "bagit":
         raise BusError(f"key {key!r} is outside bagit/<rig>/...; pass qos= explicitly")
@@ -35,7 +35,7 @@ def _default_qos(key: str, msg_type: type[Message]) -> QoS:
         raise BusError(f"key {key!r} is not in the key table; pass qos= explicitly")
     if spec.message is not msg_type:
         raise BusError(f"key {key!r} carries {spec.message.__name__ if spec.message else 'no message'}, not {msg_type.__name__}")
-    return spec.qos
+    return spec.qos.reliable() if lockstep and spec.lockstep else spec.qos
 
 
 def encoding_for(msg_type: type[Message]) -> zenoh.Encoding:
@@ -44,12 +44,13 @@ def encoding_for(msg_type: type[Message]) -> zenoh.Encoding:
 
 
 class Publisher(Generic[M]):
-    """Puts messages of one type on one key with that key's QoS (from KEY_TABLE unless given)."""
+    """Puts messages of one type on one key with that key's QoS (from KEY_TABLE unless given; with
+    `lockstep`, a key a lockstep step waits on goes reliable and blocking: `KeySpec.lockstep`)."""
 
-    def __init__(self, session: zenoh.Session, key: str, msg_type: type[M], qos: QoS | None = None) -> None:
+    def __init__(self, session: zenoh.Session, key: str, msg_type: type[M], qos: QoS | None = None, lockstep: bool = False) -> None:
         self.key = key
         self.msg_type = msg_type
-        self.qos = qos or _default_qos(key, msg_type)
+        self.qos = qos or _default_qos(key, msg_type, lockstep)
         self.sent = 0
         self._pub = session.declare_publisher(key, encoding=encoding_for(msg_type), **self.qos.publisher_kwargs())
 

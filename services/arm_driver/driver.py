@@ -66,6 +66,7 @@ from bagit.common import cr5
 from bagit.common.clock import Clock, SimClock, WallClock
 from bagit.common.dobot import RobotMode, describe_alarm
 from bagit.common.errors import BagItError, ProtocolError, SafetyViolation
+from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, Command, EStop
 from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.common.so3 import matrix_to_rpy
@@ -100,7 +101,9 @@ class ArmDriver:
         self.frames = {a: ArmFrames.from_config(self.rig.arms[a]) for a in ARMS}
         self.clock: Clock = WallClock()
         self._now: Callable[[], float] = time.monotonic  # the motion's clock: monotonic wall, or the rig's
-        self.on_tick: Callable[[int, dict[str, int]], None] | None = None  # lockstep: (tick, ServoPs sent per arm)
+        self.on_tick: Callable[[int, dict[str, int], str | None], None] | None = None  # lockstep: (tick, ServoPs sent per arm, late)
+        self._feedback_wait = StepWait()  # lockstep: a feedback packet wakes the wait for a step's
+        self._late: str | None = None  # lockstep: what this step's cycle went without
         self.servo_sent = {a: 0 for a in ARMS}
         self.on_state = on_state
         self.on_event = on_event  # (kind, detail) for estop, fault, watchdog, link_lost, ...; must not block
@@ -144,7 +147,7 @@ class ArmDriver:
 
     # -- life cycle ------------------------------------------------------------------------------
 
-    def set_clock(self, clock: Clock, on_tick: Callable[[int, dict[str, int]], None] | None = None) -> None:
+    def set_clock(self, clock: Clock, on_tick: Callable[[int, dict[str, int], str | None], None] | None = None) -> None:
         """Run on `clock` (before `start`): a SimClock makes the loop cycle on the simulator's servo ticks."""
         if self.started:
             raise BagItError("set_clock() before start()")
@@ -234,6 +237,7 @@ class ArmDriver:
             time.sleep(self.period / 3)
         time.sleep(2 * self.period)  # the last ServoP's `t` runs out and its reply comes back
         self._stop.set()
+        self._feedback_wait.notify()
         for t in self._threads:
             t.join(timeout=2.0)
         self._threads.clear()
@@ -406,11 +410,18 @@ class ArmDriver:
 
     def _feedback_callback(self, arm: ArmName) -> Callable[[np.ndarray, float], None]:
         def on_packet(rec: np.ndarray, t: float) -> None:
+            if self.clock.simulated:  # lockstep: the step's states go out from the loop, after its cycle
+                self._feedback_wait.notify()
+                return
             cb = self.on_state
             if cb is not None:
-                cb(self._with_aim(feedback_state(arm, rec, self.frames[arm], estopped=self.state.estop, stamp=self._stamp(rec))))
+                cb(self._state_of(arm, rec))
 
         return on_packet
+
+    def _state_of(self, arm: ArmName, rec: np.ndarray) -> ArmState:
+        """An arm's state from a feedback record, with the driver's aim and e-stop laid over."""
+        return self._with_aim(feedback_state(arm, rec, self.frames[arm], estopped=self.state.estop, stamp=self._stamp(rec)))
 
     def _stamp(self, rec: np.ndarray) -> float:
         """When a feedback packet was true, on the rig's clock (a simulated controller stamps its own time)."""
@@ -594,43 +605,62 @@ class ArmDriver:
                 self._stop.wait(delay)
 
     def _lockstep_loop(self, clock: SimClock) -> None:
-        """One cycle per servo tick of the simulator, on the feedback of that step, then `on_tick`."""
-        last = -1
+        """One pass per step the simulator announces on sim/clock: on the feedback of that step, a servo
+        cycle if it is a servo tick, then both arms' states (`on_state`, after the cycle: what the step's
+        frame sees, as `bagit run` reads the arms after its servo period), then `on_tick` for a servo tick.
+        States come from here only, never from the feedback thread, so none races a cycle."""
+        last_t, last_tick = float("-inf"), -1
         while not self._stop.is_set():
-            tick = clock.next_tick(last, self._stop, timeout=0.2)
-            if tick is None:
+            event = clock.next_event(last_t, self._stop, timeout=1.0)
+            if event is None:
                 continue
-            last, t = tick
-            self._await_feedback(t)
-            t0 = time.monotonic()
-            self.cycle_starts.append(t0)
+            last_t, n = event
+            self._late = None
+            self._await_feedback(last_t)
             before = dict(self.servo_sent)
-            try:
-                self._cycle(t0)
-            except Exception as e:  # never let the loop die: whatever went wrong becomes a fault
-                with self._lock:
-                    self._set_fault(f"servo loop: {e if isinstance(e, BagItError) else repr(e)}")
-            self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
-            cb = self.on_tick
-            if cb is not None:
+            if n is not None and n > last_tick:
+                last_tick = n
+                t0 = time.monotonic()
+                self.cycle_starts.append(t0)
                 try:
-                    cb(last, {a: self.servo_sent[a] - before[a] for a in ARMS})
+                    self._cycle(t0)
+                except Exception as e:  # never let the loop die: whatever went wrong becomes a fault
+                    with self._lock:
+                        self._set_fault(f"servo loop: {e if isinstance(e, BagItError) else repr(e)}")
+                self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
+            self._publish_states()
+            cb = self.on_tick
+            if n is not None and cb is not None:
+                try:
+                    cb(n, {a: self.servo_sent[a] - before[a] for a in ARMS}, self._late)
                 except Exception as e:  # noqa: BLE001 - a closing bus must not stop the arms' loop
                     self._event("tick_callback", repr(e))
 
+    def _publish_states(self) -> None:
+        """Both arms' states from their newest feedback (lockstep: once per step, after its cycle)."""
+        cb = self.on_state
+        if cb is None:
+            return
+        for a in ARMS:
+            rec, _ = self.clients[a].latest()
+            if rec is not None:
+                cb(self._state_of(a, rec))
+
     def _await_feedback(self, t: float) -> None:
-        """Until both arms' feedback shows the step at `t` (a simulated controller stamps it), at most
-        the feedback time-out: a link that went quiet is the supervisor's business, not this wait's."""
+        """Until both arms' feedback shows the step at `t` (a simulated controller stamps it), woken by each
+        packet (`StepWait`), at most the lockstep time-out: a link that went quiet is the supervisor's
+        business, not this wait's, and a tick cycled without its step's feedback says so (`lockstep_late`)."""
         due_ms = round(t * 1000.0)
-        deadline = time.monotonic() + self.cfg.feedback_timeout_s
-        while not self._stop.is_set() and time.monotonic() < deadline:
+
+        def ready() -> bool:
             recs = [self.clients[a].latest()[0] for a in ARMS]
-            if all(r is not None and int(r["TimeStamp"]) >= due_ms for r in recs):
-                return
-            time.sleep(0.0005)
-        if not self._stop.is_set():
-            self.counters["lockstep_late"] += 1
-            self._event("lockstep", f"servo tick at {t:.3f}: cycled without the feedback of that step")
+            return all(r is not None and int(r["TimeStamp"]) >= due_ms for r in recs)
+
+        if self._feedback_wait.wait(ready, self._stop) or self._stop.is_set():
+            return
+        self.counters["lockstep_late"] += 1
+        self._late = "the feedback of its step"
+        self._event("lockstep", f"servo tick at {t:.3f}: cycled without the feedback of that step")
 
     def _cycle(self, t0: float) -> bool:
         """One servo period; True if motion commands went out."""
@@ -695,13 +725,17 @@ class ArmDriver:
 
     def _check_replies(self, now: float) -> None:
         """Earlier periods' ServoP replies: a refusal is a fault; missing or garbled ones add up to one."""
+        # Lockstep: the simulated controller has taken every ServoP of the last tick (the world waited for
+        # it), so its reply is on the way: waited for from now, never judged by a wall-clock age a pause
+        # of this process (or of the simulator) would inflate.
+        lockstep = self.clock.simulated
         for a in ARMS:
             queue = self._in_flight[a]
-            while queue and (queue[0].done or now - queue[0].sent_at >= self.cfg.reply_timeout_s):
+            while queue and (lockstep or queue[0].done or now - queue[0].sent_at >= self.cfg.reply_timeout_s):
                 p = queue.popleft()
                 c = self.clients[a]
                 try:
-                    c.check(c.wait(p, timeout=0.0))
+                    c.check(c.wait(p, timeout=self.cfg.reply_timeout_s if lockstep and not p.done else 0.0))
                     if not self.state.failed(a):
                         continue  # a good reply with no tally to reset: no need to take the lock
                     event: m.Event = m.ReplyOk(a)

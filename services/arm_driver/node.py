@@ -40,6 +40,7 @@ import zenoh  # noqa: F401 - the node is where the service meets the bus
 from bagit.common.bus import Keys, Publisher, Subscriber, rig_clock
 from bagit.common.clock import ClockKind
 from bagit.common.errors import BagItError
+from bagit.common.lockstep import LOCKSTEP_TIMEOUT_S
 from bagit.common.messages import ArmState, Command, EStop, RunState, StepAck
 from bagit.common.names import ACTIVE_STAGES, FINAL_STAGES
 from bagit.common.results import ARM_EVENT_KINDS
@@ -52,7 +53,6 @@ log = logging.getLogger("bagit.arm_driver")
 REPEAT_S = 5.0  # the same event is printed again at most this often
 # Events that are the driver going about its work: logged at INFO and not shown on ArmState.
 ROUTINE_EVENTS = frozenset({"started", "closed", "estop_reset", "fault_cleared", "reconnected"})
-LOCKSTEP_PARK_S = 1.0  # lockstep: a run's first command waits this long (wall) for the run/state that lets it through
 
 
 class ArmDriverNode:
@@ -81,13 +81,14 @@ class ArmDriverNode:
         self.commands = 0
         self.refused = 0
         self.estops = 0
-        self._pubs = {a: Publisher(session, keys.arm_state(a), ArmState) for a in ARMS}
+        self._pubs = {a: Publisher(session, keys.arm_state(a), ArmState, lockstep=clock == "sim") for a in ARMS}
         # the run gate: run/state as last heard, and the run the arms last streamed for; `_gate` makes
         # a command's check and its submit one step against a run/state that ends the run
         self._gate = threading.Lock()
         self._run_state: RunState | None = None
         self._streaming_run: str | None = None
         self._parked: tuple[Command, threading.Timer] | None = None  # lockstep: a command waiting for its run/state
+        self._run_id: str | None = None  # the last run started (run/state)
         self._park_lock = threading.Lock()
         driver.on_state = self._on_state
         driver.on_event = self._on_event
@@ -98,7 +99,6 @@ class ArmDriverNode:
         driver.start()  # ProtocolError: a controller is unreachable or refuses; nothing declared yet
         self._estop_sub = Subscriber(session, keys.estop, EStop, self._on_estop)
         self._cmd_sub = Subscriber(session, keys.controller_cmd, Command, self._on_command)
-        self._run_id: str | None = None
         self._run_sub = Subscriber(session, keys.run_state, RunState, self._on_run_state)
 
     @property
@@ -114,6 +114,7 @@ class ArmDriverNode:
             refusal = command_refusal(cmd, self._run_state)
             if refusal is not None and self._may_park(cmd, refusal):
                 return
+            expired = self._parked is not None and self._parked[0] is cmd
             self._parked = None
             if refusal is None:
                 ok = self.driver.submit(cmd)
@@ -124,7 +125,8 @@ class ArmDriverNode:
             if ok and cmd.mode == "servo":
                 self._streaming_run = cmd.run_id
         if self._ack is not None:
-            self._answer(StepAck(service="arm-driver", run_id=cmd.run_id, cmd_seq=cmd.seq))
+            late = "the run/state that lets its command through" if expired and not ok else None
+            self._answer(StepAck(service="arm-driver", run_id=cmd.run_id, cmd_seq=cmd.seq, late=late))
         with self._lock:
             self.commands += 1
             if not ok:
@@ -141,13 +143,14 @@ class ArmDriverNode:
     def _may_park(self, cmd: Command, refusal: Refusal) -> bool:
         """Lockstep: the first command of a run that run/state still shows planning waits (unanswered, so
         the simulator waits too) for the run/state that lets it through: the two come on their own keys
-        and either may arrive first. Judged again on that run/state, or refused after LOCKSTEP_PARK_S."""
+        and either may arrive first. Judged again on that run/state, or refused after the lockstep
+        time-out (its answer then says so: the run is not exact)."""
         st = self._run_state
         if self._ack is None or refusal.reason != NO_ACTIVE_RUN or st is None or st.run_id != cmd.run_id or st.stage not in ACTIVE_STAGES:
             return False
         if self._parked is not None and self._parked[0] is cmd:
             return False  # its time is up: it stays refused
-        timer = threading.Timer(LOCKSTEP_PARK_S, self._unpark, kwargs={"expired": True})
+        timer = threading.Timer(LOCKSTEP_TIMEOUT_S, self._unpark, kwargs={"expired": True})
         timer.daemon = True
         self._parked = (cmd, timer)
         timer.start()
@@ -165,8 +168,8 @@ class ArmDriverNode:
                 self._parked = None
         self._on_command(parked[0])
 
-    def _on_tick(self, tick: int, sent: dict[str, int]) -> None:
-        self._answer(StepAck(service="arm-driver", tick=tick, servo_sent=sent))
+    def _on_tick(self, tick: int, sent: dict[str, int], late: str | None = None) -> None:
+        self._answer(StepAck(service="arm-driver", run_id=self._run_id, tick=tick, servo_sent=sent, late=late))
 
     def _answer(self, ack: StepAck) -> None:
         try:

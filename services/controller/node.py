@@ -46,6 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.clock import ClockKind
+from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
@@ -67,7 +68,6 @@ log = logging.getLogger("bagit.controller")
 
 CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
 SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at least this share of a period after the last one
-LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a tick waits for its frame's SOI, run state and arm states
 KEEPALIVE_TICK = "sim-keepalive"  # lockstep: a keep-alive tick from sim/clock, queued with the frames to tick on
 
 
@@ -115,10 +115,11 @@ class ControllerNode:
         self.last_reason: str | None = None
         self.runs_done: list[dict[str, Any]] = []
         self._cmd = Publisher(session, keys.controller_cmd, Command)
-        self._status = Publisher(session, keys.controller_status, ControllerStatus)
+        self._status = Publisher(session, keys.controller_status, ControllerStatus, lockstep=self.lockstep)
         self._soi_new = threading.Event()  # wall clock: a new SOI wakes the loop for a tick at once
-        self.soi = LatestCache(session, keys.perception_soi, SoiState, None if self.lockstep else lambda _m: self._soi_new.set())
-        self.arms = LatestCache(session, keys.arm_state_any, ArmState)
+        self._step_wait = StepWait()  # lockstep: a tick's SOI, run state, path and arm states wake its wait
+        self.soi = LatestCache(session, keys.perception_soi, SoiState, self._step_wait.notify if self.lockstep else lambda _m: self._soi_new.set())
+        self.arms = LatestCache(session, keys.arm_state_any, ArmState, self._step_wait.notify)
         self._subs: list[Subscriber[Any]] = [
             Subscriber(session, keys.run_state, RunState, self._on_run_state),
             Subscriber(session, keys.planner_path, Path, self._on_path),
@@ -131,7 +132,6 @@ class ControllerNode:
         self._ack: Publisher[StepAck] | None = None
         self._sent: int | None = None  # the seq of the last command a tick sent
         self._status_sent: int | None = None  # ... and of its status
-        self._keep_answered: tuple[float, int | None, int | None] | None = None  # lockstep: the last keep-alive tick, its command and status
         if self.lockstep:
             self._ack = Publisher(session, keys.sim_ack, StepAck)
             self._subs.append(Subscriber(session, keys.sim_ack, StepAck, self._on_ack))
@@ -144,10 +144,12 @@ class ControllerNode:
     def _on_run_state(self, msg: RunState) -> None:
         with self._lock:
             self._run_state = msg
+        self._step_wait.notify()
 
     def _on_path(self, msg: Path) -> None:
         with self._lock:
             self._paths = {msg.run_id: msg}  # one run at a time: an older run's path is dropped
+        self._step_wait.notify()
 
     def _on_goal(self, msg: Goal) -> None:
         with self._lock:
@@ -176,75 +178,82 @@ class ControllerNode:
     # -- the loop ----------------------------------------------------------------------------------
 
     def _lockstep_loop(self) -> None:
-        """One tick per frame the coordinator answered (see the module doc), then the answer."""
+        """One tick per frame the coordinator answered (see the module doc), then the answer. A frame (or
+        keep-alive tick) that comes again is answered again as it was, not ticked twice."""
+        answered: tuple[str, float, int | None, int | None, str | None] | None = None  # the last: kind, time, cmd, status, late
         while not self._stop.is_set():
             with self._frames_cond:
                 while not self._frames and not self._stop.is_set():
-                    self._frames_cond.wait(0.1)
+                    self._frames_cond.wait(1.0)
                 if self._stop.is_set():
                     return
                 while len(self._frames) > 1:  # between runs the world does not wait: only the newest frame matters
                     self._frames.popleft()
                 ack = self._frames.popleft()
             assert ack.frame is not None
-            if ack.service == KEEPALIVE_TICK and self._keep_answered is not None and self._keep_answered[0] == ack.frame:
-                self._sent, self._status_sent = self._keep_answered[1:]  # sent again (its answer lost?): answered again, not redone
+            late: str | None = None
+            if answered is not None and answered[:2] == (ack.service, ack.frame):
+                self._sent, self._status_sent, late = answered[2:]
             else:
                 self._sent = self._status_sent = None
-            try:
-                if ack.service == KEEPALIVE_TICK:
-                    if self._keep_answered is None or self._keep_answered[0] != ack.frame:
-                        self._keepalive_tick(ack.frame, ack.run_id)
-                        self._keep_answered = (ack.frame, self._sent, self._status_sent)
-                else:
-                    self._await_frame(ack)
-                    self._tick(ack.frame)
-            except Exception as e:  # noqa: BLE001 - a bug here must hold the arms, never kill the loop
-                self.counters["errors"] += 1
-                self._hold(f"controller node error: {type(e).__name__}: {e}", self._run, ack.frame)
+                try:
+                    if ack.service == KEEPALIVE_TICK:
+                        late = self._keepalive_tick(ack.frame, ack.run_id)
+                    else:
+                        late = self._await_frame(ack)
+                        self._tick(ack.frame)
+                except Exception as e:  # noqa: BLE001 - a bug here must hold the arms, never kill the loop
+                    self.counters["errors"] += 1
+                    self._hold(f"controller node error: {type(e).__name__}: {e}", self._run, ack.frame)
+                answered = (ack.service, ack.frame, self._sent, self._status_sent, late)
             assert self._ack is not None
             self._ack.put(StepAck(service="controller", run_id=ack.run_id, frame=ack.frame, cmd_seq=self._sent,
-                                  status_seq=self._status_sent, stamp=ack.frame))
+                                  status_seq=self._status_sent, stamp=ack.frame, late=late))
 
-    def _keepalive_tick(self, t: float, run_id: str | None) -> None:
+    def _arms_at(self, t: float) -> bool:
+        """Both arms have reported the step at `t`."""
+        arms = [self.arms.get(self.keys.arm_state(a)) for a in ARMS]
+        return all(m is not None and m.stamp >= t - 1e-6 for m in arms)
+
+    def _keepalive_tick(self, t: float, run_id: str | None) -> str | None:
         """A lockstep keep-alive tick at `t`: while run `run_id` is servoed, a tick on the last SOI (a
         keep-alive, or a hold when it has gone stale) with both arms' states of that step, as `bagit run`
-        ticks (before the run's first control tick, or after its end, there is nothing to tick)."""
+        ticks (before the run's first control tick, or after its end, there is nothing to tick).
+        Returns what the tick went without after the lockstep time-out (None: nothing)."""
         run = self._run
         if run is None or run.finished is not None or run.run_id != run_id:
-            return
-        deadline = time.monotonic() + LOCKSTEP_WAIT_S
-        while not self._stop.is_set() and time.monotonic() < deadline:
-            arms = [self.arms.get(self.keys.arm_state(a)) for a in ARMS]
-            if all(m is not None and m.stamp >= t - 1e-6 for m in arms):
-                break
-            time.sleep(0.0005)
+            return None
+        late = None if self._step_wait.wait(lambda: self._arms_at(t), self._stop) or self._stop.is_set() else "the arms' states"
+        if late is not None:
+            log.warning(f"lockstep: keep-alive tick {t:.3f} ticked without {late}")
         self._tick(t)
+        return late
 
-    def _await_frame(self, ack: StepAck) -> None:
+    def _await_frame(self, ack: StepAck) -> str | None:
         """In a servo stage: until run/state shows that run servoing, the frame's SOI is in and both arms
-        report the step (bounded: what is still missing then is the tick's to judge: a hold). Outside
-        one the tick only ends a finished run's servoing: nothing to wait for."""
+        report the step (they come on their own keys, in any order; `StepWait` wakes on each). Outside one
+        the tick only ends a finished run's servoing: nothing to wait for. Returns what is still missing
+        after the lockstep time-out (the tick goes on without it: the step may differ from `bagit run`'s)."""
         if ack.stage not in SERVO_STAGES:
-            return
+            return None
         t = float(ack.frame or 0.0)
-        deadline = time.monotonic() + LOCKSTEP_WAIT_S
-        while not self._stop.is_set() and time.monotonic() < deadline:
+
+        def missing() -> list[str]:
             with self._lock:
                 st = self._run_state
                 has_path = ack.run_id in self._paths
-            state_ok = st is not None and st.run_id == ack.run_id and st.stage in SERVO_STAGES and has_path
             soi = self.soi.get()
-            soi_ok = ack.soi_seq is None or (soi is not None and soi.seq == ack.soi_seq and abs(soi.source_stamp - t) < 1e-6)
-            arms = [self.arms.get(self.keys.arm_state(a)) for a in ARMS]
-            arms_ok = all(m is not None and m.stamp >= t - 1e-6 for m in arms)
-            if state_ok and soi_ok and arms_ok:
-                return
-            time.sleep(0.0005)
-        if not self._stop.is_set():  # a message lost on the way: this tick may differ from `bagit run`'s
-            missing = [w for w, ok in (("run/state", state_ok), ("its SOI", soi_ok), ("the arms' states", arms_ok)) if not ok]
-            self.counters["lockstep_late"] = self.counters.get("lockstep_late", 0) + 1
-            log.warning(f"lockstep: frame {t:.3f} ticked without {', '.join(missing)} after {LOCKSTEP_WAIT_S:g} s")
+            checks = (("run/state", st is not None and st.run_id == ack.run_id and st.stage in SERVO_STAGES and has_path),
+                      ("its SOI", ack.soi_seq is None or (soi is not None and soi.seq == ack.soi_seq and abs(soi.source_stamp - t) < 1e-6)),
+                      ("the arms' states", self._arms_at(t)))
+            return [what for what, ok in checks if not ok]
+
+        if self._step_wait.wait(lambda: not missing(), self._stop) or self._stop.is_set():
+            return None
+        late = ", ".join(missing())
+        self.counters["lockstep_late"] = self.counters.get("lockstep_late", 0) + 1
+        log.warning(f"lockstep: frame {t:.3f} ticked without {late}")
+        return late
 
     def _loop(self) -> None:
         """Ticks on the wall clock: at once when a new SOI arrives (its frame waits for no timer), but
@@ -415,6 +424,7 @@ class ControllerNode:
     def close(self) -> dict[str, Any]:
         """Stop the loop (holding the arms if a run was being servoed) and stop listening."""
         self._stop.set()
+        self._step_wait.notify()
         self._thread.join(timeout=5.0)
         run = self._run
         if run is not None and run.finished is None:

@@ -30,7 +30,9 @@ never waits for it.
 With `clock="sim"` (a lockstep simulator) every frame is answered on sim/ack once its SOI is out
 (`soi_seq`; None when the frame gave none), and the marker detection due on that frame runs in
 the SOI's thread before the answer, so the coordinator has heard both before the world steps on.
-A frame sent twice (the simulator resends one it heard no answer to) is answered again, not redone.
+Every message a frame's step needs travels reliably in lockstep, so nothing is sent twice; a frame
+that came twice all the same would be answered again, not redone. The start hint is waited for
+(`common.lockstep.StepWait`, the lockstep time-out), never fitted without on a short wall-clock bound.
 The marker's rate is counted on the frames' stamps, i.e. the camera's clock, in both modes.
 """
 
@@ -49,6 +51,7 @@ from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.clock import ClockKind
 from bagit.common.errors import BagItError
 from bagit.common.geometry import points_to_polyline_distance, transform_points
+from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState, StepAck
 from bagit.common.names import MAX_N_X, MIN_N_X
 from bagit.common.scenario import Scenario
@@ -61,7 +64,6 @@ from bagit.services.perception.tracker import RimTracker
 log = logging.getLogger("bagit.perception")
 
 REPORT_EVERY_S = 5.0
-LOCKSTEP_HINT_WAIT_S = 0.5  # lockstep: how long (wall) a frame waits for the left arm's state of its step
 
 
 class PerceptionServiceConfig(BaseModel):
@@ -120,7 +122,7 @@ class PerceptionNode:
     ) -> None:
         self.cfg = cfg or PerceptionServiceConfig()
         self.lockstep = clock == "sim"
-        self._answered: tuple[float, int | None, bool] | None = None  # lockstep: the last frame's stamp, SOI, detection
+        self._answered: tuple[float, int | None, bool, str | None] | None = None  # lockstep: the last frame's stamp, SOI, detection, late
         self.keys = keys
         self._cond = threading.Condition()
         self._pending: RgbdFrame | None = None
@@ -146,11 +148,12 @@ class PerceptionNode:
         self._mpending: RgbdFrame | None = None
         self._marker_last = -1e9
         self._marker_after: float | None = None  # a new run's start + settle: detect on the first frame from then
-        self._soi_pub = Publisher(session, keys.perception_soi, SoiState)
+        self._soi_pub = Publisher(session, keys.perception_soi, SoiState, lockstep=self.lockstep)
         self._cloud_pub = Publisher(session, keys.perception_cloud, PointCloud)
-        self._object_pub = Publisher(session, keys.perception_object, ObjectDetection) if self._library is not None else None
+        self._object_pub = Publisher(session, keys.perception_object, ObjectDetection, lockstep=self.lockstep) if self._library is not None else None
         self._ack = Publisher(session, keys.sim_ack, StepAck) if self.lockstep else None
-        self._arm = LatestCache(session, keys.arm_state("left"), ArmState)
+        self._step_wait = StepWait()  # lockstep: the left arm's state of a frame's step
+        self._arm = LatestCache(session, keys.arm_state("left"), ArmState, self._step_wait.notify)
         self._subs: list[Subscriber[Any]] = [Subscriber(session, keys.run_state, RunState, self._on_run_state)]
         if self._source is None:
             self._subs.append(Subscriber(session, keys.camera_rgbd, RgbdFrame, self._offer))
@@ -317,21 +320,27 @@ class PerceptionNode:
                 with self._cond:
                     self._busy = False
 
-    def _hint(self, frame: RgbdFrame) -> np.ndarray | None:
-        if self.lockstep:  # the left arm's state of this very step, as the simulator has it (bounded wait)
-            deadline = time.monotonic() + LOCKSTEP_HINT_WAIT_S
-            while time.monotonic() < deadline and not self._stop.is_set():
+    def _hint(self, frame: RgbdFrame) -> tuple[np.ndarray | None, str | None]:
+        """The left gripper's position to start a cold fit from, and (lockstep) what the wait for it went without.
+        Lockstep: the state of this very step, as `bagit run` reads it (its age on the rig's clock); it comes
+        on its own key, before or after the frame, so the fit waits for it (`StepWait`: woken by each state)."""
+        late = None
+        if self.lockstep:
+            def ready() -> bool:
                 msg = self._arm.get()
-                if msg is not None and msg.stamp >= frame.stamp - 1e-6:
-                    break
-                time.sleep(0.0005)
-            else:
-                self._report_every("hint", f"lockstep: frame {frame.seq} fitted without the left arm's state of its step")
+                return msg is not None and msg.stamp >= frame.stamp - 1e-6
+
+            if not self._step_wait.wait(ready, self._stop) and not self._stop.is_set():
+                late = "the left arm's state of its step"
+                self._report_every("hint", f"lockstep: frame {frame.seq} fitted without {late}")
         item = self._arm.get_with_time()
-        if item is None or time.monotonic() - item[1] > self.cfg.hint_max_age_s:
-            return None
+        if item is None:
+            return None, late
+        age = frame.stamp - item[0].stamp if self.lockstep else time.monotonic() - item[1]
+        if age > self.cfg.hint_max_age_s:
+            return None, late
         p = np.asarray(item[0].tool_pose[:3], dtype=float)
-        return p if np.all(np.isfinite(p)) else None
+        return (p if np.all(np.isfinite(p)) else None), late
 
     def _tracker(self) -> RimTracker:
         """The run's rim tracker (a new one when the bag changes: n_x, kind or colour)."""
@@ -346,40 +355,43 @@ class PerceptionNode:
             self._soi(frame)
             return
         done = self._answered
-        if done is not None and done[0] == frame.stamp:  # sent again: the answer was lost, not the work
-            self._answer(frame, done[1], done[2])
+        if done is not None and done[0] == frame.stamp:  # the same frame again: answered again, not redone
+            self._answer(frame, done[1], done[2], done[3])
             return
-        seq = None
+        seq, late = None, None
         detected = False
         try:
-            seq = self._soi(frame)
+            seq, late = self._soi(frame)
         finally:
             with self._mcond:
                 detected = self._marker_due(frame)
             if detected:
                 self._detect(frame)
-            self._answered = (frame.stamp, seq, detected)
-            self._answer(frame, seq, detected)
+            self._answered = (frame.stamp, seq, detected, late)
+            self._answer(frame, seq, detected, late)
 
-    def _answer(self, frame: RgbdFrame, soi_seq: int | None, detected: bool = False) -> None:
-        """Perception is done with `frame`: its SOI (seq) and whether it gave an object detection too."""
+    def _answer(self, frame: RgbdFrame, soi_seq: int | None, detected: bool = False, late: str | None = None) -> None:
+        """Perception is done with `frame`: its SOI (seq), whether it gave an object detection too, and what it
+        went without (`late`: the step may differ from `bagit run`'s)."""
         assert self._ack is not None
         self._ack.put(StepAck(service="perception", run_id=self._run_id, frame=frame.stamp, soi_seq=soi_seq,
-                              object_stamp=frame.stamp if detected else None, stamp=frame.stamp))
+                              object_stamp=frame.stamp if detected else None, stamp=frame.stamp, late=late))
 
-    def _soi(self, frame: RgbdFrame) -> int | None:
-        """The frame's SOI, published; its seq, or None (the frame counted bad with the reason)."""
+    def _soi(self, frame: RgbdFrame) -> tuple[int | None, str | None]:
+        """The frame's SOI, published; its seq, or None (the frame counted bad with the reason); and what
+        the lockstep wait for the start hint went without (None: nothing)."""
+        hint, late = self._hint(frame)
         t0 = time.perf_counter()
         tracker = self._tracker()
         self.counters["processed"] += 1
         cold = tracker.cold
         try:
-            rim, cloud = tracker.update(frame, hint=self._hint(frame))
+            rim, cloud = tracker.update(frame, hint=hint)
         except BagItError as e:
             self.counters["cold"] += tracker.cold - cold
             self._bad(frame, f"no SOI: {e}")
             self._maybe_cloud(frame)
-            return None
+            return None, late
         self.counters["cold"] += tracker.cold - cold
         inl = float(np.mean(points_to_polyline_distance(cloud, rim) <= self.cfg.inlier_m)) if len(cloud) else 0.0
         ms = (time.perf_counter() - t0) * 1000.0
@@ -389,7 +401,7 @@ class PerceptionNode:
                                    inlier_fraction=inl, solve_ms=ms, stamp=frame.stamp if self.lockstep else time.time()))
         self.counters["published"] += 1
         self._maybe_cloud(frame)  # after the SOI: the display never delays the control loop
-        return frame.seq
+        return frame.seq, late
 
     def _maybe_cloud(self, frame: RgbdFrame) -> None:
         rate = self.cfg.cloud_rate_hz
@@ -427,6 +439,7 @@ class PerceptionNode:
 
     def close(self) -> dict[str, Any]:
         self._stop.set()
+        self._step_wait.notify()
         with self._cond:
             self._cond.notify_all()
         with self._mcond:

@@ -32,6 +32,7 @@ from bagit.common.bus import (
     serve_run_control,
 )
 from bagit.common.clock import ClockKind, SimClock, make_clock
+from bagit.common.lockstep import LOCKSTEP_TIMEOUT_S
 from bagit.common.messages import (
     ClockTick,
     ControllerStatus,
@@ -50,7 +51,6 @@ from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, E
 log = logging.getLogger("bagit.planner")
 
 SERVICE_NAME = "planner"
-LOCKSTEP_WAIT_S = 2.0  # lockstep: how long (wall) a frame's answer waits for its SOI and object detection
 
 
 class PlannerServiceConfig(BaseModel):
@@ -89,7 +89,7 @@ class PlannerNode:
         self.coord = Coordinator(self.cfg.coordinator, now=self.clock())
         self._lock = threading.RLock()
         self._stop = threading.Event()
-        self._state_pub = Publisher(session, keys.run_state, RunState)
+        self._state_pub = Publisher(session, keys.run_state, RunState, lockstep=self.lockstep)
         self._goal_pub = Publisher(session, keys.planner_goal, Goal)
         self._path_pub = Publisher(session, keys.planner_path, Path)
         self._pub_lock = threading.RLock()  # taken before _lock, never after it
@@ -170,17 +170,17 @@ class PlannerNode:
             # by stamps, which the rig's clock makes grow across worlds (an SOI's is its frame's)
             missing = ("its SOI" if ack.soi_seq is not None and (ack.frame or 0.0) > self._soi_handled else
                        "its object detection" if ack.object_stamp is not None and ack.object_stamp > self._object_handled else None)
-            if missing is not None:  # they come on their own keys (best effort): after the answer, or never
-                if time.monotonic() - came < LOCKSTEP_WAIT_S:
+            if missing is not None:  # they come on their own keys (reliable in lockstep), before or after perception's answer
+                if time.monotonic() - came < LOCKSTEP_TIMEOUT_S:
                     return
-                log.warning("lockstep: frame %.3f answered without %s (lost on the way?)", ack.frame or 0.0, missing)
+                log.warning("lockstep: frame %.3f answered without %s after %g s", ack.frame or 0.0, missing, LOCKSTEP_TIMEOUT_S)
             self._frames.pop(0)
             with self._lock:
                 st = self.coord.state
             if self._closed:
                 return
             self._ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, soi_seq=ack.soi_seq, stage=st.stage,
-                                          stamp=self.clock()))
+                                      stamp=self.clock(), late=missing))
 
     def _on_object(self, det: ObjectDetection) -> None:
         self._apply(lambda: self.coord.on_object(det, self.clock()))

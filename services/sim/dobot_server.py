@@ -181,6 +181,10 @@ class DobotControllerServer:
         self._dash_sock: socket.socket | None = None
         self._fb_sock: socket.socket | None = None
         self.packets_sent = 0
+        # Lockstep: the feedback goes out when the world has stepped (the simulator pushes it), not every
+        # 8 ms of wall time: a world that waits for its rig has nothing new to say.
+        self.periodic_push = True
+        self.on_servo: Callable[[], None] | None = None  # after each ServoP/ServoJ taken (a lockstep simulator waits for them)
         self._handlers: dict[str, Callable[[Command], tuple[int, Values]]] = {
             "enablerobot": self._enable,
             "disablerobot": self._no_args(lambda: (self.robot.disable(), None)),
@@ -330,7 +334,8 @@ class DobotControllerServer:
                 self._stop.wait(delay)
             elif delay < -self.feedback_period:
                 next_t = time.monotonic()  # fell behind (a loaded machine): do not burst to catch up
-            self.push_feedback()
+            if self.periodic_push:
+                self.push_feedback()
 
     def push_feedback(self) -> None:
         """One feedback packet of the current state to every feedback client now. The 8 ms loop
@@ -466,4 +471,6 @@ class DobotControllerServer:
         opts = _named_options(cmd.named, spec, _positional_options(cmd.args[6:], ["t", "aheadtime", "gain"], spec))
         t, ahead, gain = _scalar_option(opts, "t", 0.1), _scalar_option(opts, "aheadtime", 50.0), _scalar_option(opts, "gain", 500.0)
         code, cmd_id = self.robot.servo("joint" if cmd.key == "servoj" else "pose", target, t, ahead, gain)
+        if self.on_servo is not None:
+            self.on_servo()
         return code, [cmd_id]

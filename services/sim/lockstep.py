@@ -16,6 +16,8 @@ Two pure parts, with no bus and no clock of their own:
   A service that is gone, or silent for `timeout_s` of wall time, is dropped from the wait for
   the rest of the run and said so: the simulated clock then goes on, and the coordinator's own
   limits (on that clock) fail the run with its reason. Between runs nothing is waited for.
+  Such a drop, and an answer that says it went without something (`StepAck.late`), make the run
+  not exact (`inexact`): the simulator's final truth says so, and so does `bagit up`'s result.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
+from bagit.common.lockstep import LOCKSTEP_TIMEOUT_S
 from bagit.common.messages import StepAck
 from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES, SERVO_STAGES
 
@@ -100,7 +103,7 @@ class _Frame:
 class Lockstep:
     """What the simulator still waits for (see the module docstring)."""
 
-    timeout_s: float = 20.0
+    timeout_s: float = LOCKSTEP_TIMEOUT_S
     services: tuple[str, ...] = LOCKSTEP_SERVICES
     run_id: str | None = None
     dropped: dict[str, str] = field(default_factory=dict)  # service -> why it is no longer waited for
@@ -113,14 +116,17 @@ class Lockstep:
     since: float = 0.0  # wall time the current wait began
     notes: list[str] = field(default_factory=list)  # what the host should say (drops)
     stage: str | None = None  # the coordinator's stage after the last frame (or keep-alive tick) answered
+    inexact: list[str] = field(default_factory=list)  # why the last run started is not exact (kept past its end)
 
     # -- what the simulator does ------------------------------------------------------------------
 
     def start_run(self, run_id: str | None) -> None:
-        """A new run (None: no run, nothing waited for)."""
+        """A new run (None: no run, nothing waited for; what made the last one inexact is kept)."""
         self.run_id, self.dropped, self.frame, self.tick, self.tick_sent = run_id, {}, None, None, None
         self.stage = None
         self.commands.clear()
+        if run_id is not None:
+            self.inexact = []
 
     @property
     def active(self) -> bool:
@@ -146,6 +152,8 @@ class Lockstep:
     # -- what comes in ----------------------------------------------------------------------------
 
     def on_ack(self, ack: StepAck, wall: float) -> None:
+        if ack.late and self.active and ack.run_id == self.run_id and len(self.inexact) < 100:
+            self.inexact.append(f"{ack.service} answered without {ack.late}")
         f = self.frame
         if ack.service == "arm-driver" and ack.tick is not None and self.tick is not None and ack.tick == self.tick[0]:
             self.tick_sent = dict(ack.servo_sent or {})
@@ -171,6 +179,7 @@ class Lockstep:
 
     def _drop(self, service: str, why: str) -> None:
         self.dropped[service] = why
+        self.inexact.append(f"{service} no longer waited for: {why}")
         self.notes.append(f"lockstep: no longer waiting for {service} in run {self.run_id}: {why}")
 
     # -- the verdict ------------------------------------------------------------------------------

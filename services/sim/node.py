@@ -46,7 +46,7 @@ from bagit.services.controller.session import tick_period
 from bagit.services.sim.lockstep import Lockstep, Schedule
 from bagit.services.sim.rig_sim import SETTLE_S, SimRig
 
-FRAME_RESEND_S = 1.0  # a frame perception (or a keep-alive tick the controller) has not answered in this long (wall) is sent again
+EXPIRE_CHECK_S = 1.0  # lockstep: while waiting, how often (wall) a silent service's time-out is looked at
 
 SERVICE_NAME = "sim"
 
@@ -96,7 +96,8 @@ class SimNode:
         self.scenario_name = scenario_name
         self.run_id: str | None = None
         self.stats = SimStats()
-        self._rtf_window = 1.0
+        self._rtf_window = 1.0  # simulated over wall seconds over the last report window (periodic truth)
+        self._run_t0 = (0.0, time.monotonic())  # the current run's start: rig clock, wall (monotonic)
         self._lock = threading.Lock()
         self._pending: tuple[str, dict[str, Any], int, str | None, dict[str, Any]] | None = None
         self._keep_s: float | None = None  # lockstep: the run's controller keep-alive pace (`tick_period`)
@@ -105,14 +106,14 @@ class SimNode:
         self._ended: str | None = None  # the last run whose final truth went out (or is due)
         self._truth_due = False
         self._camera_paused: str | None = None
-        self._frame_pub = Publisher(session, keys.camera_rgbd, RgbdFrame)
+        self._frame_pub = Publisher(session, keys.camera_rgbd, RgbdFrame, lockstep=clock == "sim")
         self._truth_pub = Publisher(session, keys.sim_truth, SimTruth)
         self._state_sub = Subscriber(session, keys.run_state, RunState, self._on_state)
         self._cond = threading.Condition(self._lock)
         self.lockstep = Lockstep(timeout_s=self.cfg.lockstep_timeout_s)
         self._lockstep_parts: list[Any] = []
         if clock == "sim":
-            rig.stamp_feedback()  # the controllers' feedback stamped on the rig's clock
+            rig.stamp_feedback(on_servo=self._on_servo)  # the controllers' feedback stamped on the rig's clock
             self._clock_pub = Publisher(session, keys.sim_clock, ClockTick)
             self._lockstep_parts = [self._clock_pub, Subscriber(session, keys.sim_ack, StepAck, self._on_ack),
                                     LivelinessWatcher(session, keys, self._on_alive)]
@@ -121,6 +122,11 @@ class SimNode:
     def _on_ack(self, ack: StepAck) -> None:
         with self._cond:
             self.lockstep.on_ack(ack, time.monotonic())
+            self._cond.notify_all()
+
+    def _on_servo(self) -> None:
+        """A servo command reached a simulated controller: the lockstep wait looks at the counts again."""
+        with self._cond:
             self._cond.notify_all()
 
     def _on_alive(self, service: str, alive: bool) -> None:
@@ -157,6 +163,7 @@ class SimNode:
             self._camera_paused = f"run {run_id}: cannot build its world: {e}"
             self.say(f"ERROR: {self._camera_paused}; camera paused")
             return
+        self._run_t0 = (self.rig.clock_s, t0)  # the run's real-time factor counts from its reset
         self.rig.step(self.cfg.settle_s) if self.cfg.settle_s > 0 else None
         self._camera_paused = None
         self._world_frames = 0
@@ -176,11 +183,20 @@ class SimNode:
             return scenario.params.controller.control_rate_hz
 
     def _publish_truth(self, final: bool = False) -> None:
+        """Ground truth now; `final`: the world as the run ended, with the run's own real-time factor (from
+        its reset) and, in lockstep, whether every step of it was answered in full."""
         gt = self.rig.ground_truth()
+        exact: dict[str, Any] = {}
+        if final and self.clock == "sim":  # (called with and without _cond held: the list is copied whole, not locked)
+            inexact = list(self.lockstep.inexact[:100])
+            exact = {"exact": not inexact, "inexact": inexact}
+        rtf = self._rtf_window
+        if final:
+            rtf = (self.rig.clock_s - self._run_t0[0]) / max(time.monotonic() - self._run_t0[1], 1e-9)
         self._truth_pub.put(SimTruth(
-            run_id=self.run_id, scenario=self.scenario_name, sim_time=self.rig.time, realtime_factor=self._rtf_window,
+            run_id=self.run_id, scenario=self.scenario_name, sim_time=self.rig.time, realtime_factor=rtf,
             frames=self.stats.frames, rim=gt.rim, passed_through=bool(gt.passed_through),
-            max_penetration_m=float(gt.max_penetration_m), clearance_m=float(min(gt.clearance_m, 1e3)), final=final,
+            max_penetration_m=float(gt.max_penetration_m), clearance_m=float(min(gt.clearance_m, 1e3)), final=final, **exact,
         ))
 
     def _truths(self, wall: float, next_truth: float) -> float:
@@ -288,7 +304,7 @@ class SimNode:
                 with self._cond:
                     self.lockstep.servo_tick(n, rig.servo_counts(), time.monotonic())
                 self._publish_clock(now, n)
-                self._wait(stop, None)
+                self._wait(stop)
             if sched.frame_due(world_t):
                 if n is None:
                     self._publish_clock(now, None)
@@ -300,12 +316,12 @@ class SimNode:
                         self.lockstep.frame_published(now, time.monotonic())
                     self._frame_pub.put(frame)
                     self.stats.frames += 1
-                    self._wait(stop, frame)
+                    self._wait(stop)
             elif sched.keep_due(world_t):  # frames sparser than the controller's keep-alive pace
                 self._publish_clock(now, None, keepalive=True)
                 with self._cond:
                     self.lockstep.keepalive_published(now, time.monotonic())
-                self._wait(stop, None, keepalive=now)
+                self._wait(stop)
             wall = time.monotonic()
             next_truth = self._truths(wall, next_truth)
             if wall >= next_report:
@@ -327,10 +343,10 @@ class SimNode:
     def _publish_clock(self, t: float, servo_tick: int | None, keepalive: bool = False) -> None:
         self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive))
 
-    def _wait(self, stop: threading.Event, frame: RgbdFrame | None, keepalive: float | None = None) -> None:
-        """Until the rig has answered this step (or a new run, or `stop`); a frame or keep-alive tick not
-        answered is resent (their answers come again; the work is not redone)."""
-        sent = time.monotonic()
+    def _wait(self, stop: threading.Event) -> None:
+        """Until the rig has answered this step (or a new run, or `stop`). Every answer wakes it (an ack, a
+        servo command reaching a simulated controller, a liveliness change, a new run): nothing polls;
+        the timed wake-up only lets `expire` drop a service silent for the lockstep time-out."""
         with self._cond:
             while not stop.is_set() and self._pending is None:
                 self.lockstep.controllers(self.rig.servo_counts())
@@ -344,14 +360,7 @@ class SimNode:
                         self._final_truth()  # at the very step the run ended, before the world moves on
                         self.lockstep.start_run(None)
                     break
-                if frame is not None and waiting[0].startswith("perception") and time.monotonic() - sent > FRAME_RESEND_S:
-                    sent = time.monotonic()
-                    self._frame_pub.put(frame)
-                if keepalive is not None and waiting[0].startswith("controller") and time.monotonic() - sent > FRAME_RESEND_S:
-                    sent = time.monotonic()
-                    self._publish_clock(keepalive, None, keepalive=True)
-                # the controllers' counts move without telling: look again soon while only they are awaited
-                self._cond.wait(0.001 if all("CR5" in w for w in waiting) else 0.05)
+                self._cond.wait(EXPIRE_CHECK_S)
             self.lockstep.done_with_step()
 
     def _say_alarms(self) -> None:

@@ -119,6 +119,7 @@ class SimRig:
         self.servers: dict[ArmName, DobotControllerServer] = {}
         self.epoch = SIM_EPOCH0_S  # the rig's clock when this world's time began (see `clock_s`)
         self._stamp_feedback = False
+        self._on_servo: Callable[[], None] | None = None
         self._loop_lock = threading.Lock()
         self._synced_q: dict[ArmName, np.ndarray] = {}
         if with_servers:
@@ -175,7 +176,14 @@ class SimRig:
             except OSError:
                 self.stop_servers()
                 raise
+        self._configure_servers()
         return self.ports()
+
+    def _configure_servers(self) -> None:
+        """Lockstep: feedback only when the world steps (`push_feedback`), and who hears of a servo command."""
+        for server in self.servers.values():
+            server.periodic_push = not self._stamp_feedback
+            server.on_servo = self._on_servo
 
     def ports(self) -> dict[ArmName, tuple[int, int]]:
         return {name: (s.dashboard_port, s.feedback_port) for name, s in self.servers.items()}
@@ -197,10 +205,13 @@ class SimRig:
         """The rig's clock: the world's time from this world's epoch (`sim_time`), which never goes back."""
         return sim_time(float(self.world.time), self.epoch)
 
-    def stamp_feedback(self, on: bool = True) -> None:
-        """Have the simulated controllers stamp their feedback on the rig's clock (lockstep) or the wall's."""
+    def stamp_feedback(self, on: bool = True, on_servo: Callable[[], None] | None = None) -> None:
+        """Have the simulated controllers stamp their feedback on the rig's clock (lockstep) or the wall's;
+        in lockstep their feedback goes out after each step only, and `on_servo` hears of each servo command."""
         self._stamp_feedback = on
+        self._on_servo = on_servo
         self._sync_clock_offsets()
+        self._configure_servers()
 
     def _sync_clock_offsets(self) -> None:
         for robot in self.arms.values():
