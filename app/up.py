@@ -22,6 +22,7 @@ from __future__ import annotations
 import ctypes
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -112,7 +113,7 @@ class UpOptions:
     # lockstep: every service on the simulator's clock, which steps on only when they have answered
     # (a slow machine makes a run slower, never different); wall: the simulator paced to the wall clock
     clock: Literal["lockstep", "wall"] = "lockstep"
-    speed: float = 1.0  # simulated seconds per wall second, at most
+    speed: float | None = None  # simulated seconds per wall second, at most (None: a lockstep run as fast as the rig answers)
     fps: float | None = None  # None: the control rate in lockstep (as `bagit run`), WALL_FPS on the wall clock
     # A run's servoing limit: in lockstep on the simulator's clock, as `bagit run`'s; on the wall
     # clock the simulator runs at a fraction of real time when the machine is busy (x0.4 with the
@@ -204,8 +205,8 @@ class Up:
         o = self.opts
         bus = ["--rig", o.rig, "--zenoh-config", str(zpath), "--clock", "sim" if o.clock == "lockstep" else "wall"]
         if name == "sim":
-            args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--fps", f"{o.camera_fps():g}", "--seed", str(o.seed),
-                    "--speed", f"{o.speed:g}"]
+            args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--fps", f"{o.camera_fps():g}", "--seed", str(o.seed)]
+            args += ["--speed", f"{o.speed:g}"] if o.speed is not None else []
         elif name == "dashboard":
             port = o.dashboard_port or free_port()
             self.dashboard_url = f"http://127.0.0.1:{port}"
@@ -393,6 +394,8 @@ class Up:
         if self.session is not None:
             self.session.close()
             self.session = None
+        if self._own_dir:  # a scratch folder of ours (generated configs, status): gone with the rig
+            shutil.rmtree(self.dir, ignore_errors=True)
         return codes
 
     def __enter__(self) -> Up:

@@ -54,11 +54,12 @@ def cpu_per_service(stderr: str) -> dict[str, float]:
     return out
 
 
-def deployed(scenario: str, seed: int, controller: str, speed: float) -> tuple[RunResult, float, dict[str, float]]:
+def deployed(scenario: str, seed: int, controller: str, speed: float | None) -> tuple[RunResult, float, dict[str, float]]:
     """`bagit up SCENARIO --exit-when-done --json` (lockstep, no dashboard), its wall time and CPU per service."""
     t0 = time.perf_counter()
     argv = [sys.executable, "-m", "bagit.cli", "up", scenario, "--exit-when-done", "--json", "--no-dashboard",
-            "--seed", str(seed), "--controller", controller, "--speed", f"{speed:g}", "--timeout", f"{UP_TIMEOUT_S:g}"]
+            "--seed", str(seed), "--controller", controller, "--timeout", f"{UP_TIMEOUT_S:g}"]
+    argv += ["--speed", f"{speed:g}"] if speed else []
     r = subprocess.run(argv, capture_output=True, text=True, timeout=UP_TIMEOUT_S + 120,
                        env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
     try:
@@ -82,7 +83,8 @@ def alone(scenario: str, seed: int, controller: str) -> tuple[RunResult, float]:
 def compare(run: RunResult, up: RunResult) -> dict[str, Any]:
     """How the deployed run compares with the one-process run."""
     d_err = None if run.error_cm is None or up.error_cm is None else round(abs(run.error_cm - up.error_cm), 4)
-    identical = (run.ticks, run.duration_s, run.error_cm, run.final_rim) == (up.ticks, up.duration_s, up.error_cm, up.final_rim)
+    identical = (run.ticks, run.duration_s, run.error_cm, run.final_rim, run.arm_events) == (up.ticks, up.duration_s, up.error_cm, up.final_rim,
+                                                                                          up.arm_events)
     return {"same_success": run.success == up.success, "d_error_cm": d_err, "identical": identical,
             "within": run.success == up.success and (d_err is not None and d_err <= ERROR_TOLERANCE_CM or not run.success)}
 
@@ -104,11 +106,11 @@ class Hogs:
             p.wait()
 
 
-def pair(scenario: str, seed: int, controller: str, speed: float, hogs: int = 0) -> dict[str, Any]:
+def pair(scenario: str, seed: int, controller: str, speed: float | None, hogs: int = 0) -> dict[str, Any]:
     with Hogs(hogs):
         up, up_wall, cpu = deployed(scenario, seed, controller, speed)
     run, run_wall = alone(scenario, seed, controller)
-    return {"scenario": scenario, "seed": seed, "controller": controller, **compare(run, up),
+    return {"scenario": scenario, "seed": seed, "controller": controller, **compare(run, up), "exact": up.exact,
             "run": run.model_dump(mode="json"), "up": up.model_dump(mode="json"),
             "wall_s": {"run": round(run_wall, 2), "up": round(up_wall, 2)}, "cpu_s_per_service": cpu, "load_avg": [round(v, 2) for v in os.getloadavg()],
             "effective": {"speed": speed, "clock": "lockstep", "hogs": hogs},
@@ -146,12 +148,12 @@ def markdown(records: list[dict[str, Any]]) -> str:
              f"{len(records)} pairs; commit(s) {', '.join(commits)}; host {records[0]['provenance'].get('host')} "
              f"({records[0]['provenance'].get('cpu')}, {records[0]['provenance'].get('cores')} cores).\n",
              "| scenario | seed | run: success | run: error cm | run: ticks | up: success | up: error cm | up: ticks | "
-             "bit for bit | within 0.2 cm | wall s run / up |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "bit for bit | exact | within 0.2 cm | wall s run / up |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(records, key=lambda r: (r["scenario"], r["seed"])):
         a, b = r["run"], r["up"]
         lines.append(f"| {r['scenario']} | {r['seed']} | {a['success']} | {a['error_cm']} | {a['ticks']} | {b['success']} | "
-                     f"{b['error_cm']} | {b['ticks']} | {'yes' if r['identical'] else 'no'} | {'yes' if r['within'] else 'NO'} | "
+                     f"{b['error_cm']} | {b['ticks']} | {'yes' if r['identical'] else 'no'} | {r.get('exact', '-')} | {'yes' if r['within'] else 'NO'} | "
                      f"{r['wall_s']['run']:.0f} / {r['wall_s']['up']:.0f} |")
     n, same, within = len(records), sum(r["identical"] for r in records), sum(r["within"] for r in records)
     wall = sum(r["wall_s"]["up"] for r in records) / max(sum(r["wall_s"]["run"] for r in records), 1e-9)
@@ -165,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default=None, help="comma-separated scenarios (default: all bundled)")
     p.add_argument("--seeds", type=int, default=2)
     p.add_argument("--controller", choices=CONTROLLER_NAMES, default=DEFAULT_CONTROLLER)
-    p.add_argument("--speed", type=float, default=1000.0, help="bagit up --speed (lockstep: as fast as the rig answers)")
+    p.add_argument("--speed", type=float, default=None, help="bagit up --speed (default none: lockstep as fast as the rig answers)")
     p.add_argument("--jsonl", type=Path, default=RESULTS)
     p.add_argument("--hogs", type=int, default=0, help="busy processes hogging the cores while `bagit up` runs (a loaded machine)")
     p.add_argument("--markdown", type=Path, default=None, help="write the table here (default: beside the JSONL, .md)")

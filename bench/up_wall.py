@@ -31,7 +31,7 @@ import logging
 import os
 import threading
 import time
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -83,8 +83,10 @@ def _pct(x: list[float]) -> dict[str, Any]:
             "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
 
 
-def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, timeout_s: float = 600.0) -> dict[str, Any]:
-    """One `bagit up SCENARIO --clock wall` run, measured (see the module doc)."""
+def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, timeout_s: float = 600.0,
+            clock: Literal["wall", "lockstep"] = "wall", fps: float | None = None) -> dict[str, Any]:
+    """One `bagit up SCENARIO --clock wall` run, measured (see the module doc); `clock="lockstep"` measures a
+    lockstep run the same way (its CPU per simulated second beside the wall clock's, at the same `fps`)."""
     from bagit.bench.common import machine
     from bagit.common.bus import Subscriber
     from bagit.common.messages import Command, RgbdFrame
@@ -93,12 +95,12 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
     from bagit.up import SERVICES, Up, UpOptions
 
     services = tuple(s for s in SERVICES if dashboard or s != "dashboard")
-    opts = UpOptions(scenario=scenario, seed=seed, clock="wall", services=services)
+    opts = UpOptions(scenario=scenario, seed=seed, clock=clock, services=services, fps=fps)
     rig = RigConfig()
     load_before = os.getloadavg()
     out: dict[str, Any] = {"machine": machine(), "load_before": [round(x, 2) for x in load_before]}
     out["params"] = {
-        "scenario": scenario, "seed": seed, "clock": "wall", "services": list(services),
+        "scenario": scenario, "seed": seed, "clock": clock, "services": list(services),
         "camera": f"{rig.camera.width}x{rig.camera.height}", "camera_fps": opts.camera_fps(),
         "control_rate_hz": MethodParams().controller.control_rate_hz, "watchdog_s": rig.safety.watchdog_s,
         "servo_period_s": rig.safety.servo_period_s, "speed": opts.speed,

@@ -162,3 +162,65 @@ def test_a_keep_alive_tick_in_a_servo_stage_waits_for_the_controller_and_its_com
     assert ls.pending() == ["arm-driver: command 6"]
     ls.on_ack(_ack("arm-driver", cmd_seq=6), 0.0)
     assert ls.pending() == []
+
+
+def test_a_dropped_service_or_a_late_answer_makes_the_run_inexact_until_the_next_run():
+    ls = Lockstep(timeout_s=5.0)
+    ls.start_run("r1")
+    ls.frame_published(10.0, wall=0.0)
+    ls.on_ack(StepAck(service="perception", run_id="r1", frame=10.0, soi_seq=3), wall=0.1)
+    assert ls.inexact == []
+    ls.on_ack(StepAck(service="planner", run_id="r1", frame=10.0, stage="bagging", late="its SOI"), wall=0.2)
+    ls.on_alive("controller", False)
+    assert ls.inexact == ["planner answered without its SOI", "controller no longer waited for: its liveliness token is gone"]
+    ls.start_run(None)  # the run ended: why it was inexact stays for its final truth
+    assert len(ls.inexact) == 2
+    ls.start_run("r2")
+    assert ls.inexact == [] and ls.dropped == {}
+
+
+def test_sim_clock_next_event_gives_every_step_with_its_servo_tick_if_any():
+    c, stop = SimClock(), threading.Event()
+    assert c.next_event(0.0, stop, timeout=0.01) is None
+    c.advance(1.0, servo_tick=4)
+    assert c.next_event(0.0, stop, timeout=0.01) == (1.0, 4)
+    c.advance(1.03)  # a frame's step, no servo tick
+    assert c.next_event(1.0, stop, timeout=0.01) == (1.03, None)
+    c.advance(1.03)  # heard again: no new step
+    assert c.next_event(1.03, stop, timeout=0.01) is None
+    woke: list[tuple[float, int | None] | None] = []
+    t = threading.Thread(target=lambda: woke.append(c.next_event(1.03, stop, timeout=5.0)))
+    t.start()
+    c.advance(1.06, servo_tick=5)
+    t.join(timeout=5.0)
+    assert woke == [(1.06, 5)]
+
+
+def test_a_step_wait_ends_on_what_it_waits_for_on_stop_or_after_its_time_out():
+    from bagit.common.lockstep import StepWait
+
+    w, stop, box = StepWait(), threading.Event(), {"ready": False}
+    out: list[bool] = []
+    t = threading.Thread(target=lambda: out.append(w.wait(lambda: box["ready"], stop, timeout_s=30.0)))
+    t.start()
+    box["ready"] = True
+    w.notify()  # the message it waits for arrived: it looks again at once, no polling interval
+    t.join(timeout=5.0)
+    assert out == [True]
+    assert w.wait(lambda: False, stop, timeout_s=0.05) is False  # given up after its time-out
+    stop.set()
+    assert w.wait(lambda: False, stop, timeout_s=30.0) is False  # stopped: returns at once
+
+
+def test_in_lockstep_the_keys_a_step_waits_on_are_reliable_and_the_rest_keep_their_qos():
+    from bagit.common.bus import KEY_TABLE, BusConfig, Keys, Publisher, open_session
+    from bagit.common.messages import PointCloud, RgbdFrame
+
+    waited = {r.key for r in KEY_TABLE if r.lockstep}
+    assert waited == {"camera/rgbd", "perception/soi", "perception/object", "controller/status", "arm/*/state", "run/state"}
+    keys = Keys("lsqos")
+    with open_session(BusConfig(rig="lsqos")) as s:  # loopback, no multicast (the BusConfig defaults)
+        assert Publisher(s, keys.camera_rgbd, RgbdFrame).qos.reliability == "best_effort"
+        q = Publisher(s, keys.camera_rgbd, RgbdFrame, lockstep=True).qos
+        assert (q.reliability, q.congestion, q.priority) == ("reliable", "block", "data")
+        assert Publisher(s, keys.perception_cloud, PointCloud, lockstep=True).qos.reliability == "best_effort"  # display only

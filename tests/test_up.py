@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -88,22 +89,47 @@ def _why(log: str) -> str:
             + " | ".join(ln for v in kept.values() for ln in v))
 
 
-def test_a_full_simulated_run_through_bagit_up_is_bagit_runs_run_bit_for_bit(tmp_path):
+def _paused_mid_run(argv: list[str], service: str, pause_s: float, status: Path, log: Path) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """`bagit up ... --status-file status` with `service` stopped (SIGSTOP) for `pause_s` once the run is servoing,
+    then resumed (SIGCONT); the finished process (its log as stderr) and the order of what happened (a run that
+    ended before the pause shows it: "servoing" is seen before the stop, "ended" after the resume)."""
+    events: list[str] = []
+    with open(log, "w") as err:
+        p = subprocess.Popen(argv + ["--status-file", str(status)], stdout=subprocess.PIPE, stderr=err, text=True, env=ENV)
+        try:
+            assert wait_until(lambda: "pre-bagging" in log.read_text(), 300, 0.05), log.read_text()[-3000:]
+            events.append("servoing")
+            pid = json.loads(status.read_text())["children"][service]
+            os.kill(pid, signal.SIGSTOP)
+            events.append(f"{service} stopped")
+            time.sleep(pause_s)  # longer than the 1 s link lease of the wall clock, and than any old bounded wait
+            os.kill(pid, signal.SIGCONT)
+            events.append(f"{service} resumed")
+            out, _ = p.communicate(timeout=420)
+            events.append("ended")
+        finally:
+            if p.poll() is None:
+                p.kill()
+    return subprocess.CompletedProcess(p.args, p.returncode, out, log.read_text()), events
+
+
+def test_a_full_simulated_run_through_bagit_up_with_a_service_paused_is_bagit_runs_run_bit_for_bit(tmp_path):
     # Lockstep (the default): every service on the simulator's clock, which waits for their answers,
-    # so however the two cores are shared the run is the one `bagit run` computes in one process:
-    # the same ticks, the same time and the same true rim, to the last bit. No retry.
-    r = subprocess.run(
-        [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--speed", "50", "--timeout", "380"],
-        capture_output=True, text=True, env=ENV, timeout=420,
-    )
+    # so however the two cores are shared, and even with a service stopped for seconds mid-run (SIGSTOP,
+    # as a loaded machine or a debugger would), the run is the one `bagit run` computes in one process:
+    # the same ticks, the same time and the same true rim, to the last bit, and it says it is exact. No retry.
+    argv = [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "380"]
+    r, events = _paused_mid_run(argv, "controller", 3.0, tmp_path / "status.json", tmp_path / "up.log")
+    assert events == ["servoing", "controller stopped", "controller resumed", "ended"], events
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert "watchdog" not in r.stderr and "no longer waiting" not in r.stderr, _why(r.stderr)
+    assert "watchdog" not in r.stderr and "no longer waiting" not in r.stderr and "without" not in r.stderr, _why(r.stderr)
     ref = subprocess.run([sys.executable, "-m", "bagit.cli", "run", "exp02", "--json"], capture_output=True, text=True, env=ENV, timeout=300)
     assert ref.returncode == 0, ref.stderr[-2000:]
     alone = RunResult.model_validate_json(ref.stdout.strip().splitlines()[-1])
     assert r.returncode == 0 and out["success"] and out["stage_reached"] == "done", (out.get("reason"), _why(r.stderr), out, r.stderr[-3000:])
     assert set(out) == set(RunResult.model_fields)  # the same top-level keys as `bagit run --json`
     res = RunResult.model_validate(out)
+    assert res.exact is True and res.inexact == [] and alone.exact is None, (res.exact, res.inexact)
     assert res.arms == "cr5" and res.path_nodes > 2 and res.ticks > 0 and res.error_to_goal_m is not None
     assert res.arm_events["faults"] == 0 and np.asarray(res.final_rim).shape == (32, 3)
     # the object named by its ArUco marker (or, if perception had not yet seen it, the scenario's, said so)

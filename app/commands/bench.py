@@ -21,7 +21,8 @@ HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `dep
         "`probes` (issue 25's findings re-run), or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
-STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency", "up_wall", "camera_modes"]
+STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency", "up_wall", "up_lockstep",
+          "camera_modes"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

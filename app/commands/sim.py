@@ -31,7 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("scenario", help="scenario file, or the name of a bundled scenario (the world until a run says otherwise)")
     p.add_argument("--rig-config", metavar="YAML", help="rig config YAML (arm bases, controller ports, camera); default: the paper's set-up")
-    p.add_argument("--speed", type=_args.positive_number, default=1.0, help="simulated seconds per wall second (default 1)")
+    p.add_argument("--speed", type=_args.positive_number, default=None,
+                   help="simulated seconds per wall second at most (default: real time, and a lockstep run as fast as the rig answers)")
     p.add_argument("--duration", type=_args.positive_seconds, default=None, help="stop after this many simulated seconds (default: run until Ctrl-C)")
     p.add_argument("--no-camera", action="store_true", help="no camera frames (faster)")
     p.add_argument("--fps", type=_args.positive_number, default=10.0, help="camera frames per simulated second (default 10, at most the camera's rate)")
@@ -77,12 +78,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             ports = rig.start_servers(ephemeral_ports=args.ephemeral_ports)
             for name, (dash, fb) in ports.items():
                 say(f"{name} CR5: dashboard {rig_cfg.arms[name].host}:{dash}, feedback {rig_cfg.arms[name].host}:{fb}")
-            say(f"scenario {scenario.name}, seed {args.seed}, speed x{args.speed:g}" + (", no camera" if args.no_camera else f", camera {args.fps:g} fps"))
+            speed = f"x{args.speed:g}" if args.speed else "default"
+            say(f"scenario {scenario.name}, seed {args.seed}, speed {speed}" + (", no camera" if args.no_camera else f", camera {args.fps:g} fps"))
             if not args.no_bus:
                 stats = _run_on_bus(args, rig, scenario.name, min(args.fps, rig_cfg.camera.fps), stop, say)
             else:
                 stats = rig.run_realtime(
-                    args.speed,
+                    args.speed or 1.0,
                     args.duration,
                     stop,
                     on_frame=None if args.no_camera else on_frame,

@@ -33,8 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock", choices=["lockstep", "wall"], default="lockstep",
                    help="lockstep (default): every service on the simulator's clock, which waits for them, so a slow machine "
                         "makes a run slower, never different; wall: every service on the wall clock, the simulator paced to it")
-    p.add_argument("--speed", type=_args.positive_number, default=1.0,
-                   help="simulated seconds per wall second at most (default 1; lockstep goes slower when the rig needs longer)")
+    p.add_argument("--speed", type=_args.positive_number, default=None,
+                   help="simulated seconds per wall second at most (default: a lockstep run as fast as the rig answers, "
+                        "real time between runs and with --clock wall)")
     p.add_argument("--fps", type=_args.positive_number, default=None,
                    help="simulated camera frames per second (default: the control rate in lockstep, as `bagit run`; 10 with --clock wall)")
     p.add_argument("--dashboard-port", type=_args.port, default=0, help="dashboard port (default: a free one)")
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadScenario(f"--rig {args.rig!r}: {e.errors()[0]['msg']}") from None
     if args.fps is not None and not 0 < args.fps <= 30:
         raise BadScenario(f"--fps must be in (0, 30], got {args.fps}")
-    if not 0 < args.speed <= 1000:
+    if args.speed is not None and not 0 < args.speed <= 1000:
         raise BadScenario(f"--speed must be in (0, 1000], got {args.speed}")
     services = tuple(x.strip() for x in args.services.split(",") if x.strip()) if args.services else SERVICES
     services = tuple(s for s in services if not (args.no_dashboard and s == "dashboard"))

@@ -406,7 +406,7 @@ class PerceptionNode:
     def _maybe_cloud(self, frame: RgbdFrame) -> None:
         rate = self.cfg.cloud_rate_hz
         now = time.monotonic()
-        if rate <= 0 or now - self._last_cloud < 1.0 / rate:
+        if rate <= 0 or now - self._last_cloud < 1.0 / rate or not self._cloud_pub.matched:  # nobody watching: not made
             return
         self._last_cloud = now
         try:

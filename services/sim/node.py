@@ -20,7 +20,10 @@ on sim/clock at every event of the `Schedule` (a servo tick, then a frame, stamp
 with frames sparser than the run's controller keep-alive pace, keep-alive ticks between them),
 and while a run is active the world steps on only when the rig has answered (`Lockstep`, from the
 services' sim/ack and the controllers' servo counts). A loaded machine then makes a run slower,
-never different. Between runs, and in any case no faster than `speed`, it is paced to the wall clock.
+never different. A lockstep run goes as fast as the rig answers (no faster than `speed` if set);
+between runs it is paced to the wall clock (`speed`, default real time). While the rig works on
+a frame the world already steps on to the next event (`_step_ahead`: provably the same world), so
+the simulator's physics overlaps the services' work on the machine's other core.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from bagit.common.scenario import Scenario
 from bagit.services.controller.session import tick_period
 from bagit.services.sim.lockstep import Lockstep, Schedule
 from bagit.services.sim.rig_sim import SETTLE_S, SimRig
+from bagit.services.sim.truth import GroundTruth
 
 EXPIRE_CHECK_S = 1.0  # lockstep: while waiting, how often (wall) a silent service's time-out is looked at
 
@@ -56,7 +60,8 @@ class SimNodeConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    speed: float = Field(1.0, gt=0, le=1000, description="simulated seconds per wall second (when the machine keeps up)")
+    speed: float | None = Field(None, gt=0, le=1000, description="simulated seconds per wall second at most; None: a lockstep run as "
+                                "fast as the rig answers, real time otherwise (between runs, on the wall clock)")
     fps: float = Field(10.0, gt=0, le=120, description="camera frames per simulated second (0 < fps <= the camera's rate)")
     camera: bool = True
     chunk_s: float = Field(0.02, gt=0, le=0.2, description="simulated seconds stepped between checks")
@@ -98,6 +103,7 @@ class SimNode:
         self.stats = SimStats()
         self._rtf_window = 1.0  # simulated over wall seconds over the last report window (periodic truth)
         self._run_t0 = (0.0, time.monotonic())  # the current run's start: rig clock, wall (monotonic)
+        self._step_truth: GroundTruth | None = None  # lockstep: the truth of the step the world stepped ahead of
         self._lock = threading.Lock()
         self._pending: tuple[str, dict[str, Any], int, str | None, dict[str, Any]] | None = None
         self._keep_s: float | None = None  # lockstep: the run's controller keep-alive pace (`tick_period`)
@@ -185,7 +191,7 @@ class SimNode:
     def _publish_truth(self, final: bool = False) -> None:
         """Ground truth now; `final`: the world as the run ended, with the run's own real-time factor (from
         its reset) and, in lockstep, whether every step of it was answered in full."""
-        gt = self.rig.ground_truth()
+        gt = (self._step_truth if final else None) or self.rig.ground_truth()  # a step the world has already left: its truth
         exact: dict[str, Any] = {}
         if final and self.clock == "sim":  # (called with and without _cond held: the list is copied whole, not locked)
             inexact = list(self.lockstep.inexact[:100])
@@ -194,7 +200,7 @@ class SimNode:
         if final:
             rtf = (self.rig.clock_s - self._run_t0[0]) / max(time.monotonic() - self._run_t0[1], 1e-9)
         self._truth_pub.put(SimTruth(
-            run_id=self.run_id, scenario=self.scenario_name, sim_time=self.rig.time, realtime_factor=rtf,
+            run_id=self.run_id, scenario=self.scenario_name, sim_time=gt.time, realtime_factor=rtf,
             frames=self.stats.frames, rim=gt.rim, passed_through=bool(gt.passed_through),
             max_penetration_m=float(gt.max_penetration_m), clearance_m=float(min(gt.clearance_m, 1e3)), final=final, **exact,
         ))
@@ -225,6 +231,7 @@ class SimNode:
         if self.clock == "sim":
             return self._run_lockstep(stop, duration)
         cfg = self.cfg
+        speed = cfg.speed or 1.0
         t_sim0, t_wall0 = self.rig.time, time.monotonic()  # pacing origin, moved at each reset
         sim_total, wall_start = 0.0, time.monotonic()
         next_frame = self.rig.time
@@ -258,10 +265,10 @@ class SimNode:
                 if now - win_wall > 0.5:
                     self._rtf_window = (self.rig.time - win_sim) / (now - win_wall)
                     win_sim, win_wall = self.rig.time, now
-                if self._rtf_window < 0.95 * cfg.speed:
-                    self.say(f"behind real time: x{self._rtf_window:.2f} (asked x{cfg.speed:g}); {self.stats.frames} frames so far")
+                if self._rtf_window < 0.95 * speed:
+                    self.say(f"behind real time: x{self._rtf_window:.2f} (asked x{speed:g}); {self.stats.frames} frames so far")
                 next_report = now + cfg.report_every_s
-            ahead = (self.rig.time - t_sim0) / cfg.speed - (time.monotonic() - t_wall0)
+            ahead = (self.rig.time - t_sim0) / speed - (time.monotonic() - t_wall0)
             if ahead > 0:
                 stop.wait(ahead)
             elif ahead < -1.0:
@@ -305,6 +312,7 @@ class SimNode:
                     self.lockstep.servo_tick(n, rig.servo_counts(), time.monotonic())
                 self._publish_clock(now, n)
                 self._wait(stop)
+            stepped = False  # the world already stepped to the next event while the rig worked on this one
             if sched.frame_due(world_t):
                 if n is None:
                     self._publish_clock(now, None)
@@ -316,21 +324,28 @@ class SimNode:
                         self.lockstep.frame_published(now, time.monotonic())
                     self._frame_pub.put(frame)
                     self.stats.frames += 1
+                    stepped = self._step_ahead(sched.until_next(world_t))
                     self._wait(stop)
             elif sched.keep_due(world_t):  # frames sparser than the controller's keep-alive pace
                 self._publish_clock(now, None, keepalive=True)
                 with self._cond:
                     self.lockstep.keepalive_published(now, time.monotonic())
+                stepped = self._step_ahead(sched.until_next(world_t))
                 self._wait(stop)
             wall = time.monotonic()
             next_truth = self._truths(wall, next_truth)
+            self._step_truth = None
             if wall >= next_report:
                 next_report = wall + cfg.report_every_s
                 self._rtf_window = (rig.clock_s - start) / max(wall - wall_start, 1e-9)
-            rig.step(sched.until_next(world_t))
+            if not stepped:
+                rig.step(sched.until_next(world_t))
             rig.push_feedback()
             self._say_alarms()
-            ahead = (rig.clock_s - t_sim0) / cfg.speed - (time.monotonic() - t_wall0)
+            if cfg.speed is None and self.lockstep.active:  # a lockstep run: as fast as the rig answers
+                t_sim0, t_wall0 = rig.clock_s, time.monotonic()
+                continue
+            ahead = (rig.clock_s - t_sim0) / (cfg.speed or 1.0) - (time.monotonic() - t_wall0)
             if ahead > 0:
                 stop.wait(ahead)
             elif ahead < -1.0:
@@ -339,6 +354,19 @@ class SimNode:
         self.stats.sim_s, self.stats.wall_s = rig.clock_s - start, wall
         self.stats.realtime_factor = self.stats.sim_s / wall if wall > 0 else 0.0
         return self.stats
+
+    def _step_ahead(self, dt: float) -> bool:
+        """Lockstep, after a frame (or keep-alive tick) went out: step the world on to the next event while
+        the rig works on this one, on the other core. The same world as stepping after the answers: until
+        the next servo tick nothing the rig sends reaches it (its ServoPs go out on servo ticks, and the
+        feedback of the new step is pushed only after the wait). The truth of this step is kept first:
+        should the run end on it, its final truth is the world as it ended, as `bagit run` judges it.
+        Only while a run is waited for (between runs nothing waits)."""
+        if not self.lockstep.active:
+            return False
+        self._step_truth = self.rig.ground_truth()
+        self.rig.step(dt)
+        return True
 
     def _publish_clock(self, t: float, servo_tick: int | None, keepalive: bool = False) -> None:
         self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive))
