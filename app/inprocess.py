@@ -33,16 +33,7 @@ from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import ArmName, RigConfig
 from bagit.common.scenario import Scenario
-from bagit.services.controller.session import (
-    SOI_MAX_AGE_S,
-    Outbox,
-    ServoSession,
-    arm_fault,
-    arms_slowed,
-    gripper_poses,
-    pending_motion,
-    tick_period,
-)
+from bagit.services.controller.session import SOI_MAX_AGE_S, Outbox, ServoSession, tick_period
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.tracker import RimTracker
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S, Coordinator, CoordinatorConfig, Effect, compute_plan
@@ -241,11 +232,8 @@ class _Run:
         if self.session is None:
             self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq, watchdog_s=self.sim.rig.safety.watchdog_s)
             self._send(out, now)
-        grippers, problem = gripper_poses(states)
-        fault = arm_fault(states) if problem is None else None
         age = None if self.soi is None else now - self.soi.source_stamp
-        pending, slowed = pending_motion(states, grippers), arms_slowed(states)
-        self._send(self.session.tick(self.soi, age, SOI_MAX_AGE_S, grippers, problem, fault, self.path, self.goal, now, pending, slowed), now)
+        self._send(self.session.tick_on(self.soi, age, SOI_MAX_AGE_S, states, None, self.path, self.goal, now), now)
 
     def _send(self, out: Outbox, now: float) -> None:
         if out.command is not None:

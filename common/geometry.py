@@ -213,13 +213,6 @@ def ellipse_points_2d(
     return np.stack([x, y], axis=-1)
 
 
-def ellipse_points_3d(
-    center: np.ndarray, u: np.ndarray, v: np.ndarray, rho_u: float, rho_v: float, theta: np.ndarray
-) -> np.ndarray:
-    """Points `(len(theta), 3)` of E(theta) = c + rho_u cos(theta) u + rho_v sin(theta) v (the paper's 3D ellipse)."""
-    return center[None] + rho_u * np.cos(theta)[:, None] * u[None] + rho_v * np.sin(theta)[:, None] * v[None]
-
-
 def make_transform(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
     """4x4 homogeneous transform from a rotation `(3, 3)` and a translation `(3,)`."""
     T = np.eye(4)

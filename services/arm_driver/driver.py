@@ -73,7 +73,7 @@ from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver import machine as m
 from bagit.services.arm_driver.client import CommandRejected, ConnectionLost, DobotClient, PendingReply
 from bagit.services.arm_driver.config import DriverConfig
-from bagit.services.arm_driver.frames import ArmFrames, Poses, controller_fault, feedback_state
+from bagit.services.arm_driver.frames import ArmFrames, controller_fault, feedback_state
 from bagit.services.arm_driver.gate import Refusal, estop_refusal, stale_refusal
 from bagit.services.arm_driver.machine import SETTLE_TIMEOUT_S, DriverState  # noqa: F401 - SETTLE_TIMEOUT_S: where it was
 from bagit.services.arm_driver.motion import ArmMotion
@@ -447,16 +447,6 @@ class ArmDriver:
             rec, _ = self.clients[a].latest()
             if rec is not None:
                 out[a] = feedback_state(a, rec, self.frames[a], estopped=self.state.estop)
-        return out
-
-    def measured_poses(self) -> Poses | None:
-        """4x4 world <- mount of both arms from the latest feedback, or None if one has not reported."""
-        out = {}
-        for a in ARMS:
-            rec, _ = self.clients[a].latest()
-            if rec is None:
-                return None
-            out[a] = self.frames[a].mount_from_pose6(rec["ToolVectorActual"])
         return out
 
     @property

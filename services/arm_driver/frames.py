@@ -60,10 +60,6 @@ class ArmFrames:
         """4x4 base <- flange for a mount pose in the world."""
         return self.T_base_world @ T_world_mount @ self.T_mount_flange
 
-    def servo_pose6(self, T_world_mount: np.ndarray) -> np.ndarray:
-        """ServoP's target `(6,)`: the flange in the base frame as Dobot's pose6 (mm, deg)."""
-        return cr5.matrix_to_pose6(self.flange_in_base(T_world_mount))
-
     def mount_in_world(self, T_base_flange: np.ndarray) -> np.ndarray:
         """4x4 world <- mount for a flange pose in the base frame."""
         return self.T_world_base @ T_base_flange @ self.T_flange_mount

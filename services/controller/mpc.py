@@ -155,10 +155,6 @@ class MpcSolver:
         c = self.q * np.outer(self._Lt1, J.T @ (x - target)).ravel()
         return H, c
 
-    def separation_rows(self, axis: np.ndarray) -> np.ndarray:
-        """G `(T, 12T)`: row k is the separation change after k+1 inputs (the cumulative sum)."""
-        return np.kron(self._L, separation_gradient(axis)[None, :])
-
     def solve(
         self,
         J: np.ndarray,

@@ -52,17 +52,7 @@ from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS, ArmName
 from bagit.services.controller.controller import CONTROLLERS
-from bagit.services.controller.session import (
-    ARM_MAX_AGE_S,
-    DRIVER_WATCHDOG_S,
-    SOI_MAX_AGE_S,
-    Outbox,
-    ServoSession,
-    arm_fault,
-    arms_slowed,
-    gripper_poses,
-    pending_motion,
-)
+from bagit.services.controller.session import ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoSession
 
 log = logging.getLogger("bagit.controller")
 
@@ -360,12 +350,8 @@ class ControllerNode:
         self.counters["ticks"] += 1
         item = self.soi.get_with_time()
         states, arm_problem = self._states(now)
-        grippers, arm_problem = (None, arm_problem) if arm_problem else gripper_poses(states)
         soi, age = (None, None) if item is None else (item[0], self.soi_age(*item, now=now))
-        fault = arm_fault(states) if soi is not None and arm_problem is None else None
-        pending = pending_motion(states, grippers) if arm_problem is None else None
-        slowed = arm_problem is None and arms_slowed(states)
-        out = run.tick(soi, age, self.cfg.soi_max_age_s, grippers, arm_problem, fault, path, goal, now, pending, slowed)
+        out = run.tick_on(soi, age, self.cfg.soi_max_age_s, states, arm_problem, path, goal, now)
         if out.keepalive:
             self.counters["keepalive"] += 1
             self._put(out.command)  # not a control tick: no status, no count as servo

@@ -4,9 +4,13 @@ Whoever hosts it (the `bagit controller` node on Zenoh, `bagit run`'s in-process
 simulator's clock) hands it the newest SOI, the grippers' poses and what the arms report, and
 publishes what it returns: the command for the arm driver and the status for the coordinator.
 
-    s, out = ServoSession.build(run_state, path, goal, overrides, next_seq)   # s None: out says why
-    out = s.tick(soi, soi_age_s, grippers, arm_problem, arm_fault, now)   # out.command, out.status
-    out = s.end("run aborted", now)                                  # one hold, then nothing
+    s, out = ServoSession.build(run_state, path, goal, overrides, next_seq)  # a finished s: out says why
+    out = s.tick_on(soi, soi_age_s, soi_max_age_s, states, None, path, goal, now)  # out.command, out.status
+    out = s.end("run aborted", now)                                           # one hold, then nothing
+
+`tick_on` is the one glue both hosts call: from the arms' states (and why they cannot be used, if a
+host judged them stale) to the grippers, a latched fault, the motion in flight and the slow-down,
+then `tick`.
 
 It never extrapolates: a stale SOI (`soi_max_age_s`), missing or stale arm states -> a hold
 command (u = 0) with the reason. A latched arm fault ends the run (it will not clear by itself).
@@ -175,6 +179,16 @@ class ServoSession:
         return s
 
     # -- one tick ----------------------------------------------------------------------------------
+
+    def tick_on(self, soi: SoiState | None, soi_age_s: float | None, soi_max_age_s: float, states: dict[ArmName, ArmState],
+                states_problem: str | None, path: Path, goal: Goal | None, now: float) -> Outbox:
+        """A control tick on the arms' `states` as a host has them (`states_problem`: why they cannot be used,
+        e.g. stale; None: fresh): what both hosts, `bagit run` and the controller node, do around `tick`."""
+        grippers, problem = (None, states_problem) if states_problem else gripper_poses(states)
+        fault = arm_fault(states) if problem is None else None
+        pending = pending_motion(states, grippers) if problem is None else None
+        slowed = problem is None and arms_slowed(states)
+        return self.tick(soi, soi_age_s, soi_max_age_s, grippers, problem, fault, path, goal, now, pending, slowed)
 
     def tick(self, soi: SoiState | None, soi_age_s: float | None, soi_max_age_s: float, grippers: dict[ArmName, np.ndarray] | None,
              arm_problem: str | None, arm_fault: str | None, path: Path, goal: Goal | None, now: float,
