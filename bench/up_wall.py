@@ -36,12 +36,12 @@ from typing import Any, Literal
 import numpy as np
 
 from bagit.common.logs import configure_logging
+from bagit.common.names import FINAL_STAGES, SERVO_STAGES
 
 log = logging.getLogger("bagit.bench.up_wall")
 
 GOAL_P99_MS = 30.0
 GOAL_REALTIME = 1.0
-SERVO = ("pre-bagging", "bagging")
 
 
 class _Timings:
@@ -132,9 +132,9 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
             if s is not None and s.run_id == run_id:
                 if "run_start" not in marks and t is not None and t.run_id == run_id:
                     marks["run_start"] = (time.monotonic(), t.sim_time)
-                if s.stage in SERVO and "servo_start" not in marks and t is not None and t.run_id == run_id:
+                if s.stage in SERVO_STAGES and "servo_start" not in marks and t is not None and t.run_id == run_id:
                     marks["servo_start"] = (time.monotonic(), t.sim_time, up.cpu_s(), time.time())
-                if s.stage in ("done", "failed", "aborted"):
+                if s.stage in FINAL_STAGES:
                     state = s
                     break
             time.sleep(0.05)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, TypeAlias
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
-from bagit.common.names import ESTOP_RELEASE_SOURCES, Stage
+from bagit.common.names import ESTOP_RELEASE_SOURCES, ControllerName, PlannerName, ServoMode, Stage
 
 SCHEMA_VERSION = 1
 
@@ -169,7 +169,7 @@ class Path(Message):
     KIND: ClassVar[str] = "path"
     run_id: str | None = None
     success: bool = True
-    planner: str = "cbirrt"
+    planner: PlannerName = "cbirrt"
     nodes: ArrayF64
     dagger_index: int
     time_s: float = 0.0
@@ -228,9 +228,9 @@ class ControllerStatus(Message):
     KIND: ClassVar[str] = "controller_status"
     run_id: str | None = None
     seq: int = 0
-    controller: str = "mpc"
-    mode: str = "servo"
-    stage: str = "pre-bagging"
+    controller: ControllerName = "mpc"
+    mode: ServoMode = "servo"
+    stage: Stage = "pre-bagging"
     reason: str | None = None
     subgoal_index: int = 0
     progress: float = Field(0.0, ge=0.0, le=1.0)
@@ -328,7 +328,7 @@ class StepAck(Message):
     frame: float | None = Field(None, allow_inf_nan=False)
     soi_seq: int | None = None
     object_stamp: float | None = Field(None, allow_inf_nan=False)  # perception: the frame also gave an ObjectDetection
-    stage: str | None = None
+    stage: Stage | None = None
     cmd_seq: int | None = None
     status_seq: int | None = None  # controller: the status it sent for the frame; planner: that status handled
     tick: int | None = Field(None, ge=0)

@@ -14,6 +14,9 @@ ACTIVE_STAGES: tuple[str, ...] = ("perceiving", "goal", "planning", "pre-bagging
 SERVO_STAGES: tuple[str, ...] = ("pre-bagging", "bagging")  # the controller moves the arms
 PERCEIVE_STAGES: tuple[str, ...] = ("perceiving", "goal")  # the object's marker is still looked for
 FINAL_STAGES: tuple[str, ...] = ("done", "failed", "aborted")
+FAILED_STAGES: tuple[str, ...] = ("failed", "aborted")  # final, without success
+# What a controller tick did (`ControllerStatus.mode`): explored J, servoed, settled still at g†, held, or finished.
+ServoMode = Literal["explore", "servo", "settle", "hold", "done"]
 
 # Who may release the e-stop (EStop(engage=False) with this `source`): the operator's own tools, the
 # dashboard and the CLI. An engage is taken from anyone. On the secure rig these are also the only

@@ -23,7 +23,7 @@ import viser.uplot
 
 from bagit.common.errors import BadScenario, BagItError
 from bagit.common.messages import ArmState, ControllerStatus, EStop, RunControlReply, RunState
-from bagit.common.names import ESTOP_SOURCE_DASHBOARD, SERVO_STAGES
+from bagit.common.names import ESTOP_SOURCE_DASHBOARD, FAILED_STAGES, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.scenario import Scenario
 from bagit.dashboard.health import HealthBoard, health_markdown
@@ -478,7 +478,7 @@ class Panel:
             if status is not None and (status.run_id in (None, msg.run_id)) and msg.stage in SERVO_STAGES:
                 sub = f" · subgoal {status.subgoal_index}"
             lines.append(f"**Stage:** {msg.stage} · {100 * msg.progress:.0f} % · {elapsed:.1f} s{sub}")
-            if msg.stage in ("failed", "aborted") or msg.reason:
+            if msg.stage in FAILED_STAGES or msg.reason:
                 lines.append(f"**Reason:** {msg.reason or 'none given'}")
         if estop.get("engaged"):
             stopped = self.arms_stopped()
@@ -502,7 +502,7 @@ class Panel:
             estop = self._estop.get("engaged", False)
         progress = 0.0 if run is None else 100.0 * run[0].progress
         self._set(self.progress, "value", round(progress, 1))
-        self._set(self.progress, "color", "red" if estop or (run and run[0].stage in ("failed", "aborted")) else
+        self._set(self.progress, "color", "red" if estop or (run and run[0].stage in FAILED_STAGES) else
                   "green" if run and run[0].stage == "done" else "blue")
         self._set(self.release_button, "disabled", not estop)
         self._render_message()

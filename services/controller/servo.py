@@ -19,6 +19,7 @@ from bagit.common.dual_arm import DualArmIncrement, apply_increment, pose_increm
 from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.messages import Command
+from bagit.common.names import ServoMode
 from bagit.common.params import MethodParams
 from bagit.common.rig import ArmName
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
@@ -53,7 +54,7 @@ class ControlOutput:
     """One tick's decision. u: (12,) = [left dx dy dz drx dry drz, right ...] (m, rad) for this tick."""
 
     u: np.ndarray
-    mode: str  # 'explore' | 'servo' | 'settle' (still, at g†) | 'hold' | 'done'
+    mode: ServoMode  # settle: still, at g†
     reason: str | None  # why the arms are held (mode 'hold'), else None
     subgoal_index: int
     stage: str  # 'pre-bagging' before g† is reached, 'bagging' after
@@ -407,7 +408,7 @@ class ServoBase:
     def _hold(self, reason: str, x: np.ndarray | None) -> ControlOutput:
         return self._out(np.zeros(12), "hold", reason, x)
 
-    def _out(self, u: np.ndarray, mode: str, reason: str | None, x: np.ndarray | None, done: bool = False) -> ControlOutput:
+    def _out(self, u: np.ndarray, mode: ServoMode, reason: str | None, x: np.ndarray | None, done: bool = False) -> ControlOutput:
         tr = self._path_tracker()
         if x is not None and np.all(np.isfinite(x)):
             e_sub, e_goal = tr.error(x, tr.index), tr.error(x, len(self.path) - 1)
