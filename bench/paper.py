@@ -288,10 +288,12 @@ def run(
     figures: bool = True,
 ) -> dict[str, Any]:
     """Measure (or reuse, from an earlier paper.json) the planning runs, measure the placements, read the
-    closed-loop runs, and write paper.md/json and the figures."""
+    closed-loop runs, and write paper.md/json and the figures. A quick or partial run (`quick`, fewer seeds or
+    placements) writes beside the published report, in `quick/` under the results folder, never over it."""
     from bagit.bench.paper_report import markdown
 
-    out = Path(out_dir) if out_dir else RESULTS_DIR
+    partial = quick or (seeds is not None and seeds < 10) or (placements is not None and placements < 1000)
+    out = Path(out_dir) if out_dir else (RESULTS_DIR / "quick" if partial else RESULTS_DIR)
     n_seeds = seeds or (3 if quick else 10)
     if n_seeds < 1:
         raise ValueError(f"--seeds must be at least 1, got {n_seeds}")
@@ -310,7 +312,7 @@ def run(
     plan_runs = old.get("planning_runs") or measure_planning(paths, n_seeds)
     t_plan = time.perf_counter() - t0
     place_runs = measure_placements(n_place)  # cheap and seeded: always measured afresh
-    cl_files = list(closed_loop) if closed_loop is not None else find_closed_loop(out)
+    cl_files = list(closed_loop) if closed_loop is not None else find_closed_loop(Path(out_dir) if out_dir else RESULTS_DIR)
     cl_runs, cl_rows = load_closed_loop(cl_files)
     result: dict[str, Any] = {
         "machine": machine(),
