@@ -51,6 +51,7 @@ from bagit.services.sim.rig_sim import SETTLE_S, SimRig
 from bagit.services.sim.truth import GroundTruth
 
 EXPIRE_CHECK_S = 1.0  # lockstep: while waiting, how often (wall) a silent service's time-out is looked at
+IDLE_FPS = 2.0  # lockstep between runs: camera frames per simulated second (the scene stays live; nothing is servoed)
 
 SERVICE_NAME = "sim"
 
@@ -104,6 +105,7 @@ class SimNode:
         self._rtf_window = 1.0  # simulated over wall seconds over the last report window (periodic truth)
         self._run_t0 = (0.0, time.monotonic())  # the current run's start: rig clock, wall (monotonic)
         self._step_truth: GroundTruth | None = None  # lockstep: the truth of the step the world stepped ahead of
+        self._idle_frame = float("-inf")  # lockstep: the world time of the last frame (between runs, IDLE_FPS of them)
         self._lock = threading.Lock()
         self._pending: tuple[str, dict[str, Any], int, str | None, dict[str, Any]] | None = None
         self._keep_s: float | None = None  # lockstep: the run's controller keep-alive pace (`tick_period`)
@@ -316,7 +318,9 @@ class SimNode:
             if sched.frame_due(world_t):
                 if n is None:
                     self._publish_clock(now, None)
-                if cfg.camera and self._camera_paused is None:
+                idle = not self.lockstep.active and world_t - self._idle_frame < 1.0 / IDLE_FPS - 1e-9  # between runs: fewer frames
+                if cfg.camera and self._camera_paused is None and not idle:
+                    self._idle_frame = world_t
                     frame = rig.render_rgbd(self._world_frames)  # numbered (and its noise seeded) per world, as in `bagit run`
                     self._world_frames += 1
                     frame.stamp = now  # the rig's clock
