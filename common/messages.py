@@ -101,6 +101,7 @@ class RgbdFrame(Message):
     camera: CameraInfo = CameraInfo()
     color: ArrayU8
     depth: ArrayU16
+    run_id: str | None = None  # a lockstep simulator: the run whose world the frame shows (a real camera: None)
 
     @field_validator("depth")
     @classmethod

@@ -53,7 +53,7 @@ from bagit.common.errors import BagItError
 from bagit.common.geometry import points_to_polyline_distance, transform_points
 from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState, StepAck
-from bagit.common.names import MAX_N_X, MIN_N_X
+from bagit.common.names import ACTIVE_STAGES, MAX_N_X, MIN_N_X
 from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import back_project
@@ -138,6 +138,9 @@ class PerceptionNode:
         self._rim: RimTracker | None = None  # the SOI over frames (warm starts), for the run's bag
         self._rim_bag: tuple[int, str, tuple[float, float, float]] | None = None
         self._run_id: str | None = None
+        self._run_active = False  # run/state shows a run under way (lockstep: its frames wait for their arm state)
+        self._runs_seen: set[str] = set()  # lockstep: the runs whose run/state came (a frame of one waits for it)
+        self._tracked_run: str | None = None  # lockstep: the run of the last frame fitted
         self._scenario: Scenario | None = None
         self._last_cloud = -1e9
         self.solve_ms: list[float] = []
@@ -275,6 +278,7 @@ class PerceptionNode:
     _busy = False
 
     def _on_run_state(self, msg: RunState) -> None:
+        self._run_active = msg.run_id is not None and msg.stage in ACTIVE_STAGES
         if msg.run_id == self._run_id:
             return
         scen = None
@@ -285,13 +289,17 @@ class PerceptionNode:
                 log.warning(f"run {msg.run_id}: scenario not readable, using the config's bag: {str(e).splitlines()[0]}")
         with self._cond:
             self._run_id, self._scenario = msg.run_id, scen
-            if self._rim is not None:
-                self._rim.reset()  # a new run: start cold
+            if self._rim is not None and not self.lockstep:
+                self._rim.reset()  # a new run: start cold (lockstep: on the first frame of its world, `_process`)
         if scen is not None:
             self._add_run_object(scen)
         if msg.run_id is not None and msg.stage == "perceiving":
             with self._mcond:
                 self._marker_after = msg.stamp - msg.elapsed_s + self.cfg.marker_settle_s
+        if msg.run_id is not None:  # last: a frame of this run waiting for its run/state finds all of it in place
+            with self._cond:
+                self._runs_seen.add(msg.run_id)
+            self._step_wait.notify()
 
     # -- work --------------------------------------------------------------------------------------
 
@@ -325,7 +333,7 @@ class PerceptionNode:
         Lockstep: the state of this very step, as `bagit run` reads it (its age on the rig's clock); it comes
         on its own key, before or after the frame, so the fit waits for it (`StepWait`: woken by each state)."""
         late = None
-        if self.lockstep:
+        if self.lockstep and self._run_active and frame.run_id is not None:  # between runs: no wait (nor an arm driver needed)
             def ready() -> bool:
                 msg = self._arm.get()
                 return msg is not None and msg.stamp >= frame.stamp - 1e-6
@@ -360,8 +368,22 @@ class PerceptionNode:
             return
         seq, late = None, None
         detected = False
+        # A frame of a new run's world may come before that run's run/state (they travel on their own
+        # links): its bag (n_x, kind, colour) and the tracker's cold start are that run's, so wait for it.
+        run = frame.run_id
+        if run is not None:
+            if not self._step_wait.wait(lambda: run in self._runs_seen, self._stop):
+                if self._stop.is_set():
+                    return
+                late = f"the run/state of run {run}"
+            if run != self._tracked_run:  # the first frame of a run's world: a cold start, as `bagit run` begins
+                with self._cond:
+                    if self._rim is not None:
+                        self._rim.reset()
+                self._tracked_run = run
         try:
-            seq, late = self._soi(frame)
+            seq, hint_late = self._soi(frame)
+            late = late or hint_late
         finally:
             with self._mcond:
                 detected = self._marker_due(frame)

@@ -324,6 +324,7 @@ class SimNode:
                     frame = rig.render_rgbd(self._world_frames)  # numbered (and its noise seeded) per world, as in `bagit run`
                     self._world_frames += 1
                     frame.stamp = now  # the rig's clock
+                    frame.run_id = self.run_id  # the run whose world this is: perception judges it in that run's terms
                     with self._cond:
                         self.lockstep.frame_published(now, time.monotonic())
                     self._frame_pub.put(frame)
