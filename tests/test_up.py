@@ -89,22 +89,21 @@ def _why(log: str) -> str:
             + " | ".join(ln for v in kept.values() for ln in v))
 
 
-def _paused_mid_run(argv: list[str], service: str, pause_s: float, status: Path, log: Path) -> tuple[subprocess.CompletedProcess, list[str]]:
-    """`bagit up ... --status-file status` with `service` stopped (SIGSTOP) for `pause_s` once the run is servoing,
-    then resumed (SIGCONT); the finished process (its log as stderr) and the order of what happened (a run that
-    ended before the pause shows it: "servoing" is seen before the stop, "ended" after the resume)."""
+def _paused_mid_run(argv: list[str], pauses: list[tuple[str, str, float]], status: Path, log: Path) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """`bagit up ... --status-file status`, each (when, service, seconds) of `pauses` in turn: once `when` is in
+    its log, `service` stopped (SIGSTOP) for that long, then resumed (SIGCONT); the finished process (its log
+    as stderr) and the order of what happened ("ended" last: the run ended after every pause)."""
     events: list[str] = []
     with open(log, "w") as err:
         p = subprocess.Popen(argv + ["--status-file", str(status)], stdout=subprocess.PIPE, stderr=err, text=True, env=ENV)
         try:
-            assert wait_until(lambda: "pre-bagging" in log.read_text(), 300, 0.05), log.read_text()[-3000:]
-            events.append("servoing")
-            pid = json.loads(status.read_text())["children"][service]
-            os.kill(pid, signal.SIGSTOP)
-            events.append(f"{service} stopped")
-            time.sleep(pause_s)  # longer than the 1 s link lease of the wall clock, and than any old bounded wait
-            os.kill(pid, signal.SIGCONT)
-            events.append(f"{service} resumed")
+            for when, service, pause_s in pauses:
+                assert wait_until(lambda: when in log.read_text(), 300, 0.02), log.read_text()[-3000:]
+                pid = json.loads(status.read_text())["children"][service]
+                os.kill(pid, signal.SIGSTOP)
+                time.sleep(pause_s)  # longer than the 1 s link lease of the wall clock, and than any old bounded wait
+                os.kill(pid, signal.SIGCONT)
+                events.append(f"{service} paused at {when}")
             out, _ = p.communicate(timeout=420)
             events.append("ended")
         finally:
@@ -118,9 +117,12 @@ def test_a_full_simulated_run_through_bagit_up_with_a_service_paused_is_bagit_ru
     # so however the two cores are shared, and even with a service stopped for seconds mid-run (SIGSTOP,
     # as a loaded machine or a debugger would), the run is the one `bagit run` computes in one process:
     # the same ticks, the same time and the same true rim, to the last bit, and it says it is exact. No retry.
+    # The simulator stopped as the run starts (its world resetting, perception's first frames of it to come),
+    # then the controller once the arms servo.
     argv = [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--timeout", "380"]
-    r, events = _paused_mid_run(argv, "controller", 3.0, tmp_path / "status.json", tmp_path / "up.log")
-    assert events == ["servoing", "controller stopped", "controller resumed", "ended"], events
+    pauses = [("perceiving", "sim", 2.0), ("pre-bagging", "controller", 3.0)]
+    r, events = _paused_mid_run(argv, pauses, tmp_path / "status.json", tmp_path / "up.log")
+    assert events == ["sim paused at perceiving", "controller paused at pre-bagging", "ended"], events
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert "watchdog" not in r.stderr and "no longer waiting" not in r.stderr and "without" not in r.stderr, _why(r.stderr)
     ref = subprocess.run([sys.executable, "-m", "bagit.cli", "run", "exp02", "--json"], capture_output=True, text=True, env=ENV, timeout=300)

@@ -51,6 +51,7 @@ from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, E
 log = logging.getLogger("bagit.planner")
 
 SERVICE_NAME = "planner"
+MAX_HELD_SOIS = 64  # lockstep: SOIs held for their frame at most (strays of frames never answered are dropped)
 
 
 class PlannerServiceConfig(BaseModel):
@@ -81,7 +82,9 @@ class PlannerNode:
         self.clock: Callable[[], float] = self._clock.now
         self._planning = 0  # plan threads running
         self._frames: list[tuple[StepAck, float]] = []  # lockstep: perception's answers (and when they came) not yet answered
-        self._soi_handled = float("-inf")  # lockstep: the newest frame stamp whose SOI is handled
+        self._sois: dict[float, SoiState] = {}  # lockstep: SOIs by frame stamp, held until their frame is taken in order
+        self._taken: tuple[float, str | None] | None = None  # lockstep: the frame handed to the coordinator, not yet answered (and
+        # what it went without)
         self._statuses: list[StepAck] = []  # lockstep: the controller's answers whose status is not handled yet
         self._status_handled: int | None = None
         self._object_handled = float("-inf")  # lockstep: the newest stamp of an ObjectDetection handled
@@ -124,11 +127,14 @@ class PlannerNode:
         return rep
 
     def _on_soi(self, soi: SoiState) -> None:
-        self._apply(lambda: self.coord.on_soi(soi, self.clock()))
-        if self.lockstep:
-            with self._pub_lock:
-                self._soi_handled = max(self._soi_handled, soi.source_stamp)
-                self._answer_frames()
+        if not self.lockstep:
+            self._apply(lambda: self.coord.on_soi(soi, self.clock()))
+            return
+        with self._pub_lock:  # lockstep: handed over in `_answer_frames`, after its frame's object detection
+            self._sois[soi.source_stamp] = soi
+            while len(self._sois) > MAX_HELD_SOIS:  # (answered frames take theirs; this only bounds strays)
+                self._sois.pop(min(self._sois))
+            self._answer_frames()
 
     # -- lockstep ------------------------------------------------------------------------------
 
@@ -164,17 +170,30 @@ class PlannerNode:
                                       stage=st.stage, stamp=self.clock()))
 
     def _answer_frames(self) -> None:
-        """Answer the frames whose SOI is handled, unless a plan is under way (with _pub_lock held)."""
+        """Take perception's frames in order, as `bagit run` does within one: the frame's object detection
+        (if it made one) handled first, then its SOI handed to the coordinator, and the frame answered once
+        that is done (a plan it started included). Both come on their own keys, in any order, before or
+        after perception's answer; what has not come after the lockstep time-out is gone without (the
+        answer says so). With _pub_lock held."""
         while self._frames and not self._planning:
             ack, came = self._frames[0]
-            # by stamps, which the rig's clock makes grow across worlds (an SOI's is its frame's)
-            missing = ("its SOI" if ack.soi_seq is not None and (ack.frame or 0.0) > self._soi_handled else
-                       "its object detection" if ack.object_stamp is not None and ack.object_stamp > self._object_handled else None)
-            if missing is not None:  # they come on their own keys (reliable in lockstep), before or after perception's answer
-                if time.monotonic() - came < LOCKSTEP_TIMEOUT_S:
-                    return
-                log.warning("lockstep: frame %.3f answered without %s after %g s", ack.frame or 0.0, missing, LOCKSTEP_TIMEOUT_S)
+            t = float(ack.frame or 0.0)
+            if self._taken is None or self._taken[0] != t:
+                missing = ("its object detection" if ack.object_stamp is not None and ack.object_stamp > self._object_handled else
+                           "its SOI" if ack.soi_seq is not None and t not in self._sois else None)
+                if missing is not None:
+                    if time.monotonic() - came < LOCKSTEP_TIMEOUT_S:
+                        return
+                    log.warning("lockstep: frame %.3f taken without %s after %g s", t, missing, LOCKSTEP_TIMEOUT_S)
+                soi = self._sois.pop(t, None)
+                self._taken = (t, missing)
+                if soi is not None:
+                    self._apply(lambda soi=soi: self.coord.on_soi(soi, self.clock()))  # type: ignore[misc]
+                    if self._planning:
+                        return  # answered when the plan is in (`_plan`)
+            missing = self._taken[1]
             self._frames.pop(0)
+            self._taken = None
             with self._lock:
                 st = self.coord.state
             if self._closed:
