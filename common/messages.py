@@ -303,13 +303,16 @@ class ClockTick(Message):
     t: seconds on the rig's clock (the simulated controllers' time: it never goes back, resets
     included). `servo_tick` n: the arm driver runs servo cycle n now, at `t`, and answers it.
     `keepalive`: camera frames come further apart than the controller's keep-alive pace, and the
-    controller ticks now on its last SOI (a keep-alive, or a hold) and answers it, as at a frame."""
+    controller ticks now on its last SOI (a keep-alive, or a hold) and answers it, as at a frame.
+    `frame`: a camera frame falls at `t` too (after the servo tick, if both do): the coordinator's
+    tick at `t` waits until that frame (and its control tick) is handled, as `bagit run` orders them."""
 
     KIND: ClassVar[str] = "clock"
     t: float = Field(ge=0.0, allow_inf_nan=False)
     servo_tick: int | None = Field(None, ge=0)
     run_id: str | None = None
     keepalive: bool = False
+    frame: bool = False
 
 
 class StepAck(Message):

@@ -18,6 +18,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import zenoh
@@ -46,11 +47,13 @@ from bagit.common.messages import (
     SoiState,
     StepAck,
 )
+from bagit.common.names import SERVO_STAGES
 from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, PlanJob, compute_plan
 
 log = logging.getLogger("bagit.planner")
 
 SERVICE_NAME = "planner"
+STAMP_TOL_S = 1e-6  # lockstep: two stamps of the same step
 MAX_HELD_SOIS = 64  # lockstep: SOIs held for their frame at most (strays of frames never answered are dropped)
 
 
@@ -83,10 +86,11 @@ class PlannerNode:
         self._planning = 0  # plan threads running
         self._frames: list[tuple[StepAck, float]] = []  # lockstep: perception's answers (and when they came) not yet answered
         self._sois: dict[float, SoiState] = {}  # lockstep: SOIs by frame stamp, held until their frame is taken in order
+        self._deferred_tick: float | None = None  # lockstep: a step's coordinator tick waiting for its frame to be handled
         self._taken: tuple[float, str | None] | None = None  # lockstep: the frame handed to the coordinator, not yet answered (and
         # what it went without)
         self._statuses: list[StepAck] = []  # lockstep: the controller's answers whose status is not handled yet
-        self._status_handled: int | None = None
+        self._held_statuses: dict[int, ControllerStatus] = {}  # lockstep: statuses by seq, held for the controller's answer
         self._object_handled = float("-inf")  # lockstep: the newest stamp of an ObjectDetection handled
         self.on_state = on_state
         self.coord = Coordinator(self.cfg.coordinator, now=self.clock())
@@ -139,10 +143,36 @@ class PlannerNode:
     # -- lockstep ------------------------------------------------------------------------------
 
     def _on_clock(self, tick: ClockTick) -> None:
-        """The simulator's time: the coordinator's limits run on it."""
-        if isinstance(self._clock, SimClock):  # subscribed only in lockstep
-            self._clock.advance(tick.t, tick.servo_tick)
-        self._apply(lambda: self.coord.tick(self.clock()))
+        """The simulator's time: the coordinator's limits run on it. At a step with a frame or a keep-alive
+        tick, `bagit run` ticks the coordinator after that frame and its control tick are handled: so does
+        this node (`_tick_after`); a tick still deferred when a later step comes is done first."""
+        with self._pub_lock:
+            self._flush_tick(before=tick.t)
+            if isinstance(self._clock, SimClock):  # subscribed only in lockstep
+                self._clock.advance(tick.t, tick.servo_tick)
+            if tick.frame or tick.keepalive:
+                self._deferred_tick = tick.t
+            else:
+                self._apply(lambda: self.coord.tick(tick.t))
+
+    def _advance(self, t: float) -> None:
+        """Lockstep: the coordinator's clock at least at step `t`, whose messages are being handled."""
+        if isinstance(self._clock, SimClock):
+            self._clock.advance(t)
+
+    def _flush_tick(self, before: float | None = None, at: float | None = None) -> None:
+        """The deferred coordinator tick, if any (and earlier than `before`, or at `at`). With _pub_lock held."""
+        t = self._deferred_tick
+        if t is None or (before is not None and t >= before) or (at is not None and abs(t - at) > STAMP_TOL_S):
+            return
+        self._deferred_tick = None
+        self._apply(lambda: self.coord.tick(t))
+
+    def _tick_after(self, t: float, stage: str | None) -> None:
+        """Frame or keep-alive `t` handled as far as this node waits: outside a servo stage nothing more comes
+        for it (no control tick), so the coordinator ticks now. With _pub_lock held."""
+        if stage not in SERVO_STAGES:
+            self._flush_tick(at=t)
 
     def _on_ack(self, ack: StepAck) -> None:
         if ack.frame is None:
@@ -152,6 +182,10 @@ class PlannerNode:
                 self._statuses.append(ack)
                 self._answer_statuses()
             return
+        if ack.service == "controller":  # its tick sent no status: the frame is handled, the coordinator ticks
+            with self._pub_lock:
+                self._flush_tick(at=ack.frame)
+            return
         if ack.service != "perception":
             return
         with self._pub_lock:
@@ -159,9 +193,17 @@ class PlannerNode:
             self._answer_frames()
 
     def _answer_statuses(self) -> None:
-        """Answer the controller's ticks whose status is handled, with the stage after it (with _pub_lock held)."""
-        while self._statuses and self._status_handled is not None and (self._statuses[0].status_seq or 0) <= self._status_handled:
+        """The controller's ticks in order: once a tick's statuses are in (its answer names the last), each is
+        handed to the coordinator at the tick's time, then the step's coordinator tick, then the answer with
+        the stage after them (with _pub_lock held)."""
+        while self._statuses and (self._statuses[0].status_seq or 0) in self._held_statuses:
             ack = self._statuses.pop(0)
+            t, last = float(ack.frame or 0.0), ack.status_seq or 0
+            self._advance(t)
+            for seq in sorted(k for k in self._held_statuses if k <= last):
+                st_msg = self._held_statuses.pop(seq)
+                self._apply(partial(self.coord.on_status, st_msg, t))
+            self._flush_tick(at=ack.frame)  # the step's coordinator tick, after its control tick (as `bagit run`)
             with self._lock:
                 st = self.coord.state
             if self._closed:
@@ -187,13 +229,17 @@ class PlannerNode:
                     log.warning("lockstep: frame %.3f taken without %s after %g s", t, missing, LOCKSTEP_TIMEOUT_S)
                 soi = self._sois.pop(t, None)
                 self._taken = (t, missing)
+                self._advance(t)  # the frame's time, whichever of sim/clock and the SOI came first
                 if soi is not None:
-                    self._apply(lambda soi=soi: self.coord.on_soi(soi, self.clock()))  # type: ignore[misc]
+                    self._apply(partial(self.coord.on_soi, soi, t))
                     if self._planning:
                         return  # answered when the plan is in (`_plan`)
             missing = self._taken[1]
             self._frames.pop(0)
             self._taken = None
+            with self._lock:
+                stage = self.coord.state.stage
+            self._tick_after(t, stage)
             with self._lock:
                 st = self.coord.state
             if self._closed:
@@ -202,18 +248,23 @@ class PlannerNode:
                                       stamp=self.clock(), late=missing))
 
     def _on_object(self, det: ObjectDetection) -> None:
-        self._apply(lambda: self.coord.on_object(det, self.clock()))
+        # lockstep: at its frame's time, as `bagit run` hands it over (sim/clock may come after it)
+        now = det.source_stamp if self.lockstep else self.clock()
+        self._apply(lambda: self.coord.on_object(det, now))
         if self.lockstep:
             with self._pub_lock:
                 self._object_handled = max(self._object_handled, det.source_stamp)
                 self._answer_frames()
 
     def _on_status(self, st: ControllerStatus) -> None:
-        self._apply(lambda: self.coord.on_status(st, self.clock()))
-        if self.lockstep:
-            with self._pub_lock:
-                self._status_handled = st.seq
-                self._answer_statuses()
+        if not self.lockstep:
+            self._apply(lambda: self.coord.on_status(st, self.clock()))
+            return
+        with self._pub_lock:  # lockstep: handed over with the controller's answer, at its frame's time (`_answer_statuses`)
+            self._held_statuses[st.seq] = st
+            while len(self._held_statuses) > MAX_HELD_SOIS:
+                self._held_statuses.pop(min(self._held_statuses))
+            self._answer_statuses()
 
     def _on_estop(self, msg: EStop) -> None:
         log.warning("e-stop %s by %s%s", "engaged" if msg.engage else "released", msg.source, f": {msg.reason}" if msg.reason else "")

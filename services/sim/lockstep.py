@@ -61,6 +61,10 @@ class Schedule:
         self.ticks += 1
         return self.ticks - 1
 
+    def frame_pending(self, now: float) -> bool:
+        """Whether a frame is due at `now` (the schedule does not move)."""
+        return now >= self.next_frame - EPS_S
+
     def frame_due(self, now: float) -> bool:
         """Whether a frame is due at `now` (and the schedule moves past it)."""
         if now < self.next_frame - EPS_S:

@@ -312,12 +312,12 @@ class SimNode:
             if n is not None:
                 with self._cond:
                     self.lockstep.servo_tick(n, rig.servo_counts(), time.monotonic())
-                self._publish_clock(now, n)
+                self._publish_clock(now, n, frame=sched.frame_pending(world_t))
                 self._wait(stop)
             stepped = False  # the world already stepped to the next event while the rig worked on this one
             if sched.frame_due(world_t):
                 if n is None:
-                    self._publish_clock(now, None)
+                    self._publish_clock(now, None, frame=True)
                 idle = not self.lockstep.active and world_t - self._idle_frame < 1.0 / IDLE_FPS - 1e-9  # between runs: fewer frames
                 if cfg.camera and self._camera_paused is None and not idle:
                     self._idle_frame = world_t
@@ -373,8 +373,8 @@ class SimNode:
         self.rig.step(dt)
         return True
 
-    def _publish_clock(self, t: float, servo_tick: int | None, keepalive: bool = False) -> None:
-        self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive))
+    def _publish_clock(self, t: float, servo_tick: int | None, keepalive: bool = False, frame: bool = False) -> None:
+        self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive, frame=frame))
 
     def _wait(self, stop: threading.Event) -> None:
         """Until the rig has answered this step (or a new run, or `stop`). Every answer wakes it (an ack, a
