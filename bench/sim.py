@@ -2,11 +2,15 @@
 the canned pineapple off-centre, so that its fabric is pressed against the can for most of the run;
 physics alone and with the camera rendering 640x480 RGB-D at 15 frames per simulated second.
 
-    python -m bagit.bench.sim [--quick]
+    python -m bagit.bench.sim [--quick] [--jsonl PATH]
 
 Prints the real-time factors (the target is >= 2 with the object in contact, and >= 1 with the
-camera at 15 Hz), the wall time per 1/30 s control tick and per frame (min / median / p95), and how
-much of the run the fabric was touching the object.
+camera at 15 Hz), the wall time per 1/30 s control tick and per frame (min / median / p95), a
+frame's stages apart (the render, the depth noise, the conversion to uint16 units; wall and CPU,
+the CPU counting the noise's worker thread, which makes the next frame's draws while the units are
+converted and the world steps), and how much of the run the fabric was touching the object.
+A full run appends a record (commit, host, load, parameters) to bench/results/sim.jsonl; a --quick
+run writes one only where --jsonl says.
 """
 
 from __future__ import annotations
