@@ -237,3 +237,54 @@ def test_the_noise_computed_in_place_is_the_plain_formulas_bit_for_bit(coffee):
         want = _reference_noise(z, DepthNoise(), np.random.default_rng([0, seq]), rays)
         assert got.dtype == want.dtype and np.array_equal(got, want)
     assert np.count_nonzero(got != z) > 0.5 * z.size  # the noise did something
+
+
+def _reference_units(z: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Metric depth to uint16 units as plain formulas (the code before it was computed in place)."""
+    units = np.round(z / np.float32(depth_scale))
+    return np.where(units <= 65535, units, 0).astype(np.uint16)
+
+
+@pytest.mark.parametrize("bands", [1, 2, 3, 7])
+def test_the_noise_in_row_bands_is_the_plain_formulas_bit_for_bit(coffee, monkeypatch, bands):
+    """However many bands the rows are cut into (odd splits included), every pixel gets the formulas' bits."""
+    from bagit.services.sim import camera
+
+    monkeypatch.setattr(camera, "NOISE_BANDS", bands)
+    monkeypatch.setattr(camera, "_workers", None)  # a pool with bands - 1 workers
+    with SimWorld(coffee, seed=0) as w:
+        w.step(0.2)
+        color, z = w.render_true()
+        rays = w._renderer.rays
+    z = z.copy()
+    z[100:140, 300:340] = 7.0  # out of range: a hole with edges around it ...
+    z[240:260, :320] *= 1.2  # ... steps on the band boundaries (2 bands: rows 239 | 240; 3: 159 | 160) ...
+    z[160:200, 320:] *= 0.8
+    z[300:310, :] = 0.2  # ... and rows too near
+    got = add_depth_noise(z, DepthNoise(), np.random.default_rng([3, 9]), rays)
+    want = _reference_noise(z, DepthNoise(), np.random.default_rng([3, 9]), rays)
+    assert np.array_equal(got, want)
+
+
+def test_a_frame_is_the_plain_formulas_bit_for_bit_whatever_order_the_frames_come_in(coffee):
+    """The draws made ahead for seq + 1 are frame seq + 1's; any other seq gets its own: the frame never
+    depends on which frames came before. Depth linearisation and units are the plain formulas too."""
+    from bagit.services.sim.camera import RgbdRenderer
+
+    with SimWorld(coffee, seed=5) as w:
+        w.step(0.2)
+        _, z = w.render_true()
+        r: RgbdRenderer = w._renderer
+        n, f = r._near, r._far
+        buf = np.flipud(r._depth).astype(np.float64)
+        ref = (f * n) / (buf * (f - n) + n)
+        ref[buf <= 0.0] = 0.0
+        assert np.array_equal(z, ref.astype(np.float32))
+        scale = w.rig.camera.info().depth_scale
+        for seq in (0, 1, 2, 7, 3, 4, 4, 0):
+            got = w.render_rgbd(seq)
+            want = _reference_units(_reference_noise(z, DepthNoise(), np.random.default_rng([5, seq]), r.rays), scale)
+            assert got.seq == seq and np.array_equal(got.depth, want), seq
+        w.noise = off = DepthNoise(enabled=False)
+        in_range = np.where((z >= off.min_range_m) & (z <= off.max_range_m), z, np.float32(0.0))
+        assert np.array_equal(w.render_rgbd(5).depth, _reference_units(in_range, scale))

@@ -15,6 +15,7 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import sys  # noqa: E402
 import weakref  # noqa: E402
+from concurrent.futures import Future, ThreadPoolExecutor  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
 import mujoco  # noqa: E402
@@ -54,20 +55,25 @@ class _PixelRays:
 
 def _slope(z: np.ndarray, axis: int, rel: float) -> tuple[np.ndarray, np.ndarray]:
     """Along `axis` of `z (H, W)`: the pixel's own slope (smaller one-sided difference, per pixel),
-    and whether a step (a difference over `rel` * z on one side, over three times the other) is next to it."""
-    d = np.diff(z, axis=axis)
+    and whether a step (a difference over `rel` * z on one side, over three times the other) is next to it.
+
+    The differences go once into `d`, padded by one at each end (the first pixel taking its
+    neighbour's, the last likewise): `before` = z[i] - z[i-1] and `after` = z[i+1] - z[i] are views of it.
+    """
     n = z.shape[axis]
-    before = np.empty_like(z)  # z[i] - z[i-1], the first pixel taking its neighbour's
-    after = np.empty_like(z)  # z[i+1] - z[i], the last pixel taking its neighbour's
     sl = lambda a, b: (slice(a, b), slice(None)) if axis == 0 else (slice(None), slice(a, b))  # noqa: E731
-    before[sl(1, n)] = d
-    before[sl(0, 1)] = d[sl(0, 1)]
-    after[sl(0, n - 1)] = d
-    after[sl(n - 1, n)] = d[sl(n - 2, n - 1)]
-    ab, aa = np.abs(before), np.abs(after)
+    shape = list(z.shape)
+    shape[axis] = n + 1
+    d = np.empty(shape, dtype=z.dtype)  # (H+1, W) or (H, W+1)
+    np.subtract(z[sl(1, n)], z[sl(0, n - 1)], out=d[sl(1, n)])
+    d[sl(0, 1)] = d[sl(1, 2)]
+    d[sl(n, n + 1)] = d[sl(n - 1, n)]
+    ad = np.abs(d)
+    before, after = d[sl(0, n)], d[sl(1, n + 1)]
+    ab, aa = ad[sl(0, n)], ad[sl(1, n + 1)]
     own = np.where(ab < aa, before, after)
     big = np.maximum(ab, aa)
-    small = np.minimum(ab, aa, out=ab)
+    small = np.minimum(ab, aa)
     small *= 3.0
     step = big > small
     big_rel = big > rel * z
@@ -75,46 +81,134 @@ def _slope(z: np.ndarray, axis: int, rel: float) -> tuple[np.ndarray, np.ndarray
     return own, step
 
 
-def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generator, rays: _PixelRays) -> np.ndarray:
+NOISE_BANDS = 2  # row bands of a frame's noise computed at once (numpy releases the GIL in its loops)
+
+
+def noise_draws(rng: np.random.Generator, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The noise model's random draws for a depth image of `shape (H, W)`, in the order it makes them:
+    uniform `u (H, W)` float32, then standard normal `(H, W)` float32."""
+    u = rng.random(shape, dtype=np.float32)
+    return u, rng.standard_normal(shape, dtype=np.float32)
+
+
+_workers: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _worker_pool() -> ThreadPoolExecutor:
+    """The noise's worker threads (one process-wide pool, made anew in a forked child, whose threads did not survive)."""
+    global _workers
+    if _workers is None or _workers[0] != os.getpid():
+        _workers = (os.getpid(), ThreadPoolExecutor(max_workers=NOISE_BANDS - 1, thread_name_prefix="depth-noise"))
+    return _workers[1]
+
+
+class DrawsAhead:
+    """The random draws of the next frame, made on a worker thread while the caller does other work.
+
+    `take(seed, seq, shape)` returns frame `seq`'s draws, those made ahead when they are for the same
+    (seed, seq, shape), else made now: the same generator, the same calls, so the same bits either way.
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[int, int, tuple[int, int]] | None = None
+        self._future: Future[tuple[np.ndarray, np.ndarray]] | None = None
+
+    @staticmethod
+    def _make(seed: int, seq: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        return noise_draws(np.random.default_rng([seed, seq]), shape)
+
+    def take(self, seed: int, seq: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        future, key = self._future, self._key
+        self._future = self._key = None
+        if future is not None and key == (seed, seq, shape):
+            return future.result()
+        return self._make(seed, seq, shape)
+
+    def ahead(self, seed: int, seq: int, shape: tuple[int, int]) -> None:
+        """Start making frame `seq`'s draws (a frame taken for another seq discards them)."""
+        self._key = (seed, seq, shape)
+        self._future = _worker_pool().submit(self._make, seed, seq, shape)
+
+
+def add_depth_noise(
+    depth: np.ndarray,
+    noise: DepthNoise,
+    rng: np.random.Generator | None,
+    rays: _PixelRays,
+    draws: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Noisy metric depth `(H, W)` float32 from true metric depth `(H, W)` (0 = no return).
 
     Noise std sigma_at_1m * z^2; holes at depth edges, at grazing incidence (from the true surface's
-    normal, estimated from the depth slope) and a few anywhere; flying pixels at edges. (Computed in
-    place where it can be: the same float32 operations in the same order as the plain formulas in
-    the comments, so the same bits; `tests/test_sim_camera.py` checks it against them.)
+    normal, estimated from the depth slope) and a few anywhere; flying pixels at edges. The random
+    numbers are `noise_draws(rng, shape)`, or `draws` when given (made ahead: `DrawsAhead`).
+
+    Every pixel's value depends only on its own and its 4 neighbours' depth and its own draws, so
+    the image is computed in NOISE_BANDS row bands at once (each band with its neighbour rows), the
+    draws made whole beforehand: the same float32 operations on each pixel, so the same bits
+    (`tests/test_sim_camera.py` checks it against the plain formulas).
     """
-    z = np.asarray(depth, dtype=np.float32)
-    valid = (z >= noise.min_range_m) & (z <= noise.max_range_m)
-    z = np.where(valid, z, np.float32(0.0))
+    z_in = np.asarray(depth, dtype=np.float32)
     if not noise.enabled:
-        return z
+        valid = (z_in >= noise.min_range_m) & (z_in <= noise.max_range_m)
+        return np.where(valid, z_in, np.float32(0.0))
+    if draws is None:
+        if rng is None:
+            raise ValueError("add_depth_noise needs a generator or its draws")
+        draws = noise_draws(rng, z_in.shape)
+    u, out = draws  # `out` is computed in place over the normal draws
+    h = z_in.shape[0]
+    edges = [h * k // NOISE_BANDS for k in range(NOISE_BANDS + 1)]
+    bands = [(edges[k], edges[k + 1]) for k in range(NOISE_BANDS) if edges[k + 1] > edges[k]]
+    pool = _worker_pool() if len(bands) > 1 else None
+    futures = [pool.submit(_noise_band, z_in, noise, rays, u, out, r0, r1) for r0, r1 in bands[1:]] if pool else []
+    _noise_band(z_in, noise, rays, u, out, *bands[0])
+    for f in futures:
+        f.result()
+    return out
+
+
+def _noise_band(z_in: np.ndarray, noise: DepthNoise, rays: _PixelRays, u_all: np.ndarray, out_all: np.ndarray, r0: int, r1: int) -> None:
+    """Rows [r0, r1) of the noisy depth into `out_all (H, W)` (which holds the normal draws), from the
+    true depth `z_in (H, W)` and the uniform draws `u_all (H, W)`. Plain formulas in the comments: the
+    same float32 operations in the same order, computed in place where it can be."""
+    h = z_in.shape[0]
+    h0, h1 = max(r0 - 1, 0), min(r1 + 1, h)  # the band and its neighbour rows (for the vertical slope)
+    i0, i1 = r0 - h0, r1 - h0  # the band's own rows within them
+    zh = z_in[h0:h1]
+    valid_h = (zh >= noise.min_range_m) & (zh <= noise.max_range_m)
+    zh = np.where(valid_h, zh, np.float32(0.0))  # (h1 - h0, W)
+    z, valid = zh[i0:i1], valid_h[i0:i1]
+    u, out = u_all[r0:r1], out_all[r0:r1]
     # One-sided differences to each neighbour: a surface's slope is the smaller of the two (a pixel
     # belongs to one side of a step); a step is a big difference on one side only.
     zu, edge_u = _slope(z, axis=1, rel=noise.edge_jump)
-    zv, edge_v = _slope(z, axis=0, rel=noise.edge_jump)
+    zv, edge_v = _slope(zh, axis=0, rel=noise.edge_jump)
+    zv, edge_v = zv[i0:i1], edge_v[i0:i1]
     edge = edge_u
     edge |= edge_v
     edge &= valid
     # Surface normal from the slope (n ~ (-fx z_u, -fy z_v, fx z_u x + fy z_v y + z)): cos of incidence.
     a = np.multiply(rays.fx, zu, out=zu)  # a = fx * zu
     b = np.multiply(rays.fy, zv, out=zv)  # b = fy * zv
-    nz = a * rays.x  # nz = a * x + b * y + z
-    nz += b * rays.y
+    nz = a * rays.x[r0:r1]  # nz = a * x + b * y + z
+    nz += b * rays.y[r0:r1]
     nz += z
     den = a * a  # den = sqrt(a * a + b * b + nz * nz) * norm + 1e-12
     den += b * b
     nz *= nz
     den += nz
     np.sqrt(den, out=den)
-    den *= rays.norm
+    den *= rays.norm[r0:r1]
     den += np.float32(1e-12)
     cos_inc = np.divide(z, den, out=den)
     cos_start = np.cos(np.radians(noise.grazing_start_deg))
     cos_full = np.cos(np.radians(noise.grazing_full_deg))
-    p_graze = np.clip((cos_start - cos_inc) / (cos_start - cos_full), 0.0, 1.0)
-    u = rng.random(z.shape, dtype=np.float32)
-    out = rng.standard_normal(z.shape, dtype=np.float32)  # out = z + normal * sigma * z * z
-    out *= np.float32(noise.sigma_at_1m)
+    # p_graze = clip((cos_start - cos_inc) / (cos_start - cos_full), 0, 1), in float64; u in [0, 1)
+    # is below it exactly when it is below the unclipped ratio, so the clip is left out.
+    p_graze = np.subtract(cos_start, cos_inc, dtype=np.float64)
+    p_graze /= cos_start - cos_full
+    out *= np.float32(noise.sigma_at_1m)  # out = z + normal * sigma * z * z
     out *= z
     out *= z
     out += z
@@ -128,16 +222,25 @@ def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generat
     fly &= edge
     r, c = np.nonzero(fly)
     if len(r):
-        # somewhere between the nearest and the farthest surface around the pixel
-        h, wd = z.shape
-        nb = np.stack([z[r, c], z[np.maximum(r - 1, 0), c], z[np.minimum(r + 1, h - 1), c], z[r, np.maximum(c - 1, 0)], z[r, np.minimum(c + 1, wd - 1)]])
-        nb = np.where(nb > 0, nb, z[r, c])
+        # somewhere between the nearest and the farthest surface around the pixel (rows of zh: +i0)
+        rh, wd = r + i0, z.shape[1]
+        up, down = np.maximum(rh - 1, 0), np.minimum(rh + 1, h1 - h0 - 1)
+        nb = np.stack([zh[rh, c], zh[up, c], zh[down, c], zh[rh, np.maximum(c - 1, 0)], zh[rh, np.minimum(c + 1, wd - 1)]])
+        nb = np.where(nb > 0, nb, zh[rh, c])
         w = (u[r, c] - noise.edge_dropout) / (noise.flying_fraction * (1.0 - noise.edge_dropout))  # uniform in [0, 1)
         lo, hi = nb.min(axis=0), nb.max(axis=0)
         out[r, c] = lo + w * (hi - lo)
     drop |= ~valid
     out[drop] = 0.0
-    return out
+
+
+def depth_units(z: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Depth `(H, W)` uint16 in `depth_scale` units (0 = no return, and beyond 65535 units) from metric
+    `z (H, W)` float32, which it overwrites: units = round(z / depth_scale), where(units <= 65535, units, 0)."""
+    units = np.divide(z, np.float32(depth_scale), out=z)
+    np.round(units, out=units)
+    units[~(units <= 65535)] = 0
+    return units.astype(np.uint16)
 
 
 def _gl_context(width: int, height: int):
@@ -200,10 +303,14 @@ class RgbdRenderer:
         mujoco.mjr_readPixels(self._rgb, self._depth, self._rect, self._ctx)
         color = np.flipud(self._rgb).copy()
         buf = np.flipud(self._depth).astype(np.float64)
-        # reversed-z buffer (1 at the near plane, 0 at the far one) -> metric depth
+        # reversed-z buffer (1 at the near plane, 0 at the far one) -> metric depth:
+        # z = (f * n) / (buf * (f - n) + n), 0 where buf <= 0; in float64, in place
         n, f = self._near, self._far
-        z = (f * n) / (buf * (f - n) + n)
-        z[buf <= 0.0] = 0.0
+        none = buf <= 0.0
+        z = np.multiply(buf, f - n, out=buf)
+        z += n
+        np.divide(f * n, z, out=z)
+        z[none] = 0.0
         return color, z.astype(np.float32)
 
     def close(self) -> None:

@@ -26,7 +26,7 @@ from bagit.common.mounts import rim_frame  # noqa: E402
 from bagit.common.rig import ARMS, ArmName, RigConfig  # noqa: E402
 from bagit.common.scenario import Scenario  # noqa: E402
 from bagit.services.sim.bag import BagLayout, bag_layout  # noqa: E402
-from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise  # noqa: E402
+from bagit.services.sim.camera import DepthNoise, DrawsAhead, RgbdRenderer, add_depth_noise, depth_units  # noqa: E402
 from bagit.services.sim.objects import object_mesh, object_parts, object_pose  # noqa: E402
 from bagit.services.sim.scene import TIMESTEP, build_mjcf, scene_files  # noqa: E402
 from bagit.services.sim.truth import GroundTruth, PenetrationMonitor  # noqa: E402
@@ -117,8 +117,11 @@ class SimWorld:
         self._eq_mount = np.array([mount_body.get(int(b), "") for b in self.model.eq_obj1id])
         self._camera_enabled = camera
         self._renderer: RgbdRenderer | None = None
+        self._draws = DrawsAhead()  # the next frame's noise draws, made while the world steps
         self.noise = DepthNoise()
         self.failure: str | None = None  # why the physics went unstable (then step() refuses to go on)
+        # live views of MuJoCo's instability warning counters (indexing data.warning anew costs ~20 us a step)
+        self._warnings = [self.data.warning[w] for w in INSTABILITY_WARNINGS]
         mujoco.mj_forward(self.model, self.data)
 
     def _check_start(self, scenario: Scenario) -> None:
@@ -160,14 +163,15 @@ class SimWorld:
             verts = self.data.flexvert_xpos[self._vert_adr : self._vert_adr + self._nvert]
             # MuJoCo answers bad accelerations, positions or velocities by resetting the world and
             # carrying on; a reset or non-finite world must end the run, not feed it a teleported bag.
+            # (a non-finite vertex makes the largest |coordinate| NaN or inf: not <= FAR_M)
             now = self._warning_counts()
-            if now != before or not (np.all(np.isfinite(verts)) and np.all(np.isfinite(self.data.qvel))) or np.abs(verts).max() > FAR_M:
+            if now != before or not np.abs(verts).max() <= FAR_M or not np.isfinite(self.data.qvel).all():
                 self.failure = self._describe_failure(before, now)
                 raise SimulationFailed(self.failure)
             self._monitor.update(verts)
 
     def _warning_counts(self) -> tuple[int, ...]:
-        return tuple(int(self.data.warning[w].number) for w in INSTABILITY_WARNINGS)
+        return tuple(int(w.number) for w in self._warnings)
 
     def _describe_failure(self, before: tuple[int, ...], now: tuple[int, ...]) -> str:
         fired = [w.name.removeprefix("mjWARN_") for w, a, b in zip(INSTABILITY_WARNINGS, before, now, strict=False) if b != a]
@@ -286,17 +290,30 @@ class SimWorld:
     def render_rgbd(self, seq: int = 0) -> RgbdFrame:
         """A noisy RGB-D frame from the rig's camera (colour RGB uint8, depth uint16 in depth_scale units,
         0 = no return), stamped with the simulated time; the noise is seeded by (world seed, seq)."""
+        color, z = self.render_true()
+        info = self.rig.camera.info()
+        depth = depth_units(self.noisy_depth(z, seq), info.depth_scale)
+        return RgbdFrame(seq=int(seq), camera=info, color=color, depth=depth, stamp=self.time)
+
+    def render_true(self) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's render: colour `(H, W, 3)` uint8 and noise-free metric depth `(H, W)` float32."""
         if not self._camera_enabled:
             raise RuntimeError("this world was built without a camera (camera=False)")
         if self._renderer is None:
             self._renderer = RgbdRenderer(self.model, self.rig.camera)
-        color, z = self._renderer.render(self.data)
-        rng = np.random.default_rng([self.seed, int(seq)])
-        z = add_depth_noise(z, self.noise, rng, self._renderer.rays)
-        info = self.rig.camera.info()
-        units = np.round(z / np.float32(info.depth_scale))
-        depth = np.where(units <= 65535, units, 0).astype(np.uint16)
-        return RgbdFrame(seq=int(seq), camera=info, color=color, depth=depth, stamp=self.time)
+        return self._renderer.render(self.data)
+
+    def noisy_depth(self, z: np.ndarray, seq: int) -> np.ndarray:
+        """Frame `seq`'s noisy metric depth `(H, W)` float32 from `render_true`'s depth `z (H, W)`, drawn from
+        np.random.default_rng([world seed, seq]); the draws of frame seq + 1 are then made while the world steps."""
+        if self._renderer is None:
+            raise RuntimeError("render_true first: the noise needs the camera's rays")
+        if not self.noise.enabled:
+            return add_depth_noise(z, self.noise, None, self._renderer.rays)
+        draws = self._draws.take(self.seed, int(seq), z.shape)
+        out = add_depth_noise(z, self.noise, None, self._renderer.rays, draws)
+        self._draws.ahead(self.seed, int(seq) + 1, z.shape)  # after the noise, whose bands share the worker
+        return out
 
     def close(self) -> None:
         if self._renderer is not None:
