@@ -192,11 +192,12 @@ def markdown(r: dict[str, Any]) -> str:
         lines.append(f"| {x['scenario']} | {x['seed']} | {x['arms']} | {'yes' if x['bit_for_bit'] else 'no'} | {x['ticks_old']} → {x['ticks_new']} | "
                      f"{_num(x['error_cm_old'], '.4f')} → {_num(x['error_cm_new'], '.4f')} | "
                      f"{_num(x['duration_s_old'], '.2f')} → {_num(x['duration_s_new'], '.2f')} |")
-    numerics = prov.get("numerics")
+    # The re-runs' own numerics (their process: one BLAS thread, PIQP loaded), else this command's.
+    numerics = next((n for run in r.get("runs") or [] if (n := (run.get("provenance") or {}).get("numerics"))), prov.get("numerics"))
     if numerics:
         from bagit.common.machine import Numerics
 
-        lines += ["", f"Numerics: {Numerics.model_validate(numerics).summary()}"]
+        lines += ["", f"Numerics of the re-runs: {Numerics.model_validate(numerics).summary()}"]
     return "\n".join(lines) + "\n"
 
 
