@@ -1,14 +1,20 @@
 # BagIt: `make demo` runs the main job, `make test` the linter, the type checker and the whole test suite.
 # Both create .venv in the repository root and install what is needed, system packages included.
+# Python packages come from requirements.lock (every version pinned: the ones that made the records in
+# bench/results/); pyproject.toml keeps the ranges BagIt works with. `make lock` updates the lock after a
+# change to pyproject.toml (keeping every pin it can), `make lock UPGRADE=1` moves every pin to the newest release.
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
+LOCK := requirements.lock
+# The machines the lock is for: the records' Python, on Linux x86_64 with glibc 2.35 or newer (open3d 0.20 needs it).
+LOCK_TARGET := --python-version 3.11 --python-platform x86_64-manylinux_2_35
 APT_PACKAGES := libusb-1.0-0 libosmesa6 libgl1 libglib2.0-0 libgomp1 chromium chromium-driver
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: demo test lint sysdeps setup bench clean
+.PHONY: demo test lint sysdeps setup lock bench clean
 
 sysdeps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -25,9 +31,19 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
-$(VENV)/.installed: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install -q -e '.[dev,cluster]'
+# The lock's exact versions, then BagIt itself without resolving anything; `pip check` fails when the lock
+# no longer covers pyproject.toml (run `make lock`). A changed lock or pyproject.toml installs again.
+$(VENV)/.installed: $(LOCK) pyproject.toml | $(BIN)/python
+	$(BIN)/pip install -q -r $(LOCK)
+	$(BIN)/pip install -q --no-deps -e .
+	$(BIN)/pip check
 	touch $@
+
+# uv's resolver, at the version the lock itself pins, writes the lock from pyproject.toml's dependencies and extras.
+lock: | $(BIN)/python
+	$(BIN)/pip install -q "$$(grep -sE '^uv==' $(LOCK) || echo uv)"
+	$(BIN)/uv pip compile pyproject.toml --extra dev --extra cluster $(LOCK_TARGET) --custom-compile-command "make lock" \
+	  $(if $(UPGRADE),--upgrade) --quiet -o $(LOCK)
 
 setup: sysdeps $(VENV)/.installed
 

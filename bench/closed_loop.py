@@ -298,9 +298,9 @@ def add_sweep_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--arms", default=None, help="for `sweep`: cr5 (default), ideal, or both: cr5,ideal")
     p.add_argument("--seed-from", type=_args.seed, default=0, help="for `sweep`: seeds seed_from .. seed_from + seeds - 1")
     p.add_argument("--jsonl", type=Path, default=None, help="for `sweep`: append each run here; runs already in it are skipped")
-    p.add_argument("--time-limit-s", type=_args.positive_seconds, default=40.0, help="for `sweep`: simulated seconds a run may take")
+    p.add_argument("--time-limit-s", type=_args.positive_seconds, default=40.0, help="for `sweep` and `verify`: simulated seconds a run may take")
     p.add_argument("--timeout-s", type=_args.positive_seconds, default=RUN_TIMEOUT_S,
-                   help="for `sweep`: wall seconds a run may take before it is killed and recorded failed")
+                   help="for `sweep` and `verify`: wall seconds a run may take before it is killed and recorded failed")
     p.add_argument("--params", type=_args.json_object, default=None,
                    help='for `sweep`: method parameters for every run, JSON, flat names or nested by stage, e.g. \'{"twist_weight": 0}\'')
     p.add_argument("--cluster", default=None, metavar="tcp://HOST:PORT",

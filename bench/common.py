@@ -42,10 +42,11 @@ def stats_ms(samples_ms: np.ndarray | list[float]) -> dict[str, float]:
 
 
 def machine() -> dict[str, Any]:
-    """What the numbers were measured on."""
+    """What the numbers were measured on, with the libraries, BLAS and CPU flags (`numerics`, see bagit.common.machine)."""
     import numpy
 
-    from bagit.common.results import cpu_model, provenance
+    from bagit.common.machine import cpu_model, numerics
+    from bagit.common.results import provenance
 
     return {
         "cpu": cpu_model(),
@@ -56,6 +57,7 @@ def machine() -> dict[str, Any]:
         "numpy": numpy.__version__,
         "platform": platform.platform(),
         "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "numerics": numerics().model_dump(mode="json"),
     }
 
 

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from bagit.common.machine import Numerics, cpu_model, numerics
 from bagit.common.names import ArmsMode, Stage
 
 # Counters of the arm side every result carries (zero when nothing happened): the increments
@@ -66,6 +67,7 @@ class Provenance(BaseModel):
     python: str = ""
     params: dict[str, Any] = Field(default_factory=dict, description="every method parameter the run used")
     date: str | None = Field(None, description="when the result was made: UTC, ISO 8601 (None: a record of before the field)")
+    numerics: Numerics | None = Field(None, description="the libraries, BLAS, CPU instruction sets behind it (None: a record of before the field)")
 
 
 class RunResult(BaseModel):
@@ -124,19 +126,8 @@ def points_list(a: np.ndarray | None, decimals: int = 5) -> list[list[float]] | 
 _PROVENANCE_CACHE: dict[str, Any] = {}
 
 
-def cpu_model() -> str:
-    """The CPU's model name (Linux's /proc/cpuinfo; else what the platform says)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or ""
-
-
 def provenance(params: dict[str, Any] | None = None) -> Provenance:
-    """This code's commit (and whether the tree had changes), the host and its CPU, `params`, and now."""
+    """This code's commit (and whether the tree had changes), the host, its CPU and numerics, `params`, and now."""
     if not _PROVENANCE_CACHE:
         root = Path(__file__).resolve().parent.parent
         commit, dirty = None, None
@@ -150,4 +141,4 @@ def provenance(params: dict[str, Any] | None = None) -> Provenance:
         _PROVENANCE_CACHE.update(commit=commit, dirty=dirty, host=socket.gethostname(), cpu=cpu_model(),
                                  cores=os.cpu_count() or 0, python=platform.python_version())
     date = datetime.now(UTC).isoformat(timespec="seconds")
-    return Provenance(**_PROVENANCE_CACHE, params=dict(params or {}), date=date)
+    return Provenance(**_PROVENANCE_CACHE, params=dict(params or {}), date=date, numerics=numerics())

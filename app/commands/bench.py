@@ -1,6 +1,6 @@
 """`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
 (`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings
-(`probes`), compare runs (`compare`)."""
+(`probes`), re-run a sample of a record file and test it against the record (`verify`), compare runs (`compare`)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ log = logging.getLogger("bagit.bench")
 
 NAME = "bench"
 HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), "
-        "`probes` (issue 25's findings re-run), or `compare OLD NEW`")
+        "`probes` (issue 25's findings re-run), `verify RECORDS` (re-run a sample of a record file: bit for bit? the same distribution?), "
+        "or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency", "up_wall", "up_lockstep",
@@ -27,9 +28,10 @@ STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_tim
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.bench.closed_loop import add_sweep_arguments
+    from bagit.bench.verify import add_verify_arguments
 
-    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "compare"], help="which benchmark")
-    p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json")
+    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare"], help="which benchmark")
+    p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json; for `verify`: the record files (.jsonl)")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None,
                    help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; "
@@ -44,6 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="for `paper`: closed-loop results (.jsonl runs or .json); default: closed-loop*.json[l] in the results folder",
     )
     add_sweep_arguments(p)
+    add_verify_arguments(p)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -77,6 +80,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from bagit.bench import closed_loop
 
         return closed_loop.run_from_args(args)
+    if args.what == "verify":
+        from bagit.bench import verify
+
+        return verify.run_from_args(args)
     stages = args.only or STAGES
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:
@@ -106,6 +113,10 @@ def stages_markdown(results: dict[str, Any]) -> str:
         + ("; quick subset" if results.get("quick") else ""),
         "",
     ]
+    if m.get("numerics"):
+        from bagit.common.machine import Numerics
+
+        lines += [f"Numerics: {Numerics.model_validate(m['numerics']).summary()}", ""]
     for name, res in results["stages"].items():
         table = getattr(importlib.import_module(f"bagit.bench.{name}"), "markdown", None)  # a stage's own table from its record
         if table is not None:
@@ -134,6 +145,10 @@ def compare(old: Path, new: Path) -> dict[str, Any]:
 
 
 def human(result: dict[str, Any]) -> str:
+    if result.get("kind") == "verify":
+        from bagit.bench.verify import markdown
+
+        return markdown(result) + f"\nwritten: {result['written']['markdown']}"
     if result.get("kind") == "probes":
         from bagit.bench.probes import summary
 
