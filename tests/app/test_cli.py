@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from suite_support import ROOT
 
 from bagit.cli import COMMAND_MODULES, build_parser, main
 
@@ -90,7 +91,6 @@ def test_too_large_object_exits_2_with_the_needed_perimeter(tmp_path):
 def test_the_service_example_configs_load():
     """deploy/{perception,controller,arm-driver}.yaml validate against the services' config models."""
     import argparse
-    from pathlib import Path
 
     from bagit.commands._service import load_service_config
     from bagit.common.errors import BagItError
@@ -98,7 +98,7 @@ def test_the_service_example_configs_load():
     from bagit.services.controller.node import ControllerServiceConfig
     from bagit.services.perception.node import PerceptionServiceConfig
 
-    deploy = Path(__file__).resolve().parents[1] / "deploy"
+    deploy = ROOT / "deploy"
     args = argparse.Namespace(rig="lab")
     p, bus = load_service_config(PerceptionServiceConfig, deploy / "perception.yaml", {"n_x": 24}, args)
     assert p.source.kind == "realsense" and p.n_x == 24 and bus.rig == "lab"

@@ -5,11 +5,9 @@ import subprocess
 import sys
 import sysconfig
 import zipfile
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from suite_support import ROOT
 
 
 @pytest.mark.slow

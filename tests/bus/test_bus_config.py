@@ -10,6 +10,7 @@ import socket
 import pytest
 import zenoh
 from pydantic import ValidationError
+from suite_support import ROOT
 
 from bagit.common.bus import (
     KEY_TABLE,
@@ -168,8 +169,7 @@ def test_markdown_table_lists_every_key():
 
 
 def test_the_architecture_doc_shows_the_table_in_code():
-    from pathlib import Path
 
-    doc = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text()
+    doc = (ROOT / "docs" / "architecture.md").read_text()
     assert "## Zenoh key space and QoS" in doc
     assert key_table_markdown() in doc, "docs/architecture.md's key table is out of date: paste key_table_markdown()"

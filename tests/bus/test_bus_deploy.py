@@ -16,17 +16,16 @@ import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
 from bus_support import wait_until
+from suite_support import ROOT
 
 from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, config_value, open_session
 from bagit.common.messages import Command
 
-ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
 HOSTS = ["host-camera-perception.json5", "host-planner-controller.json5", "host-arm-driver.json5"]
 

@@ -1,14 +1,12 @@
 """The rig config: defaults like the paper's set-up, YAML round trip, camera pose."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
+from suite_support import ROOT
 
 from bagit.common.errors import BadScenario
 from bagit.common.rig import RigConfig
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_committed_sim_rig_is_the_default():

@@ -42,8 +42,6 @@ from bagit.common.messages import (
 from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messages
 from bagit.services.recorder.node import RecorderNode, Replayer
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def plan():

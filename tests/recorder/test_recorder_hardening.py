@@ -34,9 +34,6 @@ from bagit.services.recorder import RecorderConfig, RecordingWriter, read_messag
 from bagit.services.recorder.node import RecorderNode, outcome
 from bagit.services.recorder.writer import _RawFile
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
 # ---- 1. a hostile message cannot stop the writer; a dead writer is never silent ------------------
 
 
