@@ -16,6 +16,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "bagit.cli", *args], capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.processes
 def test_help_lists_every_subcommand():
     res = run_cli("--help")
     assert res.returncode == 0
@@ -32,6 +33,8 @@ def test_every_subcommand_takes_json():
         assert any("--json" in a.option_strings for a in sub._actions), name
 
 
+@pytest.mark.slow
+@pytest.mark.processes
 def test_bad_input_is_one_line_error_without_traceback(tmp_path):
     res = run_cli("extract", str(tmp_path / "missing.ply"), "--n-x", "32")
     assert res.returncode == 2
@@ -57,6 +60,7 @@ def test_extract_json_output(tmp_path, capsys):
     assert np.all(np.abs(r - 1) < 0.05)
 
 
+@pytest.mark.processes
 def test_no_command_prints_help():
     res = run_cli()
     assert res.returncode == 2 and "usage" in res.stdout.lower()
@@ -81,6 +85,7 @@ def test_goal_and_plan_commands(capsys):
         assert key in p
 
 
+@pytest.mark.processes
 def test_too_large_object_exits_2_with_the_needed_perimeter(tmp_path):
     doc = tmp_path / "big.yaml"
     doc.write_text("name: big\nobject: {shape: {type: box, size: [0.4, 0.3, 0.1], position: [0, 0, 0.5]}}\nbag: {rim_perimeter: 0.68}\n")

@@ -1,4 +1,4 @@
-"""Hostile input: every file, document or flag a user can hand BagIt gets a one-line answer, quickly.
+"""Hostile input: every file, document or flag a user can hand BagIt gets a one-line answer, never a hang.
 
 Each case ends either in a result or in the project's own error (a BagItError / ValueError, which the
 CLI prints as one line with exit status 2): never a traceback, an out-of-memory or a hang.
@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from suite_support import HANG_S
 
 from bagit.bench.probes import npy_with_header
 from bagit.cli import main
@@ -23,8 +24,9 @@ from bagit.scenarios import find_scenario
 BUNDLED = sorted(Path(find_scenario("exp01")).parent.glob("*.yaml"))
 
 
-def one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str], *words: str, limit_s: float = 5.0) -> str:
-    """Run `bagit argv` in process; it must exit 2 within `limit_s` with one stderr line naming `words`."""
+def one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str], *words: str) -> str:
+    """Run `bagit argv` in process; it must exit 2, not hang, with one stderr line naming `words`
+    (how quickly, in CPU and wall time: `bagit bench probes`)."""
     t0 = time.monotonic()
     code = main(argv)
     elapsed = time.monotonic() - t0
@@ -34,7 +36,7 @@ def one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str], *words: 
     assert len(lines) == 1 and "Traceback" not in err, err
     for w in words:
         assert w in lines[0], (w, lines[0])
-    assert elapsed < limit_s, elapsed
+    assert elapsed < HANG_S, elapsed
     return lines[0]
 
 
@@ -114,13 +116,13 @@ def test_a_yaml_nested_100k_deep_is_refused(loader, monkeypatch, tmp_path, capsy
         Scenario.from_text("name: x\nobject: " + "{a: " * (MAX_SCENARIO_DEPTH + 1) + "}" * (MAX_SCENARIO_DEPTH + 1))
 
 
-def test_aliases_that_expand_to_a_billion_values_are_refused_quickly():
+def test_aliases_that_expand_to_a_billion_values_are_refused_before_expanding():
     lines = ["l0: &l0 [0, 0, 0, 0, 0, 0, 0, 0, 0, 0]"]
     lines += [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]" for i in range(1, 9)]
     t0 = time.monotonic()
     with pytest.raises(BadScenario, match="values"):
         Scenario.from_text("\n".join(lines) + "\nname: x\nobject: {vertices: *l8}\n")
-    assert time.monotonic() - t0 < 2.0
+    assert time.monotonic() - t0 < HANG_S  # refused before the expansion, which would take hours
 
 
 def test_a_document_that_contains_itself_is_refused():
@@ -258,7 +260,7 @@ def test_up_refuses_bad_flags_before_any_child_starts(argv, word, monkeypatch, c
     import bagit.up
 
     monkeypatch.setattr(bagit.up.Up, "start", lambda self: pytest.fail("a child was started"))
-    one_line_error(capsys, ["up", *argv], word, limit_s=2.0)
+    one_line_error(capsys, ["up", *argv], word)
 
 
 # --- 6. a goal out of the arms' reach is refused before anything moves -------------------------------
@@ -272,6 +274,7 @@ def moved_scenario(dx: float = 0.0, dz: float = 0.0, name: str = "exp01") -> Sce
     return Scenario.from_dict(doc)
 
 
+@pytest.mark.slow
 def test_every_bundled_goal_is_within_both_arms_reach():
     from bagit.services.planner.plan import bagging_goal
     from bagit.services.planner.reach import reach_problem
@@ -361,7 +364,7 @@ def test_the_cli_refuses_an_object_3_m_away_at_once(command, tmp_path, monkeypat
     monkeypatch.setattr(bagit.up.Up, "start", lambda self: pytest.fail("a child was started"))
     f = tmp_path / "far.yaml"
     f.write_text(moved_scenario(3.0).to_yaml())
-    one_line_error(capsys, [command, str(f)], "out of the arms' reach", "workspace box", limit_s=3.0)
+    one_line_error(capsys, [command, str(f)], "out of the arms' reach", "workspace box")
 
 
 def test_bad_run_params_are_one_line(capsys, monkeypatch):
@@ -385,7 +388,6 @@ from hypothesis import strategies as st  # noqa: E402
 
 from bagit.common.errors import BagItError  # noqa: E402
 
-HANG_S = 10.0  # one example taking this long is a hang (the slowest take ~0.3 s on a loaded 2-core machine)
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 CLEAR_ERRORS = (BagItError, ValueError)  # what the CLI prints as one line with exit status 2
 

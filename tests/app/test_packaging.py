@@ -10,6 +10,7 @@ import pytest
 from suite_support import ROOT
 
 
+@pytest.mark.processes
 @pytest.mark.slow
 def test_wheel_builds_installs_and_imports(tmp_path):
     out = tmp_path / "dist"

@@ -131,6 +131,7 @@ def coffee():
     return Scenario.from_file(find_scenario("exp01-coffee-box"))
 
 
+@pytest.mark.slow
 def test_sim_raises_simulation_failed_when_the_state_goes_non_finite(coffee):
     from bagit.services.sim.world import SimWorld
 

@@ -93,6 +93,7 @@ def test_judge_takes_the_section_the_rim_lies_against():
     assert not ok and "round" in why
 
 
+@pytest.mark.slow
 def test_run_cli_json_is_the_run_result(capsys):
     code = main(["run", "exp08-plastic-packing", "--time-limit", "1", "--json"])
     out = json.loads(capsys.readouterr().out)

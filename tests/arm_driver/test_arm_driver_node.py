@@ -37,9 +37,9 @@ def _announce(node, peer, keys, run_id=RUN, stage="bagging"):
     """Publish run/state for a servoing run (the node moves the arms for it only) and wait until the
     node has it; returns the publisher."""
     run = Publisher(peer, keys.run_state, RunState)
-    assert wait_until(lambda: run.matched, 5.0)
+    assert wait_until(lambda: run.matched)
     run.put(RunState(run_id=run_id, stage=stage))
-    assert wait_until(lambda: node.run_state is not None and (node.run_state.run_id, node.run_state.stage) == (run_id, stage), 3.0)
+    assert wait_until(lambda: node.run_state is not None and (node.run_state.run_id, node.run_state.stage) == (run_id, stage))
     return run
 
 
@@ -62,29 +62,27 @@ def test_commands_over_zenoh_move_the_arms_and_they_hold_when_commands_stop(rigb
     Subscriber(peer, keys.arm_state_any, ArmState,
                lambda s: trace.append((time.monotonic(), s.arm, s.tool_pose.copy(), s.tool_speed, s.error_reason)))
     cmd = Publisher(peer, keys.controller_cmd, Command)
-    assert wait_until(lambda: len(states.items()) == 2 and cmd.matched, 5.0)
+    assert wait_until(lambda: len(states.items()) == 2 and cmd.matched)
     _announce(node, peer, keys)
     before = {a: states.get(keys.arm_state(a)).tool_pose[:3].copy() for a in ("left", "right")}
     v0 = 0.04
     u = np.zeros(12)
     u[0] = u[6] = v0 / 30  # both mounts along +x at 4 cm/s
     t_last, _ = _stream(cmd, u, 0.7)
-    assert wait_until(lambda: node.driver.mode == "holding", 3.0)
-    time.sleep(0.3)
+    assert wait_until(lambda: node.driver.mode == "holding")
+
+    def braked_to_rest(a: str) -> bool:
+        """On ArmState: still moving after the last command, then at rest (how soon: bench/stop_time.py)."""
+        rows = [(t, sp) for t, arm, _, sp, _ in list(trace) if arm == a and t > t_last]
+        fast = [t for t, sp in rows if sp > 0.5 * v0]
+        return bool(fast) and any(t > fast[-1] and sp < 1e-3 for t, sp in rows)
+
+    for a in ("left", "right"):
+        assert wait_until(lambda: braked_to_rest(a)), a
     after = {a: states.get(keys.arm_state(a)).tool_pose[:3] for a in ("left", "right")}
     for a in before:  # the stream added up to 2.8 cm; the arms followed, then stopped short
         assert 0.015 < after[a][0] - before[a][0] < 0.035, (a, after[a] - before[a])
         assert abs(after[a][1] - before[a][1]) < 0.003
-    # measured on ArmState: the arms brake when the commands stop and are at rest soon after;
-    # braking from v0 with the jerk limit takes 2 sqrt(v0 / j)
-    j_axis = sims.rig.safety.max_tcp_jerk_mps3 / np.sqrt(3)
-    t_brake = 2 * np.sqrt(v0 / j_axis)
-    for a in ("left", "right"):
-        rows = [(t, sp) for t, arm, _, sp, _ in trace if arm == a and t > t_last]
-        fast = [t for t, sp in rows if sp > 0.5 * v0]
-        assert fast and fast[-1] - t_last <= 0.25 + t_brake / 2 + 0.1, fast[-1] - t_last  # braking started by 250 ms
-        rest = next(t for t, sp in rows if t > fast[-1] and sp < 1e-3)
-        assert rest - t_last <= 0.25 + t_brake + 0.25, rest - t_last
     assert node.driver.counters["watchdog_stops"] == 1
     assert any(r and r.startswith("watchdog") for *_, r in trace)  # the event is visible on ArmState
     assert any(e.startswith("watchdog") for e in node.events)  # and on stderr
@@ -97,22 +95,22 @@ def test_hold_command_stops_the_arms_and_estop_over_zenoh_latches_both(rigbus):
     states = LatestCache(peer, keys.arm_state_any, ArmState)
     cmd = Publisher(peer, keys.controller_cmd, Command)
     estop = Publisher(peer, keys.estop, EStop)
-    assert wait_until(lambda: len(states.items()) == 2 and cmd.matched and estop.matched, 5.0)
+    assert wait_until(lambda: len(states.items()) == 2 and cmd.matched and estop.matched)
     _announce(node, peer, keys)
     u = np.zeros(12)
     u[1], u[7] = -0.03 / 30, 0.03 / 30
     _, seq = _stream(cmd, u, 0.3)
     cmd.put(Command(u=np.zeros(12), mode="hold", reason="SOI is stale (0.60 s old)", seq=seq))
-    assert wait_until(lambda: node.driver.mode == "holding", 1.0)  # braked on the hold, not the watchdog
+    assert wait_until(lambda: node.driver.mode == "holding")  # braked on the hold, not the watchdog
     assert node.driver.counters["watchdog_stops"] == 0
     assert any("SOI is stale" in e for e in node.events)
     t_call = time.monotonic()
     estop.put(EStop(engage=True, source="test", reason="operator"))
-    assert wait_until(lambda: all(sims.robots[a].estop_pressed for a in ("left", "right")), 2.0)
+    assert wait_until(lambda: all(sims.robots[a].estop_pressed for a in ("left", "right")))
     for srv in sims.servers.values():
         got = [t for t, text, _ in srv.log if text == "EmergencyStop(1)"]
-        assert len(got) == 1 and got[0] - t_call < 0.5
-    assert wait_until(lambda: all(states.get(keys.arm_state(a)).estopped for a in ("left", "right")), 2.0)
+        assert len(got) == 1 and got[0] >= t_call
+    assert wait_until(lambda: all(states.get(keys.arm_state(a)).estopped for a in ("left", "right")))
     # latched: a new stream is refused and nothing moves
     pos = {a: states.get(keys.arm_state(a)).tool_pose[:3].copy() for a in ("left", "right")}
     _stream(cmd, u, 0.3, seq0=seq + 1)
@@ -123,11 +121,11 @@ def test_hold_command_stops_the_arms_and_estop_over_zenoh_latches_both(rigbus):
         assert sims.robots[a].estop_pressed
     # reset over the bus: released, enabled, and a new stream moves again
     estop.put(EStop(engage=False, source=ESTOP_SOURCE_DASHBOARD))
-    assert wait_until(lambda: node.driver.mode == "holding", 5.0)
-    assert wait_until(lambda: not any(states.get(keys.arm_state(a)).estopped for a in ("left", "right")), 2.0)
+    assert wait_until(lambda: node.driver.mode == "holding")
+    assert wait_until(lambda: not any(states.get(keys.arm_state(a)).estopped for a in ("left", "right")))
     assert all(sims.robots[a].enabled and not sims.robots[a].estop_pressed for a in ("left", "right"))
     _stream(cmd, u, 0.3, seq0=seq + 100)
-    assert wait_until(lambda: states.get(keys.arm_state("right")).tool_pose[1] > pos["right"][1] + 0.004, 2.0)
+    assert wait_until(lambda: states.get(keys.arm_state("right")).tool_pose[1] > pos["right"][1] + 0.004)
 
 
 def test_a_new_stream_after_a_hold_starts_from_the_measured_pose():
@@ -142,14 +140,14 @@ def test_a_new_stream_after_a_hold_starts_from_the_measured_pose():
         for k in range(12):
             assert drv.submit(Command(u=u, dt=1 / 30, seq=k))
             time.sleep(1 / 30)
-        assert wait_until(lambda: drv.mode == "holding", 2.0)
+        assert wait_until(lambda: drv.mode == "holding")
         time.sleep(0.2)
         held = drv.states()["left"].tool_pose[:3].copy()
         robot = sims.robots["left"]
         q = np.degrees(robot.q)
         robot.mov_j(joint_deg=q + np.array([4.0, 0, 0, 0, 0, 0]))  # the operator jogs joint 1 by 4 degrees
-        assert wait_until(lambda: np.linalg.norm(drv.states()["left"].tool_pose[:3] - held) > 0.02, 5.0)
-        assert wait_until(lambda: np.linalg.norm(drv.states()["left"].qd) < 1e-4, 5.0)
+        assert wait_until(lambda: np.linalg.norm(drv.states()["left"].tool_pose[:3] - held) > 0.02)
+        assert wait_until(lambda: np.linalg.norm(drv.states()["left"].qd) < 1e-4)
         moved = drv.states()["left"].tool_pose[:3].copy()
         assert drv.mode == "holding"
         t0 = time.monotonic()
@@ -189,7 +187,7 @@ def test_cli_arm_driver_brings_up_publishes_states_with_liveliness_and_disables_
         t.start()
         t.join(20)
         assert not t.is_alive() and result["code"] == 0
-        assert alive[:1] == [True] and wait_until(lambda: alive[-1] is False, 3.0)
+        assert alive[:1] == [True] and wait_until(lambda: alive[-1] is False)
     finally:
         s.close()
         sims.close()
@@ -218,28 +216,28 @@ def test_a_new_run_clears_a_fault_latched_in_the_last_one_but_never_the_estop(ri
     cmd = Publisher(peer, keys.controller_cmd, Command)
     run = Publisher(peer, keys.run_state, RunState)
     estop = Publisher(peer, keys.estop, EStop)
-    assert wait_until(lambda: len(states.items()) == 2 and cmd.matched and run.matched and estop.matched, 5.0)
+    assert wait_until(lambda: len(states.items()) == 2 and cmd.matched and run.matched and estop.matched)
     run.put(RunState(run_id="r1", stage="planning"))  # nothing latched: nothing to clear
     sims.robots["left"].raise_alarm(int(Alarm.FLANGE_INTERFERENCE))
-    assert wait_until(lambda: node.driver.mode == "fault", 2.0)
-    assert wait_until(lambda: states.get(keys.arm_state("right")).error, 2.0)  # the fault is on ArmState
+    assert wait_until(lambda: node.driver.mode == "fault")
+    assert wait_until(lambda: states.get(keys.arm_state("right")).error)  # the fault is on ArmState
     run.put(RunState(run_id="r1", stage="bagging"))  # the same run going on: the fault stays
     run.put(RunState(run_id="r2", stage="done"))  # a run that is over: the fault stays
     time.sleep(0.5)
     assert node.driver.mode == "fault"
     run.put(RunState(run_id="r3", stage="perceiving"))  # a new run: ClearError, enable, restart
-    assert wait_until(lambda: node.driver.mode == "holding", 5.0), node.driver.status()
+    assert wait_until(lambda: node.driver.mode == "holding"), node.driver.status()
     assert not sims.robots["left"].alarms() and any(e.startswith("fault_cleared: run r3") for e in node.events)
     run.put(RunState(run_id="r3", stage="pre-bagging"))  # r3 servoes: its commands move the arms again
-    assert wait_until(lambda: node.run_state.stage == "pre-bagging", 3.0)
+    assert wait_until(lambda: node.run_state.stage == "pre-bagging")
     u = np.zeros(12)
     u[2] = u[8] = 0.03 / 30
     z0 = states.get(keys.arm_state("left")).tool_pose[2]
     _stream(cmd, u, 0.4, run_id="r3")
-    assert wait_until(lambda: states.get(keys.arm_state("left")).tool_pose[2] > z0 + 0.004, 2.0)
+    assert wait_until(lambda: states.get(keys.arm_state("left")).tool_pose[2] > z0 + 0.004)
     # an e-stop latched is not released by starting a run
     estop.put(EStop(engage=True, source="test"))
-    assert wait_until(lambda: node.driver.mode == "estopped", 2.0)
+    assert wait_until(lambda: node.driver.mode == "estopped")
     run.put(RunState(run_id="r4", stage="perceiving"))
     time.sleep(0.5)
     assert node.driver.mode == "estopped" and all(sims.robots[a].estop_pressed for a in ("left", "right"))

@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from bagit.bench import closed_loop
 from bagit.bench.paper import load_closed_loop, manipulation_summary, same_runs_as_mpc
 from bagit.common.results import RunResult
 
 
+@pytest.mark.slow
 def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):
     out = tmp_path / "closed-loop.jsonl"
     key = ("no-such-scenario", "mpc", "cbirrt", 0, "cr5")
@@ -27,6 +30,7 @@ def test_a_failing_run_is_a_record_and_a_resumed_sweep_skips_it(tmp_path):
     assert (cell["success"], cell["of"]) == (0, 1) and "error: " in cell["failures"][0]
 
 
+@pytest.mark.slow
 def test_a_sweep_runs_bagit_runs_own_path_and_records_its_result(tmp_path):
     """One short run per arms mode through the sweep's worker: the records are RunResults with provenance."""
     out = tmp_path / "closed-loop.jsonl"

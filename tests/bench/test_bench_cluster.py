@@ -36,6 +36,9 @@ def same_run(r: dict) -> dict:
     return {k: r.get(k) for k in SAME_RUN}
 
 
+pytestmark = pytest.mark.processes  # a Dask cluster of worker processes, runs in processes of their own
+
+
 @pytest.fixture(scope="module")
 def reference() -> list[dict]:
     """The one-process sweep: the same runs one after another in this process, no engine."""
@@ -50,6 +53,7 @@ def cluster():
         yield lc.scheduler_address, client
 
 
+@pytest.mark.slow
 def test_a_sweep_on_a_running_cluster_makes_the_records_of_a_one_process_sweep(cluster, reference, tmp_path):
     address, client = cluster
     out = tmp_path / "closed-loop.jsonl"
@@ -67,10 +71,8 @@ def test_a_sweep_on_a_running_cluster_makes_the_records_of_a_one_process_sweep(c
 
 def test_a_run_past_its_time_out_is_killed_and_recorded_failed(cluster, tmp_path):
     address, client = cluster
-    t0 = time.monotonic()
     (rec,) = closed_loop.sweep(KEYS[:1], tmp_path / "t.jsonl", timeout_s=0.3, time_limit_s=TIME_LIMIT_S, cluster=address)
     assert rec["success"] is False and rec["reason"] == "timed out: no result within 0.3 s of wall time"
-    assert rec["wall_s"] < 2.0 and time.monotonic() - t0 < 10.0
     assert RunResult.model_validate(rec).provenance.worker
     # the killed run left nothing behind on the workers, which are still both there
     assert client.run(lambda: [p.pid for p in psutil.Process().children(recursive=True)]) == {w: [] for w in client.nthreads()}
@@ -102,6 +104,7 @@ def _sweep_cmd(out: Path) -> list[str]:
             "--arms", "ideal", "--time-limit-s", str(TIME_LIMIT_S), "--workers", "2", "--jsonl", str(out)]
 
 
+@pytest.mark.slow
 def test_an_interrupted_sweep_resumes_where_it_stopped(reference, tmp_path):
     """Ctrl-C after the first record: no process of the sweep outlives it, and the same command runs only the rest."""
     out = tmp_path / "closed-loop.jsonl"

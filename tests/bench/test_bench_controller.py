@@ -6,10 +6,12 @@ noticing. Here the benchmark runs (quick) and its solvers must agree on the same
 """
 
 import numpy as np
+import pytest
 
 from bagit.bench import controller
 
 
+@pytest.mark.slow
 def test_the_controller_benchmark_replays_the_recorded_qps_and_its_solvers_agree():
     r = controller.run(quick=True)
     assert r["horizon"] == 10 and r["n_x"] == 32 and r["qps"] > 50

@@ -38,6 +38,7 @@ def quick(tmp_path_factory):
     return out, json.loads((out / "paper.json").read_text()), (out / "paper.md").read_text()
 
 
+@pytest.mark.slow
 def test_quick_report_matches_json(quick):
     out, r, md = quick
     assert r["quick"] and r["seeds"] == 3
@@ -94,6 +95,7 @@ def test_quick_figures_exist_and_are_small(quick):
     assert total < 600_000
 
 
+@pytest.mark.slow
 def test_reuse_keeps_runs_and_rejects_other_files(quick, tmp_path):
     out, r, _ = quick
     again = paper.run(quick=True, reuse=out / "paper.json", closed_loop=[], out_dir=tmp_path, figures=False)

@@ -13,6 +13,7 @@ from bagit.services.sim.dobot_server import DobotControllerServer
 from bagit.services.sim.harness import DashboardText, FeedbackRecorder
 
 
+@pytest.mark.slow
 def test_the_v4_probes_pass_against_the_simulated_controller():
     """The same probe code `bagit bench probes` runs against `bagit sim`, on an in-process controller."""
     srv = DobotControllerServer(SimulatedCR5(q0=np.radians([0.0, 0.0, -90.0, 0.0, 90.0, 0.0])), dashboard_port=0, feedback_port=0,

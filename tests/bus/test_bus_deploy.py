@@ -51,6 +51,7 @@ def test_committed_configs_load_and_stay_safe():
         assert config_value(zc, "transport/link/tx/lease") == 1000, name
 
 
+@pytest.mark.processes
 def test_bagit_router_carries_traffic_between_host_configs_and_stops_on_sigterm():
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -71,10 +72,10 @@ def test_bagit_router_carries_traffic_between_host_configs_and_stops_on_sigterm(
         got: list[Command] = []
         Subscriber(arm, keys.controller_cmd, Command, got.append)
         pub = Publisher(planner_controller, keys.controller_cmd, Command)
-        assert wait_until(lambda: pub.matched, 5.0)
+        assert wait_until(lambda: pub.matched)
         for i in range(5):
             pub.put(Command(seq=i, u=np.zeros(12)))
-        assert wait_until(lambda: len(got) == 5, 5.0)
+        assert wait_until(lambda: len(got) == 5)
         assert [c.seq for c in got] == list(range(5))  # reliable and in order through the router
     finally:
         for s in sessions:
@@ -109,7 +110,7 @@ def test_bagit_router_runs_for_a_duration(capsys):
 
     t0 = time.monotonic()
     assert main(["router", "--listen", f"tcp/127.0.0.1:{_free_port()}", "--duration", "0.3", "--json"]) == 0
-    assert 0.25 < time.monotonic() - t0 < 5.0
+    assert time.monotonic() - t0 > 0.25  # it ran its duration (and then stopped: main returned)
     assert json.loads(capsys.readouterr().out)["success"]
 
 

@@ -164,11 +164,11 @@ def test_estop_overtakes_a_frame_flood(pair):
     t = threading.Thread(target=flood, daemon=True)
     t.start()
     try:
-        assert wait_until(lambda: len(frames) >= 2, 5.0)
+        assert wait_until(lambda: len(frames) >= 2)
         t0 = time.monotonic()
         es.put(EStop(source="test"))
-        assert wait_until(lambda: len(stops) == 1, 2.0)
-        assert stops[0] - t0 < 0.5
+        assert wait_until(lambda: len(stops) == 1)  # through while the frames still flood: not queued behind them
+        assert stops[0] >= t0 and t.is_alive() and not stop_flood.is_set()  # its latency under a flood: bench/zenoh.py
     finally:
         stop_flood.set()
         t.join(5)
@@ -189,7 +189,7 @@ def test_latest_cache_keeps_newest_per_arm_with_age(pair):
     assert wait_until(lambda: len(cache.items()) == 2 and cache.get(keys.arm_state("left")).command_id == 4)
     assert cache.get(keys.arm_state("right")).command_id == 99
     msg, t_recv = cache.get_with_time(keys.arm_state("left"))
-    assert t_recv >= t_before and 0 <= cache.age(keys.arm_state("left")) < 2.0
+    assert t_recv >= t_before and 0 <= cache.age(keys.arm_state("left")) <= time.monotonic() - t_before
     # wait(newer_than=...) blocks until something fresher arrives
     assert cache.wait(0.05, key=keys.arm_state("left"), newer_than=time.monotonic()) is None
     left.put(ArmState(arm="left", command_id=5, q=np.zeros(6), qd=np.zeros(6), tool_pose=np.zeros(6)))
@@ -240,5 +240,5 @@ def test_full_size_rgbd_frame_arrives_bit_exact(pair):
     assert wait_until(lambda: pub.matched)
     size = pub.put(frame)
     assert size < 480 * 640 * 5 + 4096  # raw bytes plus a small header, never JSON numbers
-    assert wait_until(lambda: len(got) == 1, 5.0)
+    assert wait_until(lambda: len(got) == 1)
     assert_same_message(frame, got[0])

@@ -1,6 +1,7 @@
 """One run's servoing without a bus (`ServoSession`): what the controller node and `bagit run` both host."""
 
 import numpy as np
+import pytest
 
 from bagit.common.dual_arm import apply_increment, pose_increment
 from bagit.common.messages import ArmState, Path, RunState, SoiState
@@ -139,6 +140,7 @@ def _walled_run(told: bool, ticks: int = 500) -> tuple[_WalledArms, ServoSession
     return arms, s, leads
 
 
+@pytest.mark.slow
 def test_a_reported_reach_limit_stops_the_asking():
     """The arm side cannot take the left mount where the path goes. A controller blind to it asks for the
     same lift every tick and the target runs away (metres here; on the rig the driver pulls it back

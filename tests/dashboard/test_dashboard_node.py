@@ -43,9 +43,9 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
     node = DashboardNode(BusConfig(rig=rig, connect=locators(peer)), DashboardConfig(port=0, draw_without_viewers=True), query_timeout_s=3.0)
     try:
         d = node.dashboard
-        assert wait_until(lambda: len(list(peer.info.peers_zid())) == 1, 3.0)
+        assert wait_until(lambda: len(list(peer.info.peers_zid())) == 1)
         # the dashboard announces itself
-        assert wait_until(lambda: d.health.is_up("dashboard") is True, 3.0)
+        assert wait_until(lambda: d.health.is_up("dashboard") is True)
         m = scene_messages()
         pubs = {
             "soi": Publisher(peer, keys.perception_soi, SoiState),
@@ -53,14 +53,14 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
             "status": Publisher(peer, keys.controller_status, ControllerStatus),
             "run": Publisher(peer, keys.run_state, RunState),
         }
-        assert wait_until(lambda: all(p.matched for p in pubs.values()), 3.0)
+        assert wait_until(lambda: all(p.matched for p in pubs.values()))
         pubs["soi"].put(m["soi"])
         pubs["arm"].put(m["left"])
         pubs["status"].put(ControllerStatus(run_id="run-42", subgoal_index=2, error_to_subgoal=0.01, error_to_goal=0.02))
         pubs["run"].put(RunState(run_id="run-42", scenario="exp01-coffee-box", stage="bagging", progress=0.5))
-        assert wait_until(lambda: "soi" in d.scene.summary and "arm:left" in d.scene.summary, 3.0)
+        assert wait_until(lambda: "soi" in d.scene.summary and "arm:left" in d.scene.summary)
         assert np.allclose(d.scene.node("/soi/points").points, m["soi"].rim, atol=1e-6)
-        assert wait_until(lambda: "bagging" in d.panel.status_md.content, 3.0)
+        assert wait_until(lambda: "bagging" in d.panel.status_md.content)
         assert len(d.errors) == 1
         # Start, Stop and Reset are run/control queries; E-STOP is a put on estop
         reply = d.panel.press_start()
@@ -70,16 +70,16 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
         d.panel.press_reset()
         assert [r.action for r in requests] == ["start", "stop", "reset"]
         d.panel.press_estop()
-        assert wait_until(lambda: len(estops) == 1, 3.0)
+        assert wait_until(lambda: len(estops) == 1)
         assert estops[0].engage and estops[0].source == ESTOP_SOURCE_DASHBOARD  # a name the arm driver takes a release from
         assert ESTOP_SOURCE_DASHBOARD in ESTOP_RELEASE_SOURCES
         # its own e-stop comes back on the bus and is shown
-        assert wait_until(lambda: "E-STOP ENGAGED" in d.panel.status_markdown(), 3.0)
+        assert wait_until(lambda: "E-STOP ENGAGED" in d.panel.status_markdown())
         # liveliness: a service appears, then dies
         token = declare_alive(peer, keys, "perception")
-        assert wait_until(lambda: d.health.is_up("perception") is True, 3.0)
+        assert wait_until(lambda: d.health.is_up("perception") is True)
         token.undeclare()
-        assert wait_until(lambda: d.health.is_up("perception") is False, 3.0)
+        assert wait_until(lambda: d.health.is_up("perception") is False)
         assert any("perception went away" in w for w in d.health.warnings())
         for p in pubs.values():
             p.close()
@@ -99,6 +99,8 @@ def test_start_without_a_coordinator_says_so(rig_peer):
         node.close()
 
 
+@pytest.mark.slow
+@pytest.mark.processes
 def test_cli_serves_on_loopback_and_stops(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "bagit.cli", "dashboard", "--port", "0", "--duration", "1.5", "--rig", "clitest", "--json"],
@@ -109,6 +111,8 @@ def test_cli_serves_on_loopback_and_stops(tmp_path):
     assert r["success"] and r["url"].startswith("http://127.0.0.1:") and r["rig"] == "clitest"
 
 
+@pytest.mark.slow
+@pytest.mark.processes
 @pytest.mark.parametrize(
     "args,msg",
     [(["--port", "70000"], "--port"), (["--duration", "-1"], "--duration"), (["--rig", "bad rig"], "rig name"),

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from dashboard_support import FakeRunLink, arm_state, feed_scene, planned_exp01, synthetic_cloud, wait_until
@@ -183,13 +181,11 @@ def test_render_thread_rate_limits_a_burst(dash):
     dash.start()
     for i in range(300):
         dash.on_soi(SoiState(rim=rim + [0, 0, 0.0001 * i], seq=i))
-    assert wait_until(lambda: dash.scene.summary.get("soi", {}).get("seq") == 299, 3.0)
+    assert wait_until(lambda: dash.scene.summary.get("soi", {}).get("seq") == 299)
     st = dash.stats()["slots"]["soi"]
     assert st["received"] == 300 and st["taken"] < 30 and st["coalesced"] >= 270
     dash.on_cloud(synthetic_cloud(rim, 100_000))
-    t0 = time.monotonic()
-    assert wait_until(lambda: dash.scene.summary.get("cloud", {}).get("n_received") == 100_000, 3.0)
-    assert time.monotonic() - t0 < 3.0
+    assert wait_until(lambda: dash.scene.summary.get("cloud", {}).get("n_received") == 100_000)  # how fast: bench/dashboard.py
 
 
 def test_with_no_browser_the_live_layers_wait_and_the_first_browser_gets_the_newest(dash):

@@ -37,8 +37,8 @@ def test_camera_publishes_a_recording_with_liveliness(tmp_path, capsys):
         t.start()
         t.join(20)
         assert not t.is_alive() and result["code"] == 0
-        assert wait_until(lambda: len(got) >= 10, 3.0)  # the first puts may go before the peers meet
-        assert alive[:1] == [True] and wait_until(lambda: alive[-1] is False, 3.0)
+        assert wait_until(lambda: len(got) >= 10)  # the first puts may go before the peers meet
+        assert alive[:1] == [True] and wait_until(lambda: alive[-1] is False)
         assert watcher.alive() == set()
     finally:
         sub_session.close()

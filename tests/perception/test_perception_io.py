@@ -105,6 +105,8 @@ def test_extract_command_human_output_and_errors(tmp_path, capsys, cloud_and_rim
     assert "NaN" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+@pytest.mark.processes
 def test_demo_sample_in_a_fresh_process():
     res = subprocess.run(
         [sys.executable, "-m", "bagit.cli", "demo", "--sample", "--json"], capture_output=True, text=True, timeout=120

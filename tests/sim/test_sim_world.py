@@ -71,6 +71,7 @@ def test_pulled_apart_the_rim_narrows_then_goes_taut_pushed_together_it_buckles(
     assert np.all(np.isfinite(w.bag_vertices()))
 
 
+@pytest.mark.slow
 def test_every_mount_input_moves_the_rim_and_the_response_is_learnable(coffee):
     """The controller's 12-D input (each mount's translation and rotation) has a real, repeatable,
     locally linear effect on the rim: finite differences from one bag state give a Jacobian of rank >= 8."""
@@ -141,6 +142,7 @@ def test_default_start_without_a_given_rim_is_below_the_object():
     assert w.ground_truth().rim_perimeter == pytest.approx(s2.bag.rim_perimeter, rel=0.02)
 
 
+@pytest.mark.slow
 def test_raising_around_the_object_wraps_without_passing_through(can):
     w = SimWorld(can, seed=0, camera=False)
     w.step(0.3)
@@ -213,6 +215,7 @@ def test_round_parts_measure_depth_exactly():
     assert parts[0].depth(np.array([c, on_wall, c + 0.5 * parts[0].half_height * a]))[:2] == pytest.approx([0.035, 0.0], abs=1e-12)
 
 
+@pytest.mark.slow
 def test_fast_mount_motion_stays_stable(coffee):
     """Random motion at the arms' limits (0.25 m/s, 1 rad/s) for 3 s, the mounts kept no further apart
     than the rim allows (as the arm driver keeps them): finite, and the fabric keeps its length."""
