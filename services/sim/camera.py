@@ -81,7 +81,7 @@ def add_depth_noise(depth: np.ndarray, noise: DepthNoise, rng: np.random.Generat
     Noise std sigma_at_1m * z^2; holes at depth edges, at grazing incidence (from the true surface's
     normal, estimated from the depth slope) and a few anywhere; flying pixels at edges. (Computed in
     place where it can be: the same float32 operations in the same order as the plain formulas in
-    the comments, so the same bits; `tests/test_sim_camera.py` checks it against them.)
+    the comments, so the same bits; `tests/sim/test_sim_camera.py` checks it against them.)
     """
     z = np.asarray(depth, dtype=np.float32)
     valid = (z >= noise.min_range_m) & (z <= noise.max_range_m)

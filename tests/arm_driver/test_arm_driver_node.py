@@ -2,7 +2,7 @@
 controller/cmd for the run run/state shows servoing move the arms, arm/<side>/state reports them,
 the watchdog holds the arms when the commands stop, an e-stop over the bus reaches both controllers
 and latches, and a new stream after a hold starts from the measured poses (never from a stale
-target). Who may move the arms at all (the run gate) is tests/test_arm_driver_gate.py."""
+target). Who may move the arms at all (the run gate) is tests/arm_driver/test_arm_driver_gate.py."""
 
 import threading
 import time
