@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from suite_support import HANG_S, wait_until
 
 from bagit.common import dobot
 from bagit.common.errors import ProtocolError
@@ -134,13 +135,8 @@ def packet(mode=5, x=100.0):
     return rec.tobytes()
 
 
-def wait_for(cond, timeout=2.0):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return False
+def wait_for(cond, timeout=HANG_S):
+    return wait_until(cond, timeout)
 
 
 def test_replies_are_matched_to_their_commands_and_errors_are_typed(fake):

@@ -15,6 +15,7 @@ import time
 import numpy as np
 import pytest
 from arm_driver_support import FeedbackRecorder, Streamer, home_poses, servo_parameter, servo_positions, start_sims, stream_at_rest
+from suite_support import wait_until
 
 from bagit.common.dobot import Alarm
 from bagit.common.errors import ProtocolError
@@ -70,15 +71,6 @@ def loop_stall(drv, t0, t1):
     starts = np.array([t for t in drv.cycle_starts if t0 - drv.period <= t <= t1 + drv.period])
     gaps = np.diff(starts)
     return float(np.sum(np.clip(gaps - drv.period, 0.0, None)[gaps > 1.2 * drv.period]))
-
-
-def wait_until(cond, timeout=3.0, step=0.01):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
 
 
 def mount_positions(drv):
@@ -203,9 +195,9 @@ def test_the_watchdog_stops_both_arms_after_the_last_command(rig):
         for srv in sims.servers.values():
             assert wait_until(lambda: stream_at_rest(srv, t_last))
         stall = loop_stall(drv, t_last, t_last + 1.0)
-        ev = [t for t, k, _ in drv.events if k == "watchdog"]
+        ev = [t for t, k, _ in drv.events if k == "watchdog" and t > t_last]
         # the order; how soon (the watchdog's 120 ms, braking 2 sqrt(v0 / j)) is bench/stop_time.py's
-        assert len(ev) == 1 and ev[0] > t_last  # once, after the last command
+        assert len(ev) == 1  # once after the last command (a loaded machine may stall the stream before it too)
         for a, srv in sims.servers.items():
             # at the controller: braking ServoPs after the watchdog fired, sent with the halting aheadtime
             # (the commands before it with the tracking one), ending at rest

@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from suite_support import HANG_S
 
 from bagit.common import cr5, dobot
 from bagit.services.sim.cr5_sim import SimulatedCR5
@@ -34,7 +35,7 @@ def client(server):
     c.close()
 
 
-def wait_mode(c: Client, mode: int, timeout: float = 5.0) -> None:
+def wait_mode(c: Client, mode: int, timeout: float = HANG_S) -> None:
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
         if c.ask("RobotMode()").values == [mode]:
