@@ -1,4 +1,5 @@
-# BagIt: `make demo` runs the main job, `make test` the linter, the type checker and the whole test suite.
+# BagIt: `make demo` runs the main job, `make test` the linter, the type checker and the whole test suite (what CI runs),
+# `make test-fast` the tests that need no other process, no browser and no minutes (docs/testing.md).
 # Both create .venv in the repository root and install what is needed, system packages included.
 # Python packages come from requirements.lock (every version pinned: the ones that made the records in
 # bench/results/); pyproject.toml keeps the ranges BagIt works with. `make lock` updates the lock after a
@@ -14,7 +15,7 @@ APT_PACKAGES := libusb-1.0-0 libosmesa6 libgl1 libglib2.0-0 libgomp1 chromium ch
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: demo test lint sysdeps setup lock bench clean
+.PHONY: demo test test-fast lint sysdeps setup lock bench clean
 
 sysdeps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -52,6 +53,11 @@ demo: setup
 
 test: setup lint
 	$(BIN)/python -m pytest -q
+
+# The markers are registered in pyproject.toml's [tool.pytest.ini_options]; a folder runs alone too: pytest tests/planner
+FAST_MARKERS := not slow and not processes and not browser
+test-fast: setup
+	$(BIN)/python -m pytest -q -m "$(FAST_MARKERS)"
 
 # Lint (ruff) and type check (mypy, through tools/typecheck.py): both configured in pyproject.toml.
 lint: setup

@@ -5,7 +5,7 @@ the CLI through the real `bagit` entry point in a subprocess; the simulated CR5s
 their TCP ports with Dobot's V4 text; `bagit recorder` fed from an in-process Zenoh peer on loopback
 (multicast scouting off); the arm driver inside `bagit up` (controller and perception SIGKILLed, the
 driver SIGSTOPped, outsiders commanding and releasing the e-stop) and behind the secure rig's router.
-The unit tests of each item stay where they are (tests/test_hostile_input.py, test_dobot_conformance.py,
+The unit tests of each item stay where they are (tests/app/test_hostile_input.py, test_dobot_conformance.py,
 test_recorder_hardening.py, test_arm_driver_gate.py, ...); this is the end-to-end re-run.
 
 A run appends one record (commit, host, load, every row) to bench/results/probes.jsonl and writes the
@@ -120,7 +120,7 @@ class Rows:
         self.rows.append(row)
 
 
-# -- hostile inputs (shared with tests/test_hostile_input.py and test_recorder_hardening.py) --------
+# -- hostile inputs (shared with tests/app/test_hostile_input.py and test_recorder_hardening.py) --------
 
 
 def npy_with_header(path: Path, shape: tuple[int, ...], descr: str = "<f8", total: int = 128) -> Path:

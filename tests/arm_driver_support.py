@@ -29,6 +29,12 @@ if TYPE_CHECKING:
     from bagit.services.arm_driver.config import DriverConfig
 
 
+def stream_at_rest(server: RecordingServer, t0: float) -> bool:
+    """The ServoP targets `server` accepted since `t0` end at rest: the last two are the same point."""
+    ts, xyz = servo_positions(server, t0=t0)
+    return len(ts) >= 2 and float(np.linalg.norm(xyz[-1] - xyz[-2])) < 1e-4
+
+
 class Streamer:
     """A controller stand-in: submits the increment u (12,) to a driver at `rate_hz` from a thread
     until stopped (or, with until_refused, until the driver refuses one)."""

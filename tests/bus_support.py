@@ -7,9 +7,10 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from suite_support import wait_until  # noqa: F401 - re-exported for the bus tests
 
 from bagit.common.messages import MESSAGE_TYPES, CameraInfo, Message
-from bagit.harness import session_pair, wait_until  # noqa: F401 - re-exported for the bus tests
+from bagit.harness import session_pair  # noqa: F401 - re-exported for the bus tests
 
 
 @pytest.fixture

@@ -13,3 +13,16 @@ from hypothesis import settings  # noqa: E402
 settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
 settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("BAGIT_HYPOTHESIS", "ci"))
+
+
+def pytest_collection_modifyitems(items: list) -> None:
+    """A test module that brings up `bagit up` (up_support's rig_up or start_up) starts processes: marked
+    here, once, so `make test-fast` leaves it out whatever its own marks say."""
+    import pytest
+
+    from bagit.harness import rig_up, start_up
+
+    for item in items:
+        module = getattr(item, "module", None)
+        if module is not None and any(v is rig_up or v is start_up for v in vars(module).values()):
+            item.add_marker(pytest.mark.processes)

@@ -9,11 +9,11 @@ import functools
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from bus_support import wait_until  # noqa: F401  (re-exported for the dashboard tests)
+from suite_support import ROOT
 
 from bagit.common import cr5
 from bagit.common.geometry import matrix_to_rpy
@@ -28,7 +28,7 @@ from bagit.common.messages import (
 )
 from bagit.common.rig import RigConfig
 
-ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
+ARTIFACTS = ROOT / "artifacts"
 CLOUD_RGB = (0, 200, 0)  # the synthetic cloud's colour, so a screenshot can find it
 HOME_Q = np.radians([0.0, -20.0, -100.0, 30.0, 90.0, 0.0])
 

@@ -12,7 +12,7 @@ effects, in order, under its lock. The state is immutable, so the feedback threa
 it without the lock (a latch is swapped whole).
 
 Why a machine: the same rules were spread over a dozen mutable fields and three threads; here each
-transition can be tested alone (tests/test_arm_driver_machine.py), events in -> effects out.
+transition can be tested alone (tests/arm_driver/test_arm_driver_machine.py), events in -> effects out.
 """
 
 from __future__ import annotations

@@ -146,7 +146,7 @@ def add_depth_noise(
     Every pixel's value depends only on its own and its 4 neighbours' depth and its own draws, so
     the image is computed in NOISE_BANDS row bands at once (each band with its neighbour rows), the
     draws made whole beforehand: the same float32 operations on each pixel, so the same bits
-    (`tests/test_sim_camera.py` checks it against the plain formulas).
+    (`tests/sim/test_sim_camera.py` checks it against the plain formulas).
     """
     z_in = np.asarray(depth, dtype=np.float32)
     if not noise.enabled:
