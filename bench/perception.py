@@ -114,6 +114,7 @@ def frame_parts(quick: bool = False) -> dict:
     cloud, EM cold (seeded by the left flange, as the tracker's cold start) and warm (from the last
     frame's SOI), and the tracker's whole update; wall and CPU median/p95, with the load around it
     and the SOI's error against the simulator's true rim."""
+    from bagit.services.perception.node import PerceptionServiceConfig
     from bagit.services.perception.rgbd import rim_cloud
     from bagit.services.perception.tracker import RimTracker, segmenter_for
 
@@ -128,6 +129,7 @@ def frame_parts(quick: bool = False) -> dict:
     tracker = RimTracker(n_x, params["bag_kind"], params["bag_color"])
     tracked = [tracker.update(f, hint=h)[0] for f, h in zip(frames, hints, strict=True)]
     n = len(frames)
+    inlier_m = PerceptionServiceConfig().inlier_m
     load_frames = os.getloadavg()
 
     def whole(i: int) -> None:
@@ -135,23 +137,33 @@ def frame_parts(quick: bool = False) -> dict:
             tracker.reset()
         tracker.update(frames[i], hint=hints[i])
 
+    def service(i: int) -> None:  # what the node's solve_ms times: the update and the inlier fraction
+        if i == 0:
+            tracker.reset()
+        rim, cloud = tracker.update(frames[i], hint=hints[i])
+        float(np.mean(points_to_polyline_distance(cloud, rim) <= inlier_m))
+
     parts = {
         "segmentation": _part_times(lambda i: segment(frames[i]), n, repeat),
         "cloud": _part_times(lambda i: rim_cloud(frames[i], lambda _f: masks[i]), n, repeat),
         "em_cold": _part_times(lambda i: extract_soi(clouds[i], n_x, start_hint=hints[i]), n, repeat),
         "em_warm": _part_times(lambda i: extract_soi(clouds[i], n_x, init=colds[i - 1] if i else colds[0]), n, repeat),
         "soi_of_frame": _part_times(whole, n, repeat),
+        # the perception node's solve time also holds the published SOI's inlier fraction
+        "node_inlier_fraction": _part_times(lambda i: points_to_polyline_distance(clouds[i], tracked[i]), n, repeat),
+        "service_solve": _part_times(service, n, repeat),
     }
     err = np.concatenate([points_to_polyline_distance(s, r) for s, r in zip(tracked, rims, strict=True)]) * 1e3
     return {
         "parameters": {**params, "repeat": repeat, "cold_hint": "left flange", "warm_init": "the last frame's cold SOI",
-                       "soi_of_frame": "RimTracker.update on the frames in order (warm after the first)"},
+                       "soi_of_frame": "RimTracker.update on the frames in order (warm after the first)",
+                       "service_solve": "soi_of_frame plus the node's inlier fraction (its solve_ms)"},
         "load_avg": {"before_render": list(load_before), "before_timing": list(load_frames), "after": list(os.getloadavg())},
         "cloud_points": {"median": float(np.median([len(c) for c in clouds])), "max": int(max(len(c) for c in clouds))},
         "parts": parts,
         "accuracy_tracked": {"mean_mm": float(err.mean()), "p95_mm": float(np.percentile(err, 95)), "max_mm": float(err.max())},
-        "meets_target": {"wall": parts["soi_of_frame"]["median_ms"] <= TARGET_FRAME_MS,
-                         "cpu": parts["soi_of_frame"]["cpu_median_ms"] <= TARGET_FRAME_MS},
+        "meets_target": {"wall": parts["service_solve"]["median_ms"] <= TARGET_FRAME_MS,
+                         "cpu": parts["service_solve"]["cpu_median_ms"] <= TARGET_FRAME_MS},
     }
 
 
@@ -260,7 +272,7 @@ def report(res: dict) -> str:
     lines.append(
         f"  cloud {fr['cloud_points']['median']:.0f} points (median); tracked SOI against the true rim: "
         f"mean {a['mean_mm']:.2f} mm, p95 {a['p95_mm']:.2f} mm, max {a['max_mm']:.2f} mm; "
-        f"target <= {TARGET_FRAME_MS:.0f} ms: wall {'met' if fr['meets_target']['wall'] else 'MISSED'}, "
+        f"target (service_solve) <= {TARGET_FRAME_MS:.0f} ms: wall {'met' if fr['meets_target']['wall'] else 'MISSED'}, "
         f"CPU {'met' if fr['meets_target']['cpu'] else 'MISSED'}"
     )
     for key in ("points_12000", "points_50000"):
