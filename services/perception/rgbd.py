@@ -72,10 +72,47 @@ def back_project(depth_m: np.ndarray, camera: CameraInfo, mask: np.ndarray | Non
     if mask is not None:
         valid &= mask
     v, u = np.nonzero(valid)
-    z = depth_m[v, u]
+    return _pinhole(v, u, depth_m[v, u], camera)
+
+
+def _pinhole(v: np.ndarray, u: np.ndarray, z: np.ndarray, camera: CameraInfo) -> np.ndarray:
+    """Camera-frame points `(n, 3)` of pixels (row `v (n,)`, column `u (n,)`) at depths `z (n,)` metres."""
     x = (u - camera.cx) * z / camera.fx
     y = (v - camera.cy) * z / camera.fy
     return np.column_stack([x, y, z])
+
+
+def masked_points(
+    frame: RgbdFrame, mask: np.ndarray, depth_range: tuple[float, float] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows `v (n,)`, columns `u (n,)` and camera-frame points `(n, 3)` of the pixels in `mask (H, W)`
+    (anything numpy reads as booleans) with valid depth, inside `depth_range` (metres) if given.
+
+    The mask is applied first and only its pixels' depths are converted, so a frame costs in
+    proportion to the rim band, not to the image: the same numbers as `back_project` on the whole
+    image in metres, in the same (row-major) order, without a float64 copy of the depth image.
+    """
+    v, u = _nonzero(mask)
+    z = frame.depth[v, u].astype(np.float64) * frame.camera.depth_scale
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(z) & (z > 0)
+        if depth_range is not None:
+            ok &= (z >= depth_range[0]) & (z <= depth_range[1])
+    if not ok.all():
+        v, u, z = v[ok], u[ok], z[ok]
+    return v, u, _pinhole(v, u, z, frame.camera)
+
+
+def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows `(n,)` and columns `(n,)` of the nonzero pixels of `mask (H, W)` in row-major order, as
+    np.nonzero gives them; OpenCV's scan is 4x faster on a 640x480 bool or uint8 mask."""
+    if mask.ndim != 2 or mask.dtype not in (np.bool_, np.uint8):
+        return np.nonzero(mask)  # type: ignore[return-value]
+    xy = cv2.findNonZero(np.ascontiguousarray(mask).view(np.uint8))
+    if xy is None:  # OpenCV gives None for an all-zero mask
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    xy = xy.reshape(-1, 2).astype(np.intp)
+    return xy[:, 1], xy[:, 0]
 
 
 def rim_cloud(
@@ -102,12 +139,10 @@ def rim_cloud(
     T = frame.camera.extrinsics()
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise BadCloud("camera extrinsics are not a finite 4x4 transform")
-    depth_m = frame.depth.astype(np.float64) * frame.camera.depth_scale
     mask = np.asarray(segmenter(frame))
     if mask.shape != (h, w):
         raise BadCloud(f"segmenter returned a mask of shape {mask.shape}, expected {(h, w)}")
-    pts_cam = back_project(depth_m, frame.camera, mask.astype(bool) & (depth_m >= lo) & (depth_m <= hi))
-    return transform_points(T, pts_cam)
+    return transform_points(T, masked_points(frame, mask, (lo, hi))[2])
 
 
 def solid_rim_segmenter(
@@ -133,9 +168,8 @@ def solid_rim_segmenter(
         bag = (dh <= hue_tol) & (hsv[..., 1] >= 60) & (hsv[..., 2] >= 30) & (frame.depth > 0)
         if not bag.any():
             return bag
-        depth = frame.depth.astype(np.float64) * frame.camera.depth_scale
-        v, u = np.nonzero(bag)
-        pts = transform_points(frame.camera.extrinsics(), back_project(depth, frame.camera, bag))
+        v, u, pts_cam = masked_points(frame, bag)
+        pts = transform_points(frame.camera.extrinsics(), pts_cam)
         keep = pts[:, 2] >= np.percentile(pts[:, 2], 99) - depth_m
         keep &= pts[:, 2] >= local_top(pts[:, :2], pts[:, 2], reach_m) - band_m
         out = np.zeros_like(bag)

@@ -131,6 +131,21 @@ def test_back_projection_inverts_the_pinhole_projection():
     assert np.allclose(uvw[:, :2] / uvw[:, 2:], [[20, 10], [60, 40]])
 
 
+def test_the_rim_cloud_is_the_whole_image_back_projection_bit_for_bit():
+    # The cloud converts only the mask's depths; the numbers and their order must be those of the
+    # whole image in metres, masked and range-limited (what the SOI and every published run saw).
+    cam = CameraConfig()
+    rng = np.random.default_rng(3)
+    frame = render_rim_frame(true_rim("ellipse", center=(0.0, 0.0, 0.45), m=4000), cam)
+    frame.depth[rng.random(frame.depth.shape) < 0.05] = 0  # holes
+    frame.depth[rng.random(frame.depth.shape) < 0.05] = 100  # nearer than the range
+    mask = red_rim_mask(frame)
+    depth_m = frame.depth.astype(np.float64) * frame.camera.depth_scale
+    want = transform_points(frame.camera.extrinsics(), back_project(depth_m, frame.camera, mask & (depth_m >= 0.2) & (depth_m <= 3.0)))
+    got = rim_cloud(frame)
+    assert len(got) > 300 and got.shape == want.shape and np.array_equal(got, want)
+
+
 def test_world_cloud_does_not_depend_on_where_the_camera_is():
     rim = true_rim("ellipse", center=(0.0, 0.0, 0.45), m=6000)
     clouds = [
