@@ -257,6 +257,10 @@ class SimRig:
         """The world's ground truth (tests and benchmarks only)."""
         return self.world.ground_truth()
 
+    def flange_poses(self) -> dict[ArmName, np.ndarray]:
+        """'left'/'right' -> 4x4 world <- flange (the perception benchmark moves the bag by them)."""
+        return {name: robot.flange_pose_world() for name, robot in self.arms.items()}
+
     def run_realtime(
         self,
         speed: float = 1.0,
