@@ -56,7 +56,7 @@ from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFra
 from bagit.common.names import ACTIVE_STAGES, MAX_N_X, MIN_N_X
 from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
-from bagit.services.perception.rgbd import back_project
+from bagit.services.perception.rgbd import masked_points
 from bagit.services.perception.soi import SoiParams
 from bagit.services.perception.sources import RealSenseSource, SourceConfig, open_source
 from bagit.services.perception.tracker import RimTracker
@@ -96,16 +96,17 @@ def _rgb(color: tuple[float, float, float]) -> tuple[float, float, float]:
 
 
 def scene_cloud(frame: RgbdFrame, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """A down-sampled coloured cloud of the whole frame: points `(n, 3)` float32 world, colours `(n, 3)` uint8."""
+    """A down-sampled coloured cloud of the whole frame: points `(n, 3)` float32 world, colours `(n, 3)` uint8
+    (every stride-th pixel with a depth; only those pixels' depths are converted, `masked_points`)."""
     h, w = frame.depth.shape
     valid = frame.depth > 0
     n = int(valid.sum())
     stride = max(1, int(np.ceil(np.sqrt(n / max_points)))) if n > max_points else 1
     mask = np.zeros_like(valid)
     mask[::stride, ::stride] = valid[::stride, ::stride]
-    depth_m = frame.depth.astype(np.float64) * frame.camera.depth_scale
-    pts = transform_points(frame.camera.extrinsics(), back_project(depth_m, frame.camera, mask))
-    cols = frame.color[mask]
+    v, u, cam = masked_points(frame, mask)
+    pts = transform_points(frame.camera.extrinsics(), cam)
+    cols = frame.color[v, u]
     return pts[:max_points].astype(np.float32), np.ascontiguousarray(cols[:max_points], dtype=np.uint8)
 
 
