@@ -61,6 +61,17 @@ def machine() -> dict[str, Any]:
     }
 
 
+def metric_table(title: str, r: dict[str, Any], rows: list[tuple[str, Any]]) -> str:
+    """A one-run record as a markdown table: its provenance (commit, host, CPU, when, load before and after,
+    parameters: `r["machine"]`, `r["load_before"]`, `r["load_after"]`, `r["params"]`), then `rows`."""
+    m = r["machine"]
+    head = [("commit", m.get("commit")), ("host", m.get("host")), ("cpu", f"{m.get('cpu')}, {m.get('cores')} cores"),
+            ("when", m.get("when")), ("load average before / after", f"{r['load_before']} / {r['load_after']}"),
+            ("parameters", ", ".join(f"{k} {v}" for k, v in r["params"].items()))]
+    lines = [f"# {title}", "", "| metric | value |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in head + rows]
+    return "\n".join(lines) + "\n"
+
+
 def write_results(name: str, data: dict[str, Any], markdown: str, out_dir: Path | None = None) -> tuple[Path, Path]:
     """Write `<name>.json` and `<name>.md` under bench/results (or `out_dir`)."""
     d = Path(out_dir) if out_dir else RESULTS_DIR

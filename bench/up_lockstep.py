@@ -109,11 +109,10 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 def markdown(r: dict[str, Any]) -> str:
     """A table from a record of `measure`."""
-    m, p, a, b = r["machine"], r["params"], r["run"], r["up"]
+    from bagit.bench.common import metric_table
+
+    a, b = r["run"], r["up"]
     rows = [
-        ("commit", m.get("commit")), ("host", m.get("host")), ("cpu", f"{m.get('cpu')}, {m.get('cores')} cores"),
-        ("when", m.get("when")), ("load average before / after", f"{r['load_before']} / {r['load_after']}"),
-        ("parameters", ", ".join(f"{k} {v}" for k, v in p.items())),
         ("`bagit run`: wall s, CPU s", f"{a['wall_s']}, {a['cpu_s']}"),
         ("`bagit up` (lockstep): wall s, CPU s", f"{b['wall_s']}, {b['cpu_s']}"),
         ("up / run: wall, CPU", f"{r['ratio']['wall']}, {r['ratio']['cpu']} (goals <= {GOAL_WALL_RATIO}, <= {GOAL_CPU_RATIO})"),
@@ -127,9 +126,7 @@ def markdown(r: dict[str, Any]) -> str:
         if isinstance(x, dict):
             cpu = x.get("cpu_s_per_sim_s", {})
             rows.append((f"CPU s per simulated s while servoing, {clock}, 10 frames/s", ", ".join(f"{k} {v:.3f}" for k, v in cpu.items())))
-    lines = ["# `bagit up` in lockstep against `bagit run`", "", "| metric | value |", "| --- | --- |"]
-    lines += [f"| {k} | {v} |" for k, v in rows]
-    return "\n".join(lines) + "\n"
+    return metric_table("`bagit up` in lockstep against `bagit run`", r, rows)
 
 
 def main(argv: list[str] | None = None) -> int:

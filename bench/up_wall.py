@@ -185,12 +185,10 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 def markdown(r: dict[str, Any]) -> str:
     """A table from a record of `measure`."""
-    m, p = r["machine"], r["params"]
+    from bagit.bench.common import metric_table
+
     lat = r.get("latency", {})
     rows = [
-        ("commit", m.get("commit")), ("host", m.get("host")), ("cpu", f"{m.get('cpu')}, {m.get('cores')} cores"),
-        ("when", m.get("when")), ("load average before / after", f"{r['load_before']} / {r['load_after']}"),
-        ("parameters", ", ".join(f"{k} {v}" for k, v in p.items())),
         ("run", f"{r['run']['stage']}" + (f" ({r['run']['reason']})" if r["run"].get("reason") else "")),
         ("real-time factor while servoing", r.get("servo", {}).get("realtime_factor")),
         ("real-time factor over the run", r["run"].get("realtime_factor")),
@@ -206,9 +204,7 @@ def markdown(r: dict[str, Any]) -> str:
     rows.append(("CPU s per simulated s while servoing", ", ".join(f"{k} {v:.3f}" for k, v in cpu.items())))
     rows.append(("CPU s over each process's life", ", ".join(f"{k} {v:.1f}" for k, v in r["cpu_s_whole_life"].items())))
     rows.append(("goals met", ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in r["goal"].items())))
-    lines = ["# `bagit up --clock wall`", "", "| metric | value |", "| --- | --- |"]
-    lines += [f"| {k} | {v} |" for k, v in rows]
-    return "\n".join(lines) + "\n"
+    return metric_table(f"`bagit up --clock {r['params'].get('clock', 'wall')}`", r, rows)
 
 
 def main(argv: list[str] | None = None) -> int:

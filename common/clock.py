@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from typing import Literal, Protocol
 
 ClockKind = Literal["wall", "sim"]
@@ -103,40 +104,32 @@ class SimClock:
                 self._event = (float(t), None)
             self._cond.notify_all()
 
+    def _wait_for(self, ready: Callable[[], bool], stop: threading.Event, timeout: float | None) -> bool:
+        """Until `ready()` (with the lock held), `stop` or `timeout` wall seconds; woken by `advance`, and
+        every 50 ms to look at `stop`."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not ready() and not stop.is_set():
+            left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
+            if left <= 0:
+                break
+            self._cond.wait(left)
+        return ready()
+
     def wait_until(self, t: float, stop: threading.Event, timeout: float | None = None) -> bool:
         """Block until the simulator's time reaches `t`, `stop` is set or `timeout` wall seconds pass."""
-        deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while self._t < t and not stop.is_set():
-                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
-                if left <= 0:
-                    break
-                self._cond.wait(left)
-            return self._t >= t
+            return self._wait_for(lambda: self._t >= t, stop, timeout)
 
     def next_tick(self, after: int, stop: threading.Event, timeout: float | None = None) -> tuple[int, float] | None:
         """The first servo tick numbered above `after` as (n, t); None on `stop` or `timeout` (wall s)."""
-        deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while self._tick[0] <= after and not stop.is_set():
-                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
-            return self._tick if self._tick[0] > after else None
-
+            return self._tick if self._wait_for(lambda: self._tick[0] > after, stop, timeout) else None
 
     def next_event(self, after: float, stop: threading.Event, timeout: float | None = None) -> tuple[float, int | None] | None:
         """The newest step the simulator announced later than time `after`, as (t, servo tick number or
         None); None on `stop` or `timeout` (wall s)."""
-        deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while self._event[0] <= after and not stop.is_set():
-                left = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
-            return self._event if self._event[0] > after else None
+            return self._event if self._wait_for(lambda: self._event[0] > after, stop, timeout) else None
 
 
 def make_clock(kind: ClockKind) -> WallClock | SimClock:

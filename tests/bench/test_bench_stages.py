@@ -49,3 +49,21 @@ def test_up_wall_times_each_frame_once_from_its_publication_and_from_its_stamp_a
            "cpu_s_per_sim_s": {"sim": 0.6, "total": 1.0}, "cpu_s_whole_life": {"sim": 30.0}, "goal": {"p99_ms": False}}
     md = up_wall.markdown(rec)
     assert "| commit | abc |" in md and "camera 640x480" in md and "22.5 /" in md and "p99_ms no" in md and "sim 0.600" in md
+
+
+def test_the_up_lockstep_record_reads_as_a_table_with_its_provenance_ratios_and_goals():
+    from bagit.bench.up_lockstep import markdown
+
+    r = {"machine": {"commit": "abc", "host": "h", "cpu": "AMD EPYC", "cores": 2, "when": "now"}, "load_before": [1.0], "load_after": [2.0],
+         "params": {"scenario": "exp02", "hogs": 0},
+         "run": {"exit": 0, "wall_s": 10.0, "cpu_s": 9.0, "result": {}},
+         "up": {"exit": 0, "wall_s": 11.0, "cpu_s": 12.0, "exact": True, "inexact": [], "cpu_s_per_service": {"sim": 6.0},
+                "cpu_s_per_sim_s": {"sim": 0.5}, "result": {}, "realtime_factor": 1.2},
+         "bit_for_bit": True, "ratio": {"wall": 1.1, "cpu": 1.333},
+         "goal": {"bit_for_bit": True, "wall_ratio": True, "cpu_ratio": False},
+         "per_sim_second_at_10fps": {"fps": 10.0, "lockstep": {"cpu_s_per_sim_s": {"sim": 0.4}}, "wall": {"cpu_s_per_sim_s": {"sim": 0.6}}}}
+    md = markdown(r)
+    assert md.startswith("# `bagit up` in lockstep against `bagit run`")
+    for text in ("| commit | abc |", "| up / run: wall, CPU | 1.1, 1.333", "bit_for_bit yes, wall_ratio yes, cpu_ratio no",
+                 "lockstep, 10 frames/s | sim 0.400", "wall, 10 frames/s | sim 0.600"):
+        assert text in md, (text, md)
