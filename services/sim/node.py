@@ -41,6 +41,7 @@ from bagit.common.bus import Keys, LivelinessWatcher, Publisher, Subscriber, dec
 from bagit.common.clock import ClockKind
 from bagit.common.dobot import describe_alarm
 from bagit.common.errors import BagItError
+from bagit.common.lockstep import LOCKSTEP_TIMEOUT_S
 from bagit.common.messages import ClockTick, RgbdFrame, RunState, SimTruth, StepAck
 from bagit.common.names import FINAL_STAGES
 from bagit.common.params import merge_params
@@ -69,7 +70,8 @@ class SimNodeConfig(BaseModel):
     settle_s: float = Field(SETTLE_S, ge=0, le=10, description="simulated seconds the bag hangs still after a reset, no frames")
     truth_hz: float = Field(2.0, gt=0, le=50)
     report_every_s: float = Field(5.0, gt=0, description="how often the real-time factor is printed (wall seconds)")
-    lockstep_timeout_s: float = Field(30.0, gt=0, le=3600, description="lockstep: a service silent this long (wall s) is no longer waited for")
+    lockstep_timeout_s: float = Field(LOCKSTEP_TIMEOUT_S, gt=0, le=3600,
+                                      description="lockstep: a service silent this long (wall s) is no longer waited for")
 
 
 @dataclass
