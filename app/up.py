@@ -20,6 +20,7 @@ tests can kill one.
 from __future__ import annotations
 
 import ctypes
+import functools
 import json
 import os
 import shutil
@@ -39,7 +40,7 @@ from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Su
 from bagit.common.errors import BusError
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
-from bagit.common.names import FINAL_STAGES
+from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES
 from bagit.common.params import MethodParams
 from bagit.common.rig import RigConfig
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
@@ -48,6 +49,12 @@ SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboa
 # A service that needs another one up before it can start (the arm driver connects to the CR5s the
 # simulator serves; on a real rig the controllers are already up).
 AFTER = {"arm-driver": "sim"}
+SUPERVISE_S = 1.0  # the supervisor's backstop wake-up (events wake it first)
+# Services no step waits for (the dashboard, the recorder: they watch and record) run at this niceness: on
+# a busy machine the simulator and the services a step waits for come first, so a lockstep run is not
+# slowed by its display, and on the wall clock the control loop keeps its pace.
+OFF_PATH_NICENESS = 10
+ON_PATH = ("sim", *LOCKSTEP_SERVICES)
 # The arm driver's link time-outs for the simulated CR5s. A real CR5 sends feedback every 8 ms and
 # answers at once, so the driver's defaults call 0.2 s without feedback a lost link and 0.5 s
 # without a reply an error. The simulated controllers share the machine's cores with the physics,
@@ -92,8 +99,10 @@ def zenoh_config(hub: str, lease_ms: int = WALL_LEASE_MS) -> dict[str, Any]:
     }
 
 
-def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
+def _child_setup(niceness: int = 0) -> None:  # pragma: no cover - runs in the child between fork and exec
     os.setsid()
+    if niceness:
+        os.nice(niceness)
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
@@ -158,6 +167,7 @@ class Up:
         self.keys = Keys(opts.rig)
         self.children: dict[str, Child] = {}
         self._stopping = threading.Event()
+        self._wake = threading.Event()  # the supervisor has something to look at
         self._print_lock = threading.Lock()
         self.session: Any = None
         self.watcher: LivelinessWatcher | None = None
@@ -251,9 +261,10 @@ class Up:
     def _spawn(self, c: Child) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "osmesa"),
                    PYOPENGL_PLATFORM=os.environ.get("PYOPENGL_PLATFORM", "osmesa"))
+        setup = functools.partial(_child_setup, 0 if c.name in ON_PATH else OFF_PATH_NICENESS)
         c.proc = subprocess.Popen(
             [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT, env=env, preexec_fn=_child_setup, text=True, errors="replace", bufsize=1,
+            stderr=subprocess.STDOUT, env=env, preexec_fn=setup, text=True, errors="replace", bufsize=1,
         )
         threading.Thread(target=self._pump, args=(c.name, c.proc), name=f"log-{c.name}", daemon=True).start()
         self.say(f"started {c.name} (pid {c.proc.pid})")
@@ -263,12 +274,20 @@ class Up:
         assert proc.stdout is not None
         for line in proc.stdout:
             self.say(line.rstrip("\n"), who=name)
+        self._wake.set()  # its output ended: it exited (the supervisor restarts it)
 
     def _on_alive(self, service: str, alive: bool) -> None:
         self.say(f"service {service} {'up' if alive else 'gone'}")
+        self._wake.set()  # a service waited for may be up
 
     def _supervise(self) -> None:
-        while not self._stopping.wait(0.2):
+        """Start the services waiting for another once it is up; restart the ones that exited. Woken by
+        liveliness changes and ended outputs (the timed wake-up is only a backstop)."""
+        while not self._stopping.is_set():
+            self._wake.wait(SUPERVISE_S)
+            self._wake.clear()
+            if self._stopping.is_set():
+                return
             for c in list(self.children.values()):
                 if c.waiting_for is not None and self.watcher is not None and c.waiting_for in self.watcher.alive():
                     c.waiting_for = None
@@ -373,21 +392,26 @@ class Up:
     def stop(self, grace_s: float = 10.0) -> dict[str, int | None]:
         """SIGTERM every child's process group, SIGKILL what is left after `grace_s`; their exit codes."""
         self._stopping.set()
+        self._wake.set()
         if self._supervisor is not None:
             self._supervisor.join(timeout=2.0)
         procs = {n: c.proc for n, c in self.children.items() if c.proc is not None}
-        for p in procs.values():
-            _signal_group(p, signal.SIGTERM)
         deadline = time.monotonic() + grace_s
         codes: dict[str, int | None] = {}
-        for n, p in procs.items():
-            try:
-                codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                self.say(f"{n} did not stop in {grace_s:g} s: killed")
-                _signal_group(p, signal.SIGKILL)
-                codes[n] = p.wait(timeout=5)
-            _signal_group(p, signal.SIGKILL)  # anything the service started and left behind
+        # Those that need another service first (the arm driver, which disables the arms on the simulated
+        # CR5s) stop before the rest: so they close against live peers, not against time-outs.
+        first = {n: p for n, p in procs.items() if n in AFTER}
+        for group in (first, {n: p for n, p in procs.items() if n not in first}):
+            for p in group.values():
+                _signal_group(p, signal.SIGTERM)
+            for n, p in group.items():
+                try:
+                    codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    self.say(f"{n} did not stop in {grace_s:g} s: killed")
+                    _signal_group(p, signal.SIGKILL)
+                    codes[n] = p.wait(timeout=5)
+                _signal_group(p, signal.SIGKILL)  # anything the service started and left behind
         for x in (self.run_state, self.truth, self._final_truth_sub, self.arm_states, self.watcher):
             if x is not None:
                 x.close()

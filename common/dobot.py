@@ -608,6 +608,14 @@ class CommandSplitter:
         """Text of an unfinished command or malformed piece is buffered."""
         return self._bad is not None or bool(self._buf.strip(_SEPARATORS))
 
+    def quiet_left_s(self, now: float | None = None) -> float | None:
+        """Seconds of quiet left before `expire` answers the unfinished piece; None when nothing is
+        unfinished (a reader may then block until the client sends)."""
+        if not self.pending:
+            return None
+        now = time.monotonic() if now is None else now
+        return max(self.timeout_s - (now - self._last), 0.0)
+
 
 # -- replies -------------------------------------------------------------------------------------
 

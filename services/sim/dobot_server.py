@@ -54,7 +54,6 @@ from bagit.services.sim.cr5_sim import SimulatedCR5
 
 Values = list[float] | list[int] | str | None
 CR5_MAX_LOAD_KG = 5.0
-POLL_S = 0.05  # how often a quiet client's unfinished command is checked against its time-out
 
 
 class _ParamError(Exception):
@@ -183,7 +182,8 @@ class DobotControllerServer:
         self.packets_sent = 0
         # Lockstep: the feedback goes out when the world has stepped (the simulator pushes it), not every
         # 8 ms of wall time: a world that waits for its rig has nothing new to say.
-        self.periodic_push = True
+        self._periodic = threading.Event()
+        self._periodic.set()
         self.on_servo: Callable[[], None] | None = None  # after each ServoP/ServoJ taken (a lockstep simulator waits for them)
         self._handlers: dict[str, Callable[[Command], tuple[int, Values]]] = {
             "enablerobot": self._enable,
@@ -225,7 +225,6 @@ class DobotControllerServer:
             s.close()
             raise OSError(f"{self.robot.name}: cannot listen on {self.host}:{port}: {e.strerror}") from None
         s.listen(8)
-        s.settimeout(0.1)
         return s
 
     def start(self) -> Self:
@@ -249,11 +248,28 @@ class DobotControllerServer:
         with self._clients_lock:
             self._threads.append(t)
 
+    @property
+    def periodic_push(self) -> bool:
+        """Whether feedback goes out every `feedback_period` of wall time (else only when pushed)."""
+        return self._periodic.is_set()
+
+    @periodic_push.setter
+    def periodic_push(self, on: bool) -> None:
+        if on:
+            self._periodic.set()
+        else:
+            self._periodic.clear()
+
     def stop(self) -> None:
         """Close every socket and join every thread (idempotent)."""
         self._stop.set()
+        self._periodic.set()  # the push loop wakes to see the stop
         for s in (self._dash_sock, self._fb_sock):
             if s is not None:
+                try:
+                    s.shutdown(socket.SHUT_RDWR)  # wakes a blocked accept (Linux); close alone does not
+                except OSError:
+                    pass
                 s.close()
         with self._clients_lock:
             for c in self._clients + self._feedback_clients:
@@ -282,9 +298,7 @@ class DobotControllerServer:
     def _accept_loop(self, listener: socket.socket, on_client: Callable[[socket.socket], None]) -> None:
         while not self._stop.is_set():
             try:
-                conn, _ = listener.accept()
-            except TimeoutError:
-                continue
+                conn, _ = listener.accept()  # blocks; stop() shuts the listener down to end it
             except OSError:
                 return
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -296,11 +310,13 @@ class DobotControllerServer:
         self._spawn(self._client_loop, conn, name="client")
 
     def _client_loop(self, conn: socket.socket) -> None:
-        """One reply per command or malformed send (see CommandSplitter); a command may span segments."""
+        """One reply per command or malformed send (see CommandSplitter); a command may span segments.
+        The read blocks until the client sends, or until an unfinished command's time-out: nothing polls."""
         splitter = CommandSplitter(timeout_s=self.command_timeout)
-        conn.settimeout(POLL_S)
         try:
             while not self._stop.is_set():
+                left = splitter.quiet_left_s()
+                conn.settimeout(None if left is None else max(left, 1e-3))  # 0 would make the socket non-blocking
                 try:
                     data = conn.recv(65536)
                 except TimeoutError:
@@ -328,6 +344,10 @@ class DobotControllerServer:
     def _push_loop(self) -> None:
         next_t = time.monotonic()
         while not self._stop.is_set():
+            if not self._periodic.is_set():  # lockstep: asleep until periodic again or stopped
+                self._periodic.wait()
+                next_t = time.monotonic()
+                continue
             next_t += self.feedback_period
             delay = next_t - time.monotonic()
             if delay > 0:
