@@ -31,6 +31,7 @@ from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES, SERVO_STAGES
 
 EPS_S = 1e-9
 STAMP_TOL_S = 1e-6  # a frame's stamp matched in an answer
+EARLY_KEPT = 16  # answers kept for steps not announced yet (a few per step)
 
 
 @dataclass
@@ -121,6 +122,9 @@ class Lockstep:
     notes: list[str] = field(default_factory=list)  # what the host should say (drops)
     stage: str | None = None  # the coordinator's stage after the last frame (or keep-alive tick) answered
     inexact: list[str] = field(default_factory=list)  # why the last run started is not exact (kept past its end)
+    # Answers for a step not announced yet (as far as this side knows): an answer can overtake the
+    # simulator's own bookkeeping of what it published. Taken up when that step is announced.
+    early: deque[StepAck] = field(default_factory=lambda: deque(maxlen=EARLY_KEPT))
 
     # -- what the simulator does ------------------------------------------------------------------
 
@@ -129,6 +133,7 @@ class Lockstep:
         self.run_id, self.dropped, self.frame, self.tick, self.tick_sent = run_id, {}, None, None, None
         self.stage = None
         self.commands.clear()
+        self.early.clear()
         if run_id is not None:
             self.inexact = []
 
@@ -142,12 +147,24 @@ class Lockstep:
 
     def frame_published(self, stamp: float, wall: float) -> None:
         self.frame, self.since = _Frame(stamp), wall
+        self._take_early(wall)
 
     def keepalive_published(self, stamp: float, wall: float) -> None:
         """A keep-alive tick at `stamp` (frames sparser than the controller's keep-alive pace): in a
         servo stage (as the last frame left it) the controller's answer, its command's receipt and
         the coordinator's answer to its status (a hold's) are waited for, as for a frame's."""
         self.frame, self.since = _Frame(stamp, soi=True, stage=self.stage or "idle"), wall
+        self._take_early(wall)
+
+    def _take_early(self, wall: float) -> None:
+        """The answers that came before the step now announced: its own are taken, older ones dropped."""
+        f, held = self.frame, list(self.early)
+        self.early.clear()
+        for ack in held:
+            if f is not None and ack.frame is not None and ack.frame > f.stamp + STAMP_TOL_S:
+                self.early.append(ack)  # later still
+            else:
+                self.on_ack(ack, wall, held=True)
 
     def controllers(self, counts: dict[str, int]) -> None:
         """The simulated controllers' servo command counts now."""
@@ -155,10 +172,14 @@ class Lockstep:
 
     # -- what comes in ----------------------------------------------------------------------------
 
-    def on_ack(self, ack: StepAck, wall: float) -> None:
-        if ack.late and self.active and ack.run_id == self.run_id and len(self.inexact) < 100:
+    def on_ack(self, ack: StepAck, wall: float, held: bool = False) -> None:
+        """An answer (`held`: one kept in `early`, now taken up)."""
+        if ack.late and not held and self.active and ack.run_id == self.run_id and len(self.inexact) < 100:
             self.inexact.append(f"{ack.service} answered without {ack.late}")
         f = self.frame
+        if ack.service != "arm-driver" and ack.frame is not None and (f is None or ack.frame > f.stamp + STAMP_TOL_S):
+            self.early.append(ack)  # for a step whose announcement this side has not booked yet
+            return
         if ack.service == "arm-driver" and ack.tick is not None and self.tick is not None and ack.tick == self.tick[0]:
             self.tick_sent = dict(ack.servo_sent or {})
         elif ack.service == "arm-driver" and ack.cmd_seq is not None:

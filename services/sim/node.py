@@ -334,9 +334,9 @@ class SimNode:
                     stepped = self._step_ahead(sched.until_next(world_t))
                     self._wait(stop)
             elif sched.keep_due(world_t):  # frames sparser than the controller's keep-alive pace
-                self._publish_clock(now, None, keepalive=True)
-                with self._cond:
+                with self._cond:  # waited for before it goes out: an answer may come back before the next line
                     self.lockstep.keepalive_published(now, time.monotonic())
+                self._publish_clock(now, None, keepalive=True)
                 stepped = self._step_ahead(sched.until_next(world_t))
                 self._wait(stop)
             wall = time.monotonic()

@@ -164,6 +164,26 @@ def test_a_keep_alive_tick_in_a_servo_stage_waits_for_the_controller_and_its_com
     assert ls.pending() == []
 
 
+def test_an_answer_that_overtakes_the_announcement_of_its_step_still_counts():
+    # The simulator books a step, publishes it, and a fast service's answer may be in before the booking
+    # (a keep-alive's answer once beat it and the run waited 30 s for an answer already given): an answer
+    # for a step later than the one booked is kept and taken up when that step is booked; older ones go.
+    ls = Lockstep(timeout_s=5.0)
+    ls.start_run("r1")
+    ls.frame_published(10.1, 0.0)
+    for a in (_ack("perception", 10.1, soi_seq=1), _ack("planner", 10.1, soi_seq=1, stage="bagging"),
+              _ack("controller", 10.1, cmd_seq=5, status_seq=5), _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, stage="bagging")):
+        ls.on_ack(a, 0.0)
+    ls.done_with_step()
+    ls.on_ack(_ack("controller", 10.1, cmd_seq=5, status_seq=5), 0.0)  # a repeat of an answered step: nothing to take up
+    ls.on_ack(_ack("controller", 10.13, cmd_seq=6, run_id="r1", late="the arms' states"), 0.0)  # before its keep-alive is booked
+    assert ls.inexact == ["controller answered without the arms' states"]
+    ls.keepalive_published(10.13, 0.0)
+    assert ls.pending() == ["arm-driver: command 6"]  # the controller's answer counted, the repeat did not
+    ls.on_ack(_ack("arm-driver", cmd_seq=6), 0.0)
+    assert ls.pending() == [] and len(ls.inexact) == 1 and not ls.early
+
+
 def test_a_dropped_service_or_a_late_answer_makes_the_run_inexact_until_the_next_run():
     ls = Lockstep(timeout_s=5.0)
     ls.start_run("r1")
