@@ -18,6 +18,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 import time
@@ -52,6 +53,12 @@ def cpu_per_service(stderr: str) -> dict[str, float]:
         if name:
             out[name] = float(v)
     return out
+
+
+def run_cost(stderr: str) -> dict[str, float] | None:
+    """What `bagit up` said the run itself cost, the rig already up ('[up] the run: 12.34 s wall, 15.67 CPU s ...')."""
+    m = re.search(r"^\[up\] the run: ([0-9.]+) s wall, ([0-9.]+) CPU s", stderr, re.MULTILINE)
+    return {"wall_s": float(m.group(1)), "cpu_s": float(m.group(2))} if m else None
 
 
 def deployed(scenario: str, seed: int, controller: str, speed: float | None) -> tuple[RunResult, float, dict[str, float]]:
