@@ -27,15 +27,15 @@ import numpy as np
 
 from bagit.common.errors import BagItError, SimulationFailed
 from bagit.common.geometry import enclosure
-from bagit.common.messages import ArmState, Goal, ObjectDetection, Path, RunControl, RunState, SoiState
+from bagit.common.messages import ArmState, Goal, Path, RunControl, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, PERCEIVE_STAGES, SERVO_STAGES, ArmsMode
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import ArmName, RigConfig
 from bagit.common.scenario import Scenario
-from bagit.services.controller.session import SOI_MAX_AGE_S, Outbox, ServoSession, tick_period
-from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
-from bagit.services.perception.tracker import RimTracker
+from bagit.services.controller.session import SOI_MAX_AGE_S, Outbox, ServoRuns, tick_period
+from bagit.services.perception.marker import MarkerSchedule, ObjectLibrary, detect_object, with_run_object
+from bagit.services.perception.tracker import RimTracker, frame_soi, start_hint
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S, Coordinator, CoordinatorConfig, Effect, compute_plan
 from bagit.services.planner.goal import bottom_frame
 from bagit.services.sim.judge import truth_of
@@ -46,8 +46,6 @@ from bagit.sim_arms import Cr5Arms, IdealArms
 log = logging.getLogger("bagit.run")
 
 WALL_LIMIT_S = 900.0  # a run taking longer than this in wall time is stopped (normal runs take 10-60 s)
-MARKER_RATE_HZ = 1.0  # perception's marker detection at most this often (its node's default)
-MARKER_SETTLE_S = 0.5  # ... and on the first frame this much after the start
 SERVICES = ("perception", "planner", "controller", "arm-driver")  # all in this process, so always alive
 
 
@@ -99,6 +97,20 @@ def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: 
         sim.close()
 
 
+def control_tick(servo: ServoRuns, state: RunState, path: Path | None, goal: Goal | None, soi: SoiState | None,
+                 states: dict[ArmName, ArmState], now: float, keepalive: bool = False) -> list[Outbox]:
+    """`bagit run`'s control tick (at a frame, or a `keepalive` tick between sparse frames): what it has heard
+    handed to `ServoRuns` as the controller node hands it, with every age on the simulator's clock (all of it
+    is of this step) and no e-stop. A keep-alive tick is made only while the run is servoed, as the node's.
+    Once the run is over the loop sends nothing more (it stops stepping the world), so a run that ends is not
+    told to hold."""
+    if state.stage in FINAL_STAGES or (keepalive and not servo.servoing(state.run_id)):
+        return []
+    age = None if soi is None else now - soi.source_stamp
+    return servo.tick(state, path if path is not None and path.run_id == state.run_id else None, goal, False,
+                      soi, age, SOI_MAX_AGE_S, states, None, now)
+
+
 class _Run:
     """The loop of one in-process run (see the module docstring)."""
 
@@ -120,10 +132,10 @@ class _Run:
         self.soi: SoiState | None = None
         self.goal: Goal | None = None
         self.path: Path | None = None
-        self.session: ServoSession | None = None
         self.seq = 0
+        self.servo = ServoRuns(self._next_seq, watchdog_s=sim.rig.safety.watchdog_s)  # the controller node's glue
+        self.markers = MarkerSchedule()  # perception's (its node's defaults)
         self.frames = 0
-        self.marker_due = np.inf
         self.trace = _Trace()
 
     def _next_seq(self) -> int:
@@ -146,7 +158,7 @@ class _Run:
             return RunResult(scenario=opts.name or sc.name, controller=opts.controller, planner=opts.planner, seed=opts.seed,
                              arms=opts.arms, overrides=dict(opts.overrides), reason=rep.reason, wall_s=time.perf_counter() - self.t_wall)
         self.say(f"perceiving: the bag settles {SETTLE_S:g} s, then g0 from the camera")
-        self.marker_due = now + MARKER_SETTLE_S
+        self.markers.run_started(now)
         try:
             self.arms.step(SETTLE_S)  # the bag hangs still before the first frame, as `bagit sim` does after a reset
             self.arms.start()
@@ -161,8 +173,8 @@ class _Run:
                 self.arms.servo(now)
             if sched.frame_due(sim.time):
                 self._frame(now)
-            elif sched.keep_due(sim.time) and self.session is not None and self.session.finished is None:
-                self._control(self.arms.states(), now)  # frames sparser than the keep-alive pace: a tick on the last SOI
+            elif sched.keep_due(sim.time):
+                self._control(self.arms.states(), now, keepalive=True)  # frames sparser than the keep-alive pace: a tick on the last SOI
             self._apply(coord.tick(now), now)
             if coord.state.stage in FINAL_STAGES:
                 break
@@ -183,18 +195,12 @@ class _Run:
         frame = self.sim.render_rgbd(self.frames)
         self.frames += 1
         effects: list[Effect] = []
-        if self.library is not None and now >= self.marker_due - 1e-9 and self.coord.state.stage in PERCEIVE_STAGES:
-            self.marker_due = now + 1.0 / MARKER_RATE_HZ
-            try:
-                det = detect_object(frame, self.library, self.coord.state.run_id)
-            except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection, as in the node
-                det = ObjectDetection(seq=frame.seq, source_stamp=now, run_id=self.coord.state.run_id, ok=False, error=f"{type(e).__name__}: {e}")
-            effects += self.coord.on_object(det, now)
+        # (the coordinator takes detections only while perceiving: none is made after, as none would be heard)
+        if self.library is not None and self.coord.state.stage in PERCEIVE_STAGES and self.markers.due(frame.stamp):
+            effects += self.coord.on_object(detect_object(frame, self.library, self.coord.state.run_id), now)
         states = self.arms.states()  # read once a frame: the hint and the control tick see the same arms
-        left = states["left"].tool_pose[:3]
         try:
-            rim, cloud = self.tracker.update(frame, hint=np.asarray(left, dtype=float))
-            self.soi = SoiState(seq=frame.seq, stamp=now, source_stamp=now, rim=rim, n_points=len(cloud))
+            self.soi, _cloud = frame_soi(self.tracker, frame, start_hint(states["left"], 0.0, np.inf), now)  # this very step's state
             effects += self.coord.on_soi(self.soi, now)
         except BagItError as e:
             log.debug("frame %d: no SOI: %s", frame.seq, e)  # the controller holds once the last SOI is stale
@@ -224,16 +230,10 @@ class _Run:
             elif e.kind == "publish_path" and isinstance(e.message, Path):
                 self.path = e.message
 
-    def _control(self, states: dict[ArmName, ArmState], now: float) -> None:
-        """One control tick on the newest SOI and the arms' `states`, as the controller node makes it."""
-        st = self.coord.state
-        if st.stage not in SERVO_STAGES or self.path is None or self.path.run_id != st.run_id:
-            return
-        if self.session is None:
-            self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq, watchdog_s=self.sim.rig.safety.watchdog_s)
+    def _control(self, states: dict[ArmName, ArmState], now: float, keepalive: bool = False) -> None:
+        """One control tick on the newest SOI and the arms' `states`, through the controller node's `ServoRuns`."""
+        for out in control_tick(self.servo, self.coord.state, self.path, self.goal, self.soi, states, now, keepalive):
             self._send(out, now)
-        age = None if self.soi is None else now - self.soi.source_stamp
-        self._send(self.session.tick_on(self.soi, age, SOI_MAX_AGE_S, states, None, self.path, self.goal, now), now)
 
     def _send(self, out: Outbox, now: float) -> None:
         if out.command is not None:

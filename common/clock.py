@@ -10,6 +10,11 @@ always do (they guard against real processes dying, whatever the world's time).
     clock = WallClock()                  # now() = time.time(); wait_until() sleeps
     clock = SimClock()                   # now() = the newest sim/clock time; advance(t) from the bus
     clock.wait_until(t, stop)            # True once now() >= t; False if `stop` was set first
+    clock.step_time(frame.stamp)         # when the step of a frame is handled: its stamp (sim) or now (wall)
+    clock.age(msg.stamp, received, now)  # a message's age: by its stamp at the step (sim) or by arrival (wall)
+
+The lockstep/wall difference of a service's timing lives in these two methods: a node is handed
+its clock, not a flag to branch on.
 
 This module holds no bus: `SimClock.advance` is fed by whoever subscribes to sim/clock (see
 `bagit.common.bus.follow_sim_clock`).
@@ -54,6 +59,10 @@ class Clock(Protocol):
 
     def wait_until(self, t: float, stop: threading.Event, timeout: float | None = None) -> bool: ...
 
+    def step_time(self, t: float) -> float: ...
+
+    def age(self, stamp: float, received: float, now: float) -> float: ...
+
 
 class WallClock:
     """This host's clock (Unix seconds): a real rig's, or `--clock wall`."""
@@ -71,6 +80,15 @@ class WallClock:
         if delay > 0 and stop.wait(delay):
             return False
         return time.time() >= t
+
+    def step_time(self, t: float) -> float:
+        """When a service handles what happened at `t` (a frame's stamp): now, on this host's clock."""
+        return time.time()
+
+    def age(self, stamp: float, received: float, now: float) -> float:
+        """How old a message is: since it arrived (`received`, time.monotonic()), as another host's
+        stamps may be on a clock that differs from this one."""
+        return time.monotonic() - received
 
 
 class SimClock:
@@ -91,6 +109,16 @@ class SimClock:
     def now(self) -> float:
         with self._cond:
             return self._t
+
+    def step_time(self, t: float) -> float:
+        """When a service handles what happened at `t`: at `t` itself, as the world waits for the services
+        (processing takes no simulated time, as in `bagit run`)."""
+        return t
+
+    def age(self, stamp: float, received: float, now: float) -> float:
+        """How old a message stamped `stamp` is at the step at `now`, on the simulator's clock (when it
+        arrived says nothing: a busy machine makes a run slower, never different)."""
+        return now - stamp
 
     def advance(self, t: float, servo_tick: int | None = None) -> None:
         """The simulator says it is `t` (and, with `servo_tick`, that this is servo tick number n)."""

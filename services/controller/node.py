@@ -45,14 +45,14 @@ import zenoh  # noqa: F401 - the node is where the service meets the bus
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
-from bagit.common.clock import ClockKind
+from bagit.common.clock import ClockKind, make_clock
 from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
-from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
+from bagit.common.names import DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS, ArmName
 from bagit.services.controller.controller import CONTROLLERS
-from bagit.services.controller.session import ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoSession
+from bagit.services.controller.session import ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoRuns, ServoSession
 
 log = logging.getLogger("bagit.controller")
 
@@ -88,6 +88,7 @@ class ControllerNode:
     ) -> None:
         self.cfg = cfg or ControllerServiceConfig()
         self.lockstep = clock == "sim"
+        self.clock = make_clock(clock)  # ages: by stamps at the step (lockstep) or by arrival
         if self.cfg.controller is not None and self.cfg.controller not in CONTROLLERS:
             from bagit.common.errors import BadControlInput
 
@@ -99,8 +100,8 @@ class ControllerNode:
         self._paths: dict[str | None, Path] = {}
         self._goals: dict[str | None, Goal] = {}
         self._estop = False
-        self._run: ServoSession | None = None
         self._seq = 0
+        self.servo = ServoRuns(self._next_seq, self.cfg.params, self.cfg.controller, self.cfg.control_rate_hz, self.rig_watchdog_s)
         self.counters: dict[str, int] = {"ticks": 0, "servo": 0, "hold": 0, "keepalive": 0, "errors": 0, "runs": 0}
         self.last_reason: str | None = None
         self.runs_done: list[dict[str, Any]] = []
@@ -108,7 +109,7 @@ class ControllerNode:
         self._status = Publisher(session, keys.controller_status, ControllerStatus, lockstep=self.lockstep)
         self._soi_new = threading.Event()  # wall clock: a new SOI wakes the loop for a tick at once
         self._step_wait = StepWait()  # lockstep: a tick's SOI, run state, path and arm states wake its wait
-        self.soi = LatestCache(session, keys.perception_soi, SoiState, self._step_wait.notify if self.lockstep else lambda _m: self._soi_new.set())
+        self.soi = LatestCache(session, keys.perception_soi, SoiState, self._on_soi)
         self.arms = LatestCache(session, keys.arm_state_any, ArmState, self._step_wait.notify)
         self._subs: list[Subscriber[Any]] = [
             Subscriber(session, keys.run_state, RunState, self._on_run_state),
@@ -122,14 +123,28 @@ class ControllerNode:
         self._ack: Publisher[StepAck] | None = None
         self._sent: int | None = None  # the seq of the last command a tick sent
         self._status_sent: int | None = None  # ... and of its status
+        # The schedule of the ticks (what the loop runs in both is `_tick`, i.e. `ServoRuns`, as in `bagit run`):
+        # on the wall clock a timer and each new SOI; in lockstep the simulator's steps, answered on sim/ack.
+        loop = self._loop
         if self.lockstep:
             self._ack = Publisher(session, keys.sim_ack, StepAck)
             self._subs.append(Subscriber(session, keys.sim_ack, StepAck, self._on_ack))
             self._subs.append(Subscriber(session, keys.sim_clock, ClockTick, self._on_clock))
-        self._thread = threading.Thread(target=self._lockstep_loop if self.lockstep else self._loop, name="controller-loop", daemon=True)
+            loop = self._lockstep_loop
+        self._thread = threading.Thread(target=loop, name="controller-loop", daemon=True)
         self._thread.start()
 
     # -- in ----------------------------------------------------------------------------------------
+
+    @property
+    def _run(self) -> ServoSession | None:
+        """The session of the run being servoed (or last servoed)."""
+        return self.servo.session
+
+    def _on_soi(self, _msg: SoiState) -> None:
+        """A new SOI wakes the tick waiting for it: lockstep's step wait, or the wall-clock loop."""
+        self._step_wait.notify()
+        self._soi_new.set()
 
     def _on_run_state(self, msg: RunState) -> None:
         with self._lock:
@@ -210,8 +225,7 @@ class ControllerNode:
         keep-alive, or a hold when it has gone stale) with both arms' states of that step, as `bagit run`
         ticks (before the run's first control tick, or after its end, there is nothing to tick).
         Returns what the tick went without after the lockstep time-out (None: nothing)."""
-        run = self._run
-        if run is None or run.finished is not None or run.run_id != run_id:
+        if not self.servo.servoing(run_id):
             return None
         late = None if self._step_wait.wait(lambda: self._arms_at(t), self._stop) or self._stop.is_set() else "the arms' states"
         if late is not None:
@@ -279,43 +293,25 @@ class ControllerNode:
         return 1.0 / (self.cfg.control_rate_hz or MethodParams().controller.control_rate_hz)
 
     def _tick(self, now: float | None = None) -> None:
-        """One control tick at `now` (the rig's clock; None: this host's)."""
-        now = time.time() if now is None else now
+        """One control tick at `now` (the rig's clock; None: this host's), through `ServoRuns` as `bagit run` ticks."""
+        now = self.clock.now() if now is None else now
         with self._lock:
             state, estop = self._run_state, self._estop
             path = None if state is None else (self._paths.get(state.run_id) or self._paths.get(None))
             goal = None if state is None else (self._goals.get(state.run_id) or self._goals.get(None))
-        run = self._run
-        # a run that ended, a new run, an e-stop: one hold, and no more servoing
-        if run is not None and run.finished is None:
-            why = None
-            if estop:
-                why = "e-stop engaged"
-            elif state is None or state.run_id != run.run_id:
-                why = "a new run started" if state is not None else "no run state"
-            elif state.stage not in ACTIVE_STAGES:
-                why = f"run {state.stage}" + (f": {state.reason}" if state.reason else "")
-            if why is not None:
-                self._end(run, why, now)
-        if run is not None and (state is None or state.run_id != run.run_id):
-            self._run = run = None
-        if estop or state is None or state.stage not in ACTIVE_STAGES or path is None:
-            return
-        if run is None:
-            self._run = run = self._build(state, path, goal)
-            if run is None:
-                return
-        if run.finished is None:
-            self._servo(run, path, goal, now)
-
-    def _build(self, state: RunState, path: Path, goal: Goal | None) -> ServoSession:
-        """The run's session (a finished one, with a status saying why, if it cannot be built)."""
-        run, out = ServoSession.build(state, path, goal, self.cfg.params, self._next_seq, self.cfg.controller,
-                                      self.cfg.control_rate_hz, self.rig_watchdog_s)
-        if run.controller is not None:
-            self.counters["runs"] += 1
-        self._send(out)
-        return run
+        item = self.soi.get_with_time()
+        states, arm_problem = self._states(now)
+        soi, age = (None, None) if item is None else (item[0], self.soi_age(*item, now=now))
+        for out in self.servo.tick(state, path, goal, estop, soi, age, self.cfg.soi_max_age_s, states, arm_problem, now):
+            if out.keepalive:
+                self.counters["keepalive"] += 1
+                self._put(out.command)  # not a control tick: no status, no count as servo
+                continue
+            self._send(out)
+            run = self.servo.session
+            if run is not None and run.finished == "done" and out.status is not None and out.status.done:
+                self.runs_done.append({"run_id": run.run_id, "error_to_goal": run.error_to_goal, "ticks": run.ticks})
+        self.counters.update(ticks=self.servo.ticks, runs=self.servo.runs)
 
     def _next_seq(self) -> int:
         self._seq += 1
@@ -329,36 +325,19 @@ class ControllerNode:
             if item is None:
                 return out, f"no state from the {a} arm"
             msg, t = item
-            age = now - msg.stamp if self.lockstep else time.monotonic() - t
+            age = self.clock.age(msg.stamp, t, now)
             if age > self.cfg.arm_max_age_s:
                 return out, f"the {a} arm's state is stale ({age:.2f} s old)"
             out[a] = msg
         return out, None
 
-    def soi_age(self, soi: SoiState, received: float, now: float | None = None) -> float:
-        """Seconds since the SOI's camera frame was taken (by arrival when stamped on another clock;
-        lockstep: on the simulator's clock at `now`, the frame's time)."""
-        if self.lockstep and now is not None:
-            return now - soi.source_stamp
-        by_arrival = time.monotonic() - received
-        by_stamp = time.time() - soi.source_stamp
-        if abs(by_stamp) < CLOCK_SKEW_S:
-            return max(by_stamp, by_arrival)
-        return by_arrival
-
-    def _servo(self, run: ServoSession, path: Path, goal: Goal | None, now: float) -> None:
-        self.counters["ticks"] += 1
-        item = self.soi.get_with_time()
-        states, arm_problem = self._states(now)
-        soi, age = (None, None) if item is None else (item[0], self.soi_age(*item, now=now))
-        out = run.tick_on(soi, age, self.cfg.soi_max_age_s, states, arm_problem, path, goal, now)
-        if out.keepalive:
-            self.counters["keepalive"] += 1
-            self._put(out.command)  # not a control tick: no status, no count as servo
-            return
-        self._send(out)
-        if run.finished == "done" and out.status is not None and out.status.done:
-            self.runs_done.append({"run_id": run.run_id, "error_to_goal": run.error_to_goal, "ticks": run.ticks})
+    def soi_age(self, soi: SoiState, received: float, now: float) -> float:
+        """Seconds since the SOI's camera frame was taken at `now`: on the simulator's clock in lockstep (the
+        frame's time); on the wall clock by its stamp when that is on this machine's clock (else by arrival),
+        and never less than its time since arrival."""
+        by_clock = self.clock.age(soi.source_stamp, received, now)
+        by_stamp = now - soi.source_stamp
+        return max(by_stamp, by_clock) if abs(by_stamp) < CLOCK_SKEW_S else by_clock
 
     def _send(self, out: Outbox) -> None:
         """Publish what the session asks for (command, status) and log its line."""
@@ -391,8 +370,6 @@ class ControllerNode:
         self.last_reason = reason
         self._publish_status(None, controller=DEFAULT_CONTROLLER, mode="hold", reason=reason)
 
-    def _end(self, run: ServoSession, why: str, now: float | None = None) -> None:
-        self._send(run.end(why, time.time() if now is None else now))
 
     def _publish_status(self, run_id: str | None, **kw: Any) -> None:
         self._publish_status_msg(ControllerStatus(run_id=run_id, seq=self._seq, **kw))
@@ -412,9 +389,8 @@ class ControllerNode:
         self._stop.set()
         self._step_wait.notify()
         self._thread.join(timeout=5.0)
-        run = self._run
-        if run is not None and run.finished is None:
-            self._end(run, "controller stopping")
+        for out in self.servo.end("controller stopping", time.time()):
+            self._send(out)
         for s in self._subs:
             s.close()
         self.soi.close()

@@ -4,13 +4,18 @@ Whoever hosts it (the `bagit controller` node on Zenoh, `bagit run`'s in-process
 simulator's clock) hands it the newest SOI, the grippers' poses and what the arms report, and
 publishes what it returns: the command for the arm driver and the status for the coordinator.
 
+    runs = ServoRuns(next_seq)                                  # what both hosts hold across runs
+    outs = runs.tick(run_state, path, goal, False, soi, soi_age_s, soi_max_age_s, states, None, now)
+    runs.servoing(run_id)                                       # a keep-alive tick is due while this holds
+
     s, out = ServoSession.build(run_state, path, goal, overrides, next_seq)  # a finished s: out says why
     out = s.tick_on(soi, soi_age_s, soi_max_age_s, states, None, path, goal, now)  # out.command, out.status
     out = s.end("run aborted", now)                                           # one hold, then nothing
 
-`tick_on` is the one glue both hosts call: from the arms' states (and why they cannot be used, if a
-host judged them stale) to the grippers, a latched fault, the motion in flight and the slow-down,
-then `tick`.
+`ServoRuns.tick` is the one glue both hosts call at a control tick: the session of a run that ended
+(or on an e-stop) ends with one hold, a run's session is built once its path is in, and `tick_on`
+goes from the arms' states (and why they cannot be used, if a host judged them stale) to the
+grippers, a latched fault, the motion in flight and the slow-down, then `tick`.
 
 It never extrapolates: a stale SOI (`soi_max_age_s`), missing or stale arm states -> a hold
 command (u = 0) with the reason. A latched arm fault ends the run (it will not clear by itself).
@@ -33,7 +38,7 @@ import numpy as np
 from bagit.common.dual_arm import pose_increment
 from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, Goal, Path, RunState, SoiState
-from bagit.common.names import DEFAULT_CONTROLLER
+from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams, merge_params
 from bagit.common.rig import ARMS, ArmName, SafetyLimits
 from bagit.common.scenario import Scenario
@@ -292,3 +297,63 @@ class ServoSession:
             kw.setdefault("progress", tracker.progress())
             kw.setdefault("subgoal_index", tracker.index)
         return ControllerStatus(run_id=self.run_id, seq=self.seq, controller=self.name if self.controller is not None else DEFAULT_CONTROLLER, **kw)
+
+
+class ServoRuns:
+    """The control tick around the session, written once for both hosts (`bagit run`'s loop, the controller
+    node in lockstep or on the wall clock): which run is servoed, when its session is built and when it ends.
+    Pure: the host hands it what it has heard (run state, path, goal, e-stop, SOI, arm states) and `now`, and
+    sends what it returns, in order."""
+
+    def __init__(self, next_seq: Callable[[], int], overrides: dict[str, Any] | None = None, controller: str | None = None,
+                 rate_hz: float | None = None, watchdog_s: float = DRIVER_WATCHDOG_S) -> None:
+        self.next_seq = next_seq
+        self.overrides = overrides or {}
+        self.controller = controller
+        self.rate_hz = rate_hz
+        self.watchdog_s = watchdog_s
+        self.session: ServoSession | None = None
+        self.runs = 0  # sessions built with a controller
+        self.ticks = 0  # ticks of a session (control ticks, keep-alives and holds)
+
+    def servoing(self, run_id: str | None) -> bool:
+        """Run `run_id` is being servoed: a keep-alive tick between sparse frames is due on it."""
+        s = self.session
+        return s is not None and s.finished is None and s.run_id == run_id
+
+    def end(self, why: str, now: float) -> list[Outbox]:
+        """Servoing stops (the host closes, say): one hold if a run was being servoed."""
+        s = self.session
+        return [s.end(why, now)] if s is not None and s.finished is None else []
+
+    def tick(self, state: RunState | None, path: Path | None, goal: Goal | None, estop: bool, soi: SoiState | None,
+             soi_age_s: float | None, soi_max_age_s: float, states: dict[ArmName, ArmState], states_problem: str | None,
+             now: float) -> list[Outbox]:
+        """One control tick at `now` on the run `state` (its `path` and `goal`: None until heard): a run that ended,
+        a new run or an e-stop -> one hold and no more servoing; a run in an active stage with its path -> its
+        session (built on the first tick), ticked on the newest SOI and the arms' `states` (see `ServoSession.tick_on`)."""
+        out: list[Outbox] = []
+        s = self.session
+        if s is not None and s.finished is None:
+            why = None
+            if estop:
+                why = "e-stop engaged"
+            elif state is None or state.run_id != s.run_id:
+                why = "a new run started" if state is not None else "no run state"
+            elif state.stage not in ACTIVE_STAGES:
+                why = f"run {state.stage}" + (f": {state.reason}" if state.reason else "")
+            if why is not None:
+                out.append(s.end(why, now))
+        if s is not None and (state is None or state.run_id != s.run_id):
+            self.session = s = None
+        if estop or state is None or state.stage not in ACTIVE_STAGES or path is None:
+            return out
+        if s is None:
+            s, built = ServoSession.build(state, path, goal, self.overrides, self.next_seq, self.controller, self.rate_hz, self.watchdog_s)
+            self.session = s
+            self.runs += s.controller is not None
+            out.append(built)
+        if s.finished is None:
+            self.ticks += 1
+            out.append(s.tick_on(soi, soi_age_s, soi_max_age_s, states, states_problem, path, goal, now))
+        return out

@@ -374,3 +374,43 @@ def detect_object(frame: RgbdFrame, library: ObjectLibrary, run_id: str | None =
     except (MarkerNotFound, cv2.error, np.linalg.LinAlgError, ValueError) as e:  # ValueError: also a non-finite pose
         return ObjectDetection(ok=False, error=str(e).splitlines()[0] or type(e).__name__,
                                detect_ms=(time.perf_counter() - t0) * 1000.0, **common)
+    except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection too, never a dead host (node or `bagit run`)
+        return ObjectDetection(ok=False, error=f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}",
+                               detect_ms=(time.perf_counter() - t0) * 1000.0, **common)
+
+
+MARKER_RATE_HZ = 1.0  # marker detection at most this often (on the frames' stamps)
+MARKER_SETTLE_S = 0.5  # a new run's first detection: on its first frame this much newer than its start
+
+
+class MarkerSchedule:
+    """Which frames also go to the marker detector, written once for both hosts (`bagit run`'s loop and the
+    perception node, lockstep or wall): a new run's first settled frame (`settle_s` after its start: the
+    coordinator takes no detection of an earlier one), then at most `rate_hz`, counted on the frames' stamps
+    (the camera's clock) so a busy machine skips none. Between runs (no start told) frames go at `rate_hz`.
+    Pure: the host tells it the starts and asks about each frame.
+
+        s = MarkerSchedule(); s.run_started(t_start)
+        if s.due(frame.stamp): detect_object(frame, library, run_id)
+    """
+
+    def __init__(self, rate_hz: float = MARKER_RATE_HZ, settle_s: float = MARKER_SETTLE_S) -> None:
+        self.period = 1.0 / rate_hz
+        self.settle_s = settle_s
+        self._after: float | None = None  # a new run's start + settle: nothing before it, then its first detection
+        self._last = -float("inf")  # the stamp of the last frame detected on
+
+    def run_started(self, t_start: float) -> None:
+        """A run began at `t_start` (the rig's clock)."""
+        self._after = t_start + self.settle_s
+
+    def due(self, stamp: float) -> bool:
+        """The frame stamped `stamp` goes to the detector (and counts as the last one that did)."""
+        if self._after is not None:
+            if stamp < self._after:
+                return False
+            self._after = None
+        elif stamp - self._last < self.period:
+            return False
+        self._last = stamp
+        return True

@@ -48,18 +48,18 @@ import zenoh  # noqa: F401 - the node is where the service meets the bus
 from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
-from bagit.common.clock import ClockKind
+from bagit.common.clock import ClockKind, make_clock
 from bagit.common.errors import BagItError
-from bagit.common.geometry import points_to_polyline_distance, transform_points
+from bagit.common.geometry import transform_points
 from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, MAX_N_X, MIN_N_X
 from bagit.common.scenario import Scenario
-from bagit.services.perception.marker import ObjectLibrary, detect_object, with_run_object
+from bagit.services.perception.marker import MARKER_RATE_HZ, MARKER_SETTLE_S, MarkerSchedule, ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import masked_points
 from bagit.services.perception.soi import SoiParams
 from bagit.services.perception.sources import RealSenseSource, SourceConfig, open_source
-from bagit.services.perception.tracker import RimTracker
+from bagit.services.perception.tracker import RimTracker, frame_soi, start_hint
 
 log = logging.getLogger("bagit.perception")
 
@@ -85,8 +85,9 @@ class PerceptionServiceConfig(BaseModel):
     object_source: Literal["marker", "off"] | None = Field(
         None, description="marker: identify and place the object by its ArUco marker; off: never; None: marker when the library has markers")
     object_library: list[str] | None = Field(None, description="scenario files whose objects (with markers) form the library; None: the bundled ones")
-    marker_rate_hz: float = Field(1.0, gt=0.0, le=30.0, description="marker detection at most this often")
-    marker_settle_s: float = Field(0.5, ge=0.0, le=30.0, description="a new run's first detection: on a frame this much newer than its start")
+    marker_rate_hz: float = Field(MARKER_RATE_HZ, gt=0.0, le=30.0, description="marker detection at most this often")
+    marker_settle_s: float = Field(MARKER_SETTLE_S, ge=0.0, le=30.0,
+                                   description="a new run's first detection: on a frame this much newer than its start")
 
 
 def _rgb(color: tuple[float, float, float]) -> tuple[float, float, float]:
@@ -123,6 +124,7 @@ class PerceptionNode:
     ) -> None:
         self.cfg = cfg or PerceptionServiceConfig()
         self.lockstep = clock == "sim"
+        self.clock = make_clock(clock)  # stamps and ages: the frames' (lockstep) or this host's
         self._answered: tuple[float, int | None, bool, str | None] | None = None  # lockstep: the last frame's stamp, SOI, detection, late
         self.keys = keys
         self._cond = threading.Condition()
@@ -150,8 +152,7 @@ class PerceptionNode:
         self._library = self._open_library()
         self._mcond = threading.Condition()
         self._mpending: RgbdFrame | None = None
-        self._marker_last = -1e9
-        self._marker_after: float | None = None  # a new run's start + settle: detect on the first frame from then
+        self._markers = MarkerSchedule(self.cfg.marker_rate_hz, self.cfg.marker_settle_s)  # which frames go to the detector
         self._soi_pub = Publisher(session, keys.perception_soi, SoiState, lockstep=self.lockstep)
         self._cloud_pub = Publisher(session, keys.perception_cloud, PointCloud)
         self._object_pub = Publisher(session, keys.perception_object, ObjectDetection, lockstep=self.lockstep) if self._library is not None else None
@@ -194,16 +195,8 @@ class PerceptionNode:
         return lib
 
     def _marker_due(self, frame: RgbdFrame) -> bool:
-        """At most marker_rate_hz (on the frames' stamps), and on a new run's first settled frame (under _mcond)."""
-        if self._library is None:
-            return False
-        new_run = self._marker_after is not None and frame.stamp >= self._marker_after
-        if not new_run and frame.stamp - self._marker_last < 1.0 / self.cfg.marker_rate_hz:
-            return False
-        if new_run:
-            self._marker_after = None
-        self._marker_last = frame.stamp
-        return True
+        """The frame goes to the detector (`MarkerSchedule`, as in `bagit run`; under _mcond)."""
+        return self._library is not None and self._markers.due(frame.stamp)
 
     def _offer_marker(self, frame: RgbdFrame) -> None:
         """Newest wins here too (see `_marker_due`)."""
@@ -227,11 +220,7 @@ class PerceptionNode:
     def _detect(self, frame: RgbdFrame) -> None:
         """Find the object's marker in `frame` and publish what was found (or why not)."""
         assert self._library is not None and self._object_pub is not None
-        try:
-            det = detect_object(frame, self._library, self._run_id)
-        except Exception as e:  # noqa: BLE001 - a detector bug is a failed detection, never a dead thread
-            det = ObjectDetection(seq=frame.seq, source_stamp=frame.stamp, run_id=self._run_id, ok=False,
-                                  error=f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+        det = detect_object(frame, self._library, self._run_id)  # (a detector bug too is a failed detection)
         try:
             self._object_pub.put(det)
         except Exception as e:  # noqa: BLE001 - a closing session
@@ -296,7 +285,7 @@ class PerceptionNode:
             self._add_run_object(scen)
         if msg.run_id is not None and msg.stage == "perceiving":
             with self._mcond:
-                self._marker_after = msg.stamp - msg.elapsed_s + self.cfg.marker_settle_s
+                self._markers.run_started(msg.stamp - msg.elapsed_s)
         if msg.run_id is not None:  # last: a frame of this run waiting for its run/state finds all of it in place
             with self._cond:
                 self._runs_seen.add(msg.run_id)
@@ -345,11 +334,7 @@ class PerceptionNode:
         item = self._arm.get_with_time()
         if item is None:
             return None, late
-        age = frame.stamp - item[0].stamp if self.lockstep else time.monotonic() - item[1]
-        if age > self.cfg.hint_max_age_s:
-            return None, late
-        p = np.asarray(item[0].tool_pose[:3], dtype=float)
-        return (p if np.all(np.isfinite(p)) else None), late
+        return start_hint(item[0], self.clock.age(item[0].stamp, item[1], frame.stamp), self.cfg.hint_max_age_s), late
 
     def _tracker(self) -> RimTracker:
         """The run's rim tracker (a new one when the bag changes: n_x, kind or colour)."""
@@ -404,24 +389,20 @@ class PerceptionNode:
         """The frame's SOI, published; its seq, or None (the frame counted bad with the reason); and what
         the lockstep wait for the start hint went without (None: nothing)."""
         hint, late = self._hint(frame)
-        t0 = time.perf_counter()
         tracker = self._tracker()
         self.counters["processed"] += 1
         cold = tracker.cold
         try:
-            rim, cloud = tracker.update(frame, hint=hint)
+            soi, _cloud = frame_soi(tracker, frame, hint, self.clock.step_time(frame.stamp), self.cfg.inlier_m)
         except BagItError as e:
             self.counters["cold"] += tracker.cold - cold
             self._bad(frame, f"no SOI: {e}")
             self._maybe_cloud(frame)
             return None, late
         self.counters["cold"] += tracker.cold - cold
-        inl = float(np.mean(points_to_polyline_distance(cloud, rim) <= self.cfg.inlier_m)) if len(cloud) else 0.0
-        ms = (time.perf_counter() - t0) * 1000.0
-        self.solve_ms.append(ms)
+        self.solve_ms.append(soi.solve_ms)
         del self.solve_ms[:-1000]
-        self._soi_pub.put(SoiState(seq=frame.seq, source_stamp=frame.stamp, rim=rim, n_points=len(cloud),
-                                   inlier_fraction=inl, solve_ms=ms, stamp=frame.stamp if self.lockstep else time.time()))
+        self._soi_pub.put(soi)
         self.counters["published"] += 1
         self._maybe_cloud(frame)  # after the SOI: the display never delays the control loop
         return frame.seq, late

@@ -9,14 +9,18 @@ simulator numbers its frames per world) and is fitted cold too: the bag may be a
 
     tr = RimTracker(n_x=32, kind="red-edged")
     rim, cloud = tr.update(frame, hint=left_gripper_xyz)    # BagItError when the frame shows no rim
+    soi, cloud = frame_soi(tr, frame, start_hint(left_state, age_s, max_age_s), stamp)  # the message both hosts send
 """
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from bagit.common.errors import BagItError
-from bagit.common.messages import RgbdFrame
+from bagit.common.geometry import points_to_polyline_distance
+from bagit.common.messages import ArmState, RgbdFrame, SoiState
 from bagit.services.perception.rgbd import Segmenter, red_rim_mask, rim_cloud, solid_rim_segmenter
 from bagit.services.perception.soi import DEFAULT_PARAMS, SoiParams, extract_soi
 
@@ -74,3 +78,28 @@ class RimTracker:
                 raise
         self.prev, self.prev_seq = rim, frame.seq
         return rim, cloud
+
+
+def start_hint(left: ArmState | None, age_s: float, max_age_s: float) -> np.ndarray | None:
+    """Where a cold fit starts, `(3,)`: the left gripper's position from its state `age_s` old; None when
+    there is none, it is older than `max_age_s` or not finite."""
+    if left is None or age_s > max_age_s:
+        return None
+    p = np.asarray(left.tool_pose[:3], dtype=float)
+    return p if np.all(np.isfinite(p)) else None
+
+
+def frame_soi(tracker: RimTracker, frame: RgbdFrame, hint: np.ndarray | None, stamp: float,
+              inlier_m: float | None = None) -> tuple[SoiState, np.ndarray]:
+    """A frame's SOI as the message both hosts hand on (`bagit run` to its coordinator, the node on
+    perception/soi), with the rim cloud `(m, 3)` it came from: source_stamp is the frame's, `stamp` when it
+    was made (the host's clock); with `inlier_m`, the share of cloud points that close to the SOI (a
+    display figure, skipped when None). BagItError when the frame shows no usable rim."""
+    t0 = time.perf_counter()
+    rim, cloud = tracker.update(frame, hint=hint)
+    inl = 1.0
+    if inlier_m is not None:
+        inl = float(np.mean(points_to_polyline_distance(cloud, rim) <= inlier_m)) if len(cloud) else 0.0
+    ms = (time.perf_counter() - t0) * 1000.0
+    return SoiState(seq=frame.seq, stamp=stamp, source_stamp=frame.stamp, rim=rim, n_points=len(cloud), inlier_fraction=inl,
+                    solve_ms=ms), cloud

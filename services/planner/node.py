@@ -109,7 +109,8 @@ class PlannerNode:
             Subscriber(session, keys.controller_status, ControllerStatus, self._on_status),
             Subscriber(session, keys.estop, EStop, self._on_estop),
         ]
-        if self.lockstep:
+        self._ack_pub: Publisher[StepAck] | None = None
+        if self.lockstep:  # the lockstep protocol: the simulator's steps in, this node's answers out
             self._ack_pub = Publisher(session, keys.sim_ack, StepAck)
             self._subs += [Subscriber(session, keys.sim_clock, ClockTick, self._on_clock),
                            Subscriber(session, keys.sim_ack, StepAck, self._on_ack)]
@@ -206,7 +207,7 @@ class PlannerNode:
             self._flush_tick(at=ack.frame)  # the step's coordinator tick, after its control tick (as `bagit run`)
             with self._lock:
                 st = self.coord.state
-            if self._closed:
+            if self._closed or self._ack_pub is None:  # (only lockstep's acks come to be answered)
                 return
             self._ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, status_seq=ack.status_seq,
                                       stage=st.stage, stamp=self.clock()))
@@ -242,19 +243,18 @@ class PlannerNode:
             self._tick_after(t, stage)
             with self._lock:
                 st = self.coord.state
-            if self._closed:
+            if self._closed or self._ack_pub is None:  # (only lockstep's acks come to be answered)
                 return
             self._ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, soi_seq=ack.soi_seq, stage=st.stage,
                                       stamp=self.clock(), late=missing))
 
     def _on_object(self, det: ObjectDetection) -> None:
         # lockstep: at its frame's time, as `bagit run` hands it over (sim/clock may come after it)
-        now = det.source_stamp if self.lockstep else self.clock()
+        now = self._clock.step_time(det.source_stamp)
         self._apply(lambda: self.coord.on_object(det, now))
-        if self.lockstep:
-            with self._pub_lock:
-                self._object_handled = max(self._object_handled, det.source_stamp)
-                self._answer_frames()
+        with self._pub_lock:  # a frame waiting for its detection goes on (none wait on the wall clock)
+            self._object_handled = max(self._object_handled, det.source_stamp)
+            self._answer_frames()
 
     def _on_status(self, st: ControllerStatus) -> None:
         if not self.lockstep:
@@ -329,8 +329,7 @@ class PlannerNode:
         self._apply(lambda: self.coord.on_plan(out, self.clock()))
         with self._pub_lock:
             self._planning -= 1
-            if self.lockstep:
-                self._answer_frames()
+            self._answer_frames()  # lockstep: the frame that started the plan is answered now (none wait on the wall clock)
 
     def _publish_if_changed(self) -> None:
         with self._lock:
@@ -370,9 +369,9 @@ class PlannerNode:
         self._watcher.close()
         with self._pub_lock:  # never undeclare a publisher in the middle of a put
             self._closed = True
-            pubs: list[Publisher[Any]] = [self._state_pub, self._goal_pub, self._path_pub, *([self._ack_pub] if self.lockstep else [])]
-            for p in pubs:
-                p.close()
+            for p in (self._state_pub, self._goal_pub, self._path_pub, self._ack_pub):
+                if p is not None:
+                    p.close()
         try:
             self._token.undeclare()
         except zenoh.ZError:
