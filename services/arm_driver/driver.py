@@ -11,10 +11,10 @@
 
 A thin shell: a command goes down the one `ServoPath` (targets, smoothing, limits, reach, wire:
 servo_path.py) and out on the `Cr5Links` (links.py); the latches, the links' condition and the
-restart are the pure machine's (machine.py), stepped under the one lock by `_dispatch`. What this
-class adds is threads and time: every servo period (`SafetyLimits.servo_period_s`, 30 ms: Dobot
-recommends ServoP no faster) the loop takes one cycle of the path and sends each arm its ServoP with
-`t` the period, so each target is reached as the next one arrives; replies are checked a period later.
+restart are the pure machine's (machine.py), stepped under the one lock by `_dispatch`. Every servo
+period (`SafetyLimits.servo_period_s`, 30 ms: Dobot recommends ServoP no faster; the schedule is
+servo_loop.py's) a cycle sends each arm its ServoP with `t` the period, so each target is reached as
+the next one arrives; replies are checked a period later.
 
 What stops the arms, and how:
 - watchdog: no command for `watchdog_s`: the path brakes to rest at the last tick before the deadline,
@@ -36,11 +36,10 @@ What stops the arms, and how:
   controllers back to back; one that could not be reached gets it when it reconnects.
   `reset_estop()` releases, clears the alarms, re-enables and restarts from the measured poses.
 
-On the simulated rig's clock (`set_clock(SimClock)`, `bagit up`'s lockstep) the loop runs one cycle per
-servo tick of the simulator (sim/clock), on the feedback of that very step, publishes both arms'
-states after it and says when it is done (`on_tick`): the watchdog, the stale-command rule and every
-motion limit then run on that clock, with no wall-clock wait. The links' time-outs stay on the wall
-clock: they guard a real socket.
+On the simulated rig's clock (`set_clock(SimClock)`, `bagit up`'s lockstep) the loop cycles on the
+simulator's servo ticks (servo_loop.py) and says when each is done (`on_tick`): the watchdog, the
+stale-command rule and every motion limit run on that clock; the links' time-outs stay on the wall
+clock (they guard a real socket).
 """
 
 from __future__ import annotations
@@ -52,18 +51,18 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bagit.common.clock import Clock, SimClock, WallClock
+from bagit.common.clock import Clock, WallClock
 from bagit.common.errors import BagItError, SafetyViolation
-from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, Command, EStop
 from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.services.arm_driver import machine as m
 from bagit.services.arm_driver.config import DriverConfig
-from bagit.services.arm_driver.frames import controller_fault, feedback_state
+from bagit.services.arm_driver.frames import feedback_state
 from bagit.services.arm_driver.gate import Refusal, estop_refusal, stale_refusal
 from bagit.services.arm_driver.links import Cr5Links
 from bagit.services.arm_driver.machine import DriverState
-from bagit.services.arm_driver.servo_path import ServoPath
+from bagit.services.arm_driver.servo_loop import ServoLoop
+from bagit.services.arm_driver.servo_path import Cycle, ServoPath
 
 _MAX_EVENTS = 200
 OnTick = Callable[[int, dict[str, int], str | None], None]  # lockstep: (tick, ServoPs sent per arm, what it went without)
@@ -79,32 +78,28 @@ class ArmDriver:
         self.period = float(self.limits.servo_period_s)
         self.clock: Clock = WallClock()
         self._now: Callable[[], float] = time.monotonic  # the motion's clock: monotonic wall, or the rig's
-        self.on_state, self.on_event, self.on_tick = on_state, on_event, None  # on_event must not block
-        self.on_tick: OnTick | None
+        self.on_state, self.on_event = on_state, on_event  # on_event must not block
+        self.on_tick: OnTick | None = None
         self.counters: Counter[str] = Counter()
         self.events: deque[tuple[float, str, str]] = deque(maxlen=_MAX_EVENTS)
-        self.path = ServoPath(self.rig, self.cfg, on_event=self._event, counters=self.counters)
+        self.path = ServoPath(self.rig, self.cfg, on_event=self.event, counters=self.counters)
         self.links = Cr5Links(self.rig, self.cfg, self._feedback_callback)
         self.clients, self.frames = self.links.clients, self.path.frames
         self._lock = threading.RLock()  # the machine's state and the path: one cycle, submit or event at a time
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-        self._feedback_wait = StepWait()  # lockstep: a feedback packet wakes the wait for a step's
+        self.loop = ServoLoop(self, self.period, self.limits.watchdog_s, self.counters, threading.Event())
+        self.servo_sent, self.cycle_ms, self.cycle_starts, self.send_times = (  # the loop's tallies, for the status and benchmarks
+            self.loop.servo_sent, self.loop.cycle_ms, self.loop.cycle_starts, self.loop.send_times)
         self.state = DriverState()  # immutable: readers without the lock see it whole
         self._last_seq: int | None = None
-        self._last_send = self._last_cycle = -np.inf  # monotonic; the loop's last cycle (a pause shows as a gap)
+        self._last_cycle = -np.inf  # the motion clock's time of the last cycle (a pause shows as a gap)
         self.rejections: Counter[str] = Counter()
         self.last_refusal: Refusal | None = None  # the last command refused, and why
-        self.servo_sent = {a: 0 for a in ARMS}
-        self.cycle_ms: deque[float] = deque(maxlen=1000)  # compute time of each cycle
-        self.cycle_starts: deque[float] = deque(maxlen=1000)  # monotonic start of each cycle
-        self.send_times: deque[float] = deque(maxlen=1000)  # when each period's ServoPs went out
 
     # -- life cycle ------------------------------------------------------------------------------
 
     def set_clock(self, clock: Clock, on_tick: OnTick | None = None) -> None:
         """Run on `clock` (before `start`): a SimClock makes the loop cycle on the simulator's servo ticks."""
-        if self.started:
+        if self.state.started:
             raise BagItError("set_clock() before start()")
         self.clock, self.on_tick = clock, on_tick
         self._now = clock.now if clock.simulated else time.monotonic
@@ -112,36 +107,28 @@ class ArmDriver:
     def start(self) -> ArmDriver:
         """Connect, bring both controllers up as on the real rig (`Cr5Links.open`: ProtocolError and both
         disabled if one cannot be) and start streaming."""
-        if self.started:
+        if self.state.started:
             return self
         if self.state.estop:
             raise SafetyViolation(f"the e-stop is latched ({self.state.estop_reason}); reset_estop() first")
         self.links.open()
         self._last_cycle = self._now()
         self._dispatch(m.Started())
-        self._stop.clear()
-        loop = self._lockstep_loop if isinstance(self.clock, SimClock) else self._wall_loop
-        for target, name in ((loop, "servo-loop"), (self._supervise, "supervisor")):
-            self._threads.append(threading.Thread(target=target, name=f"arm-driver-{name}", daemon=True))
-            self._threads[-1].start()
+        self.loop.start(self.clock, (self._supervise, "supervisor"))
         return self
 
     def close(self) -> None:
         """Stop smoothly, hold, disable both arms and disconnect (idempotent)."""
-        if not self.started:
-            self.links.close(False, self._event)
+        if not self.state.started:
+            self.links.close(False, self.event)
             return
         self._dispatch(m.Closing())
         deadline = time.monotonic() + self.cfg.stop_timeout_s
-        while self.path.moving and time.monotonic() < deadline and self._threads[0].is_alive():
+        while self.path.moving and time.monotonic() < deadline and self.loop.running:
             time.sleep(self.period / 3)
         time.sleep(2 * self.period)  # the last ServoP's `t` runs out and its reply comes back
-        self._stop.set()
-        self._feedback_wait.notify()
-        for t in self._threads:
-            t.join(timeout=2.0)
-        self._threads.clear()
-        self.links.close(not self.state.estop, self._event)
+        self.loop.join()
+        self.links.close(not self.state.estop, self.event)
         self._dispatch(m.Closed())
 
     def __enter__(self) -> ArmDriver:
@@ -226,7 +213,7 @@ class ArmDriver:
         """Latch the e-stop (nothing more is streamed), then EmergencyStop(1) to both controllers at
         once; per arm, whether its controller confirmed. The latch holds whatever the answer."""
         self._dispatch(m.EstopEngaged(reason))
-        reached = self.links.emergency_stop(self._event)
+        reached = self.links.emergency_stop(self.event)
         self._dispatch(m.EstopSent(frozenset(a for a in ARMS if not reached[a])))
         return reached
 
@@ -250,7 +237,7 @@ class ArmDriver:
     def _feedback_callback(self, arm: ArmName) -> Callable[[np.ndarray, float], None]:
         def on_packet(rec: np.ndarray, t: float) -> None:
             if self.clock.simulated:  # lockstep: the step's states go out from the loop, after its cycle
-                self._feedback_wait.notify()
+                self.loop.feedback.notify()
             elif (cb := self.on_state) is not None:
                 cb(self._state_of(arm, rec))
 
@@ -278,23 +265,18 @@ class ArmDriver:
     def status(self) -> dict:
         """Mode, latches, counters (commands, clipped, rejected and why, violations by kind), links."""
         with self._lock:
-            cycle = np.array(self.cycle_ms) if self.cycle_ms else np.zeros(1)
-            period = np.diff(np.array(self.cycle_starts)) * 1000.0 if len(self.cycle_starts) > 1 else np.zeros(1)
-            sends = np.diff(np.array(self.send_times)) * 1000.0 if len(self.send_times) > 1 else np.zeros(1)
             s = self.state
             return {
                 "mode": self.mode,
                 "estop": {"latched": s.estop, "reason": s.estop_reason, "unconfirmed": sorted(s.estop_unconfirmed)},
                 "fault": s.fault, "links_down": s.links, "counters": dict(self.counters), "rejections": dict(self.rejections),
                 "violations": dict(self.path.violation_counts), "last_violations": list(self.path.last_violations),
-                "cycle_ms": {"median": float(np.median(cycle)), "max": float(cycle.max())},
-                "period_ms": {"median": float(np.median(period)), "max": float(period.max())},
-                "send_interval_ms": {"min": float(sends.min()), "median": float(np.median(sends))},
+                **self.loop.timing(),
                 "arms": {a: {**c.stats(), "feedback_age_s": c.feedback_age()} for a, c in self.clients.items()},
                 "events": [f"{t:.3f} {k}: {d}" for t, k, d in list(self.events)[-20:]],
             }
 
-    def _event(self, kind: str, detail: str) -> None:
+    def event(self, kind: str, detail: str) -> None:
         self.events.append((time.monotonic(), kind, detail))
         if (cb := self.on_event) is not None:
             try:
@@ -303,27 +285,10 @@ class ArmDriver:
                 self.events.append((time.monotonic(), "event_callback", repr(e)))
 
     @property
-    def last_violations(self) -> list[str]:
-        return self.path.last_violations
-
-    @property
-    def started(self) -> bool:
-        return self.state.started
-
-    @property
     def fault(self) -> str | None:
-        """The latched fault, or None (read without the lock: the state is swapped whole)."""
+        """The latched fault, or None (read without the lock: the state is swapped whole; so are
+        `state.links`, the links down, and `state.needs_reset`)."""
         return self.state.fault
-
-    @property
-    def links_down(self) -> dict[str, str]:
-        """Arm -> why, for each link that is down (read without the lock)."""
-        return self.state.links
-
-    @property
-    def needs_reset(self) -> bool:
-        """The stream restarts from the measured poses before anything moves."""
-        return self.state.needs_reset
 
     # -- the machine -----------------------------------------------------------------------------
 
@@ -347,7 +312,7 @@ class ArmDriver:
                 elif isinstance(e, m.Count):
                     self.counters[e.name] += 1
                 elif isinstance(e, m.Note):
-                    self._event(e.kind, e.detail)
+                    self.event(e.kind, e.detail)
                 else:
                     later.append(e)
         return later
@@ -363,81 +328,11 @@ class ArmDriver:
         self._dispatch(m.Restarted("non_finite") if found is None else m.Restarted("ok", tuple(str(v) for v in found)))
         return found is not None
 
-    # -- the loop --------------------------------------------------------------------------------
+    # -- the servo cycle (its schedule: servo_loop.py) -----------------------------------------------
 
-    def _wall_loop(self) -> None:
-        """A cycle every period of this host's clock. Never catching up after a late cycle: two ServoPs
-        closer than a period would make the controller cover a step in less than its `t` (Dobot: no
-        faster than every 30 ms); a late cycle shifts the schedule (the trajectory runs slightly slower,
-        never faster) and the next starts so that its ServoPs go out about a period after the last."""
-        next_t = time.monotonic()
-        offsets: deque[float] = deque([0.0], maxlen=50)  # when in its cycle the ServoPs go out
-        while not self._stop.is_set():
-            t0 = time.monotonic()
-            if self._timed_cycle(t0):
-                offsets.append(self._last_send - t0)
-            if t0 - next_t > 0.2 * self.period:
-                self.counters["late_cycles"] += 1
-            offset = min(float(np.median(offsets)), 0.2 * self.period)
-            next_t = max(next_t + self.period, t0 + 0.5 * self.period, self._last_send + self.period - offset)
-            if (delay := next_t - time.monotonic()) > 0:
-                self._stop.wait(delay)
-
-    def _lockstep_loop(self) -> None:
-        """One pass per step the simulator announces on sim/clock: on the feedback of that step, a cycle if
-        it is a servo tick, then both arms' states (after the cycle: what the step's frame sees, as
-        `bagit run` reads the arms after its servo period), then `on_tick`. States come from here only,
-        never from the feedback thread, so none races a cycle."""
-        assert isinstance(self.clock, SimClock)
-        last_t, last_tick = float("-inf"), -1
-        while not self._stop.is_set():
-            event = self.clock.next_event(last_t, self._stop, timeout=1.0)
-            if event is None:
-                continue
-            last_t, n = event
-            late = self._await_feedback(last_t)
-            before = dict(self.servo_sent)
-            if n is not None and n > last_tick:
-                last_tick = n
-                self._timed_cycle(time.monotonic())
-            if (cb := self.on_state) is not None:
-                for a in ARMS:
-                    if (rec := self.links.record(a)) is not None:
-                        cb(self._state_of(a, rec))
-            if n is not None and (tick_cb := self.on_tick) is not None:
-                try:
-                    tick_cb(n, {a: self.servo_sent[a] - before[a] for a in ARMS}, late)
-                except Exception as e:  # noqa: BLE001 - a closing bus must not stop the arms' loop
-                    self._event("tick_callback", repr(e))
-
-    def _await_feedback(self, t: float) -> str | None:
-        """Until both arms' feedback shows the step at `t` (a simulated controller stamps it), woken by each
-        packet, at most the lockstep time-out (a quiet link is the supervisor's business); what the
-        step's cycle then goes without (`lockstep_late`), or None."""
-        due_ms = round(t * 1000.0)
-
-        def ready() -> bool:
-            return all((r := self.links.record(a)) is not None and int(r["TimeStamp"]) >= due_ms for a in ARMS)
-
-        if self._feedback_wait.wait(ready, self._stop) or self._stop.is_set():
-            return None
-        self.counters["lockstep_late"] += 1
-        self._event("lockstep", f"servo tick at {t:.3f}: cycled without the feedback of that step")
-        return "the feedback of its step"
-
-    def _timed_cycle(self, t0: float) -> bool:
-        """`_cycle`, timed; whatever goes wrong in it becomes a fault (the loop never dies)."""
-        self.cycle_starts.append(t0)
-        try:
-            sent = self._cycle()
-        except Exception as e:
-            self._dispatch(m.FaultRaised(f"servo loop: {e if isinstance(e, BagItError) else repr(e)}"))
-            sent = False
-        self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
-        return sent
-
-    def _cycle(self) -> bool:
-        """One servo period: replies, links, watchdog, then the path's ServoPs; True if any went out."""
+    def make_cycle(self) -> tuple[Cycle, float] | None:
+        """One servo period: replies, links, the watchdog, then the path's ServoPs and when they were made
+        (on this host's monotonic clock); None if there is nothing to send."""
         self.links.check_replies(time.monotonic(), self.clock.simulated, self.state.failed, self._dispatch)
         with self._lock:
             now = self._now()  # under the lock: a cycle that waited for it must not act on an old clock
@@ -445,84 +340,58 @@ class ArmDriver:
             self.counters["cycles"] += 1
             self._check_stall(now)
             self._last_cycle = now
-            self._watch(now)
+            self.links.watch(now if self.clock.simulated else None, lambda: not (self.state.estop or self.state.closing), self._dispatch)
+            self.path.watchdog(now)
             if self.state.estop:
-                return False
+                return None
             moving = self.path.moving
             self._dispatch(m.Cycle(now, moving, not moving and self.state.needs_reset and self.links.settled()))
-            active = [a for a in ARMS if m.commandable(self.state, a) and not self.links.in_error(a)]
-            out = self.path.cycle(now, active)
+            out = self.path.cycle(now, [a for a in ARMS if m.commandable(self.state, a) and not self.links.in_error(a)])
             if out.fault is not None:
                 self._dispatch(m.FaultRaised(out.fault))
-            if out.poses is None:
-                return False
-        # On the wall clock: never two ServoPs less than a period apart, whatever the schedule did, and
-        # none made before a pause; on the simulator's the ticks are a period apart and the world waits.
-        if not self.clock.simulated:
-            if (wait := self._last_send + self.period - time.monotonic()) > 0:
-                time.sleep(wait)
-            if (late := time.monotonic() - made) > self.limits.watchdog_s:
-                self._stalled(f"this period's poses were {late * 1000:.0f} ms old when they could go out "
-                              "(the process was paused or starved): not sent; a new command starts a new stream")
-                return False
-        self._last_send = time.monotonic()
-        self.send_times.append(self._last_send)
-        for a in self.links.send(out.servo, self._dispatch):
-            self.counters["servo_sent"] += 1
-            self.servo_sent[a] += 1
-        return bool(out.servo)
+            return None if out.poses is None else (out, made)
+
+    def send_cycle(self, out: Cycle) -> list[ArmName]:
+        return self.links.send(out.servo, self._dispatch)
 
     def _check_stall(self, now: float) -> None:
-        """Drop the trajectory if the loop has not run for longer than the watchdog's time: the arms stopped
-        at the last target when its ServoP ran out, so braking from the trajectory's old velocity would
-        move them again. A new command starts a new stream from the measured poses."""
+        """A loop that has not run for longer than the watchdog's time (with the lock held): `stalled`."""
         if self.path.moving and (gap := now - self._last_cycle) > self.limits.watchdog_s:
-            self._stalled(f"no servo cycle for {gap * 1000:.0f} ms (the process was paused or starved): "
-                          "the arms stopped at their last target and hold; a new command starts a new stream")
+            self.stalled(f"no servo cycle for {gap * 1000:.0f} ms (the process was paused or starved): "
+                         "the arms stopped at their last target and hold; a new command starts a new stream")
 
-    def _stalled(self, why: str) -> None:
+    def stalled(self, why: str) -> None:
+        """Drop the trajectory (the arms stopped at their last target when its ServoP ran out: braking from
+        the trajectory's old velocity would move them again); a new command starts a new stream."""
         with self._lock:
             self.path.halt()
             self.counters["stalls"] += 1
-            self._event("stalled", why)
+            self.event("stalled", why)
 
-    def _watch(self, now: float) -> None:
-        """Links, controller errors, the watchdog (with the lock held)."""
-        for a, c in self.clients.items():
-            if not c.connected:
-                self._dispatch(m.LinkLost(a, c.last_error or "disconnected"))
-                continue
-            if (silent := self._silence(a)) > self.cfg.feedback_timeout_s:
-                c.drop(f"no feedback for {silent * 1000:.0f} ms")
-                self._dispatch(m.LinkLost(a, "feedback lost"))
-                continue
-            if c.epoch != self.links.seen_epoch[a]:
-                if self.links.record(a) is None:
-                    continue  # reconnected; wait for its first packet
-                self.links.seen_epoch[a] = c.epoch  # re-assert a latched e-stop, or restart from the measured pose
-                self._dispatch(m.LinkBack(a))
-            rec = self.links.record(a)
-            if rec is None or self.state.estop or self.state.closing:
-                continue
-            if (why := controller_fault(rec)) is not None:
-                self._dispatch(m.ArmAlarm(a, why))
-            elif not int(rec["EnableStatus"]):
-                self._dispatch(m.FaultRaised(f"{a}: disabled (robot mode {int(rec['RobotMode'])})"))
-        self.path.watchdog(now)
+    def cycle_failed(self, e: Exception) -> None:
+        self._dispatch(m.FaultRaised(f"servo loop: {e if isinstance(e, BagItError) else repr(e)}"))
 
-    def _silence(self, arm: ArmName) -> float:
-        """How long an arm's feedback has been quiet: the socket's silence on the wall clock; on the
-        simulator's, how far the rig's clock is past the newest packet's stamp (a simulator the machine
-        starves sends nothing because nothing happens, which is no lost link)."""
-        c, rec = self.clients[arm], self.links.record(arm)
-        if not self.clock.simulated or rec is None:
-            return c.silent_for()
-        return max(0.0, self.clock.now() - self._stamp(rec))
+    def step_ready(self, t: float) -> bool:
+        due_ms = round(t * 1000.0)  # a simulated controller stamps its packets with its step's time
+        return all((r := self.links.record(a)) is not None and int(r["TimeStamp"]) >= due_ms for a in ARMS)
+
+    def step_done(self, tick: int | None, sent: dict[str, int], late: str | None) -> None:
+        """Lockstep: both arms' states (from here only, never the feedback thread: none races a cycle), then
+        the tick's answer (`on_tick`)."""
+        if (cb := self.on_state) is not None:
+            for a in ARMS:
+                if (rec := self.links.record(a)) is not None:
+                    cb(self._state_of(a, rec))
+        if tick is not None and (tick_cb := self.on_tick) is not None:
+            try:
+                tick_cb(tick, sent, late)
+            except Exception as e:  # noqa: BLE001 - a closing bus must not stop the arms' loop
+                self.event("tick_callback", repr(e))
 
     def _supervise(self) -> None:
         """Reconnect dropped controllers with back-off, and ask a faulted controller for its alarms, off
         the servo loop (a connect or a request may block)."""
-        while not self._stop.wait(0.02):
+        while not self.loop.stop.wait(0.02):
             for c in self.clients.values():
                 if not c.connected and not self.state.closing:
                     c.reconnect_if_due()

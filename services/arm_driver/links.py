@@ -218,6 +218,36 @@ class Cr5Links:
                     event = m.ReplyFailed(a, str(e), self.cfg.max_failed_requests)
                 step(event)
 
+    def watch(self, rig_now: float | None, supervising: Callable[[], bool], step: Callable[[m.Event], object]) -> None:
+        """Each link's condition, stepped (`step`) as events: down, silent longer than `feedback_timeout_s`
+        (dropped), back (after its first packet), a controller in error, an arm disabled behind the
+        driver's back (the last two only while `supervising()`: not latched or closing). `rig_now`: the
+        simulated rig's time (None on the wall clock): a link is silent when the rig's clock has gone
+        past its newest packet's stamp, since a simulator the machine starves sends nothing because
+        nothing happens, which is no lost link."""
+        for a, c in self.clients.items():
+            if not c.connected:
+                step(m.LinkLost(a, c.last_error or "disconnected"))
+                continue
+            rec = self.record(a)
+            silent = c.silent_for() if rig_now is None or rec is None else max(0.0, rig_now - float(rec["TimeStamp"]) / 1000.0)
+            if silent > self.cfg.feedback_timeout_s:
+                c.drop(f"no feedback for {silent * 1000:.0f} ms")
+                step(m.LinkLost(a, "feedback lost"))
+                continue
+            if c.epoch != self.seen_epoch[a]:
+                if self.record(a) is None:
+                    continue  # reconnected; wait for its first packet
+                self.seen_epoch[a] = c.epoch
+                step(m.LinkBack(a))  # the machine re-asserts a latched e-stop, or restarts from the measured pose
+            rec = self.record(a)
+            if rec is None or not supervising():
+                continue
+            if (why := controller_fault(rec)) is not None:
+                step(m.ArmAlarm(a, why))
+            elif not int(rec["EnableStatus"]):
+                step(m.FaultRaised(f"{a}: disabled (robot mode {int(rec['RobotMode'])})"))
+
     def settled(self) -> bool:
         """Both controllers report the arm idle and still, so the measured pose is where it will stay."""
         for a in ARMS:

@@ -264,9 +264,10 @@ class ServoPath:
         self.record(tick.violations)
         if tick.command is None or prev is None:
             return Cycle(violations=tick.violations)
-        if not active or not (self.cfg.servo_command == "servoj" or self.cfg.check_reach):
-            poses, joints, fault = tick.command, None, None
-        else:
+        poses: Poses | None = tick.command
+        joints: Joints | None = None
+        fault: str | None = None
+        if active and (self.cfg.servo_command == "servoj" or self.cfg.check_reach):
             poses, joints, fault = self.within_reach(prev, tick.command, list(active))
         if poses is None:
             return Cycle(None, None, fault, tick.violations, tick.halting)
