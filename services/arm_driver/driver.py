@@ -143,15 +143,15 @@ class ArmDriver:
         """Take one controller command; False (counted with its reason, `last_refusal`) if refused.
         A hold brakes both arms to rest. Which run may command the arms is the node's business."""
         if cmd.mode == "hold":
-            with self._lock:
-                self.counters["commands"] += 1
-                self.path.hold(cmd.reason or "controller asked to hold", self._now())
+            self.hold(cmd.reason or "controller asked to hold", command=True)
             return True
         return self.submit_increment(np.asarray(cmd.u), float(cmd.dt), seq=cmd.seq, stamp=cmd.stamp)
 
-    def hold(self, reason: str) -> None:
-        """Brake both arms to rest (the node, when the run it streamed for ends)."""
+    def hold(self, reason: str, command: bool = False) -> None:
+        """Brake both arms to rest (the node, when the run it streamed for ends; `command`: a hold command)."""
         with self._lock:
+            if command:
+                self.counters["commands"] += 1
             self.path.hold(reason, self._now())
 
     def refuse(self, refusal: Refusal) -> None:

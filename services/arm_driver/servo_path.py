@@ -177,9 +177,7 @@ class ServoPath:
 
     def halt(self) -> None:
         """Drop the trajectory at once (the controllers stopped the arms themselves: e-stop, a pause); idle."""
-        self.smoother.mode = "idle"
-        self.smoother.vel[:] = 0.0
-        self.smoother.acc[:] = 0.0
+        self.smoother.rest()
 
     # -- in: targets -----------------------------------------------------------------------------
 

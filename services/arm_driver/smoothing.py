@@ -122,6 +122,10 @@ class RuckigSmoother:
     def reset(self, poses: Poses) -> None:
         """At rest at `poses`, nothing to do until a target or a stop."""
         self.p, self.R = poses_to_arrays(poses)
+        self.rest()
+
+    def rest(self) -> None:
+        """At rest where the trajectory is now: no velocity, no acceleration, idle."""
         self.vel[:] = 0.0
         self.acc[:] = 0.0
         self.mode = "idle"
@@ -173,11 +177,12 @@ class RuckigSmoother:
 
     # -- one cycle -------------------------------------------------------------------------------
 
-    def _set_current(self) -> None:
+    def _set_current(self, inp: InputParameter) -> None:
+        """The trajectory's state as Ruckig's current state (orientations re-based: r = 0)."""
         zeros = np.zeros(3)
-        self._inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
-        self._inp.current_velocity = self.vel.ravel().tolist()
-        self._inp.current_acceleration = self.acc.ravel().tolist()
+        inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
+        inp.current_velocity = self.vel.ravel().tolist()
+        inp.current_acceleration = self.acc.ravel().tolist()
 
     def step(self, target: Poses | None = None) -> StreamStep:
         """Advance one period towards `target` (mode 'position') or towards rest (mode 'stopping')."""
@@ -187,8 +192,8 @@ class RuckigSmoother:
             halted = self._halt_step()
             if halted is not None:
                 return halted
-        self._set_current()
         inp = self._inp
+        self._set_current(inp)
         if self.mode == "position":
             if target is None:
                 raise ValueError("a tracking step needs a target")
@@ -210,9 +215,7 @@ class RuckigSmoother:
         self._apply(np.asarray(self._out.new_position), np.asarray(self._out.new_velocity), np.asarray(self._out.new_acceleration))
         finished = result == Result.Finished
         if finished and self.mode == "stopping":
-            self.vel[:] = 0.0
-            self.acc[:] = 0.0
-            self.mode = "idle"
+            self.rest()
         return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), self.at_rest)
 
     def _halt_step(self) -> StreamStep | None:
@@ -221,10 +224,7 @@ class RuckigSmoother:
         lim = self.halting_limits()
         inp = self._halt_inp
         inp.max_velocity, inp.max_acceleration, inp.max_jerk = lim[:, 0].tolist(), lim[:, 1].tolist(), lim[:, 2].tolist()
-        zeros = np.zeros(3)
-        inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
-        inp.current_velocity = self.vel.ravel().tolist()
-        inp.current_acceleration = self.acc.ravel().tolist()
+        self._set_current(inp)
         try:
             result = self._halt_otg.update(inp, self._halt_out)
         except (RuckigError, RuntimeError):
@@ -236,9 +236,7 @@ class RuckigSmoother:
         out = self._halt_out
         self._apply(np.asarray(out.new_position), np.asarray(out.new_velocity), np.asarray(out.new_acceleration))
         if result == Result.Finished:
-            self.vel[:] = 0.0
-            self.acc[:] = 0.0
-            self.mode = "idle"
+            self.rest()
         return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), self.at_rest)
 
     def _apply(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:
@@ -259,7 +257,5 @@ class RuckigSmoother:
             out = self.step()
             out.error = why
             return out
-        self.vel[:] = 0.0
-        self.acc[:] = 0.0
-        self.mode = "idle"
+        self.rest()
         return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), True, error=why)

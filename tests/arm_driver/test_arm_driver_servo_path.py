@@ -1,5 +1,6 @@
-"""Ruckig streaming and the motion pipeline: jerk-limited, increments integrated exactly, rotations
-composed, smooth stops, and (property test) nothing outside the limits whatever comes in."""
+"""The servo path and its layers: Ruckig smoothing jerk-limited, increments integrated exactly, rotations
+composed, smooth stops, the ServoP each arm gets, and (property test) nothing outside the limits
+whatever comes in."""
 
 import numpy as np
 import pytest
@@ -8,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from bagit.common.rig import RigConfig
+from bagit.common import cr5
+from bagit.common.rig import ARMS, RigConfig
 from bagit.common.so3 import so3_exp
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.limits import Envelope, violations
@@ -309,6 +311,44 @@ def test_a_restart_from_arms_a_following_error_past_a_limit_is_no_fault_and_the_
                 d = np.linalg.norm(tick.command["right"][:3, 3] - tick.command["left"][:3, 3])
                 assert d >= lim - 1e-9, d
         assert tick.command is not None
+
+
+def restarted(path: ServoPath) -> ServoPath:
+    """`path` at rest at home, as from the controllers' feedback (poses and the joints they are solved at)."""
+    records = {}
+    for a in ARMS:
+        T_bf = path.frames[a].flange_in_base(home_poses()[a])
+        records[a] = {"ToolVectorTarget": cr5.matrix_to_pose6(T_bf), "QTarget": np.degrees(cr5.ik_all(T_bf)[0])}
+    assert path.restart(records) == []
+    return path
+
+
+def test_each_cycle_ends_in_a_servop_per_active_arm_of_the_pose_it_sent_with_the_halting_parameters_only_when_braking():
+    cfg = DriverConfig()
+    path = restarted(ServoPath(RIG, cfg))
+    u = np.zeros(12)
+    u[0] = u[6] = 0.001
+    path.submit(u, 1 / 30, 0.0)
+    out = path.cycle(0.0)
+    assert out.poses is not None and list(out.servo) == list(ARMS) and not out.halting
+    for a in ARMS:
+        cmd = out.servo[a]
+        assert cmd.name == "ServoP" and (cmd.t, cmd.aheadtime, cmd.gain) == (T, cfg.aheadtime, cfg.gain)
+        assert np.array_equal(cmd.values, cr5.matrix_to_pose6(path.frames[a].flange_in_base(out.poses[a])))
+        assert np.array_equal(cmd.on_wire(), np.round(cmd.values, 6))
+    assert list(path.cycle(T, ["left"]).servo) == ["left"]  # an arm not commandable gets nothing
+    path.stop()
+    braking = path.cycle(2 * T)
+    assert braking.halting and {c.aheadtime for c in braking.servo.values()} == {cfg.halt_aheadtime}
+
+
+def test_servoj_sends_the_joints_the_reach_check_solved():
+    path = restarted(ServoPath(RIG, DriverConfig(servo_command="servoj")))
+    path.submit(np.zeros(12), 1 / 30, 0.0)
+    out = path.cycle(0.0)
+    assert out.joints is not None
+    for a in ARMS:
+        assert out.servo[a].name == "ServoJ" and np.array_equal(out.servo[a].values, np.degrees(out.joints[a]))
 
 
 def test_a_runaway_target_is_pulled_back_and_reported():
