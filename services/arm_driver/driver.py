@@ -87,8 +87,7 @@ class ArmDriver:
         self.clients, self.frames = self.links.clients, self.path.frames
         self._lock = threading.RLock()  # the machine's state and the path: one cycle, submit or event at a time
         self.loop = ServoLoop(self, self.period, self.limits.watchdog_s, self.counters, threading.Event())
-        self.servo_sent, self.cycle_ms, self.cycle_starts, self.send_times = (  # the loop's tallies, for the status and benchmarks
-            self.loop.servo_sent, self.loop.cycle_ms, self.loop.cycle_starts, self.loop.send_times)
+        self.cycle_ms, self.cycle_starts, self.send_times = self.loop.cycle_ms, self.loop.cycle_starts, self.loop.send_times  # for benchmarks
         self.state = DriverState()  # immutable: readers without the lock see it whole
         self._last_seq: int | None = None
         self._last_cycle = -np.inf  # the motion clock's time of the last cycle (a pause shows as a gap)
