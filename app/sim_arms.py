@@ -1,8 +1,8 @@
 """The arm side of `bagit run`: what moves the bag's mounts in the in-process rig.
 
-`Cr5Arms` is the arm driver's motion rules (`ArmMotion`: envelope, lead limit, 12-axis Ruckig,
-watchdog, joint-speed-aware reach, the safety gate) streaming ServoP, every servo period, to the
-two simulated CR5 controllers of the `SimRig`, called in process instead of over TCP; their
+`Cr5Arms` is the arm driver's one path from a command to a ServoP (`ServoPath`: targets, Ruckig
+smoothing, limits, reach, wire) and its watchdog, streaming ServoP, every servo period, to the two
+simulated CR5 controllers of the `SimRig`, called in process instead of over TCP; their
 feedback records become the `ArmState`s the controller reads, with the driver's fault laid over
 them as the `bagit arm-driver` node does. A controller alarm, a refused ServoP or a step that
 cannot be held latches a fault: the arms brake and later commands are refused, as on the rig.
@@ -20,7 +20,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bagit.common import cr5
 from bagit.common.dobot import describe_alarm
 from bagit.common.dual_arm import apply_increment
 from bagit.common.messages import ArmState, Command
@@ -29,7 +28,7 @@ from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import controller_fault, feedback_state
-from bagit.services.arm_driver.motion import ArmMotion
+from bagit.services.arm_driver.servo_path import ServoPath
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.rig_sim import SimRig
 
@@ -37,7 +36,7 @@ log = logging.getLogger("bagit.run.arms")
 
 
 class Cr5Arms:
-    """Two simulated CR5s behind the arm driver's motion rules (see the module docstring)."""
+    """Two simulated CR5s behind the arm driver's servo path (see the module docstring)."""
 
     name = "cr5"
 
@@ -45,9 +44,8 @@ class Cr5Arms:
         """`robots`: the simulated controllers by arm; `step(dt)`: advances them (and the world they move)."""
         self.rig, self.robots, self._step = rig, robots, step
         self.cfg = cfg or DriverConfig()
-        self.motion = ArmMotion(rig, self.cfg, on_event=self._on_event)
-        self.period = self.motion.period
-        self.servo_t = self.period * self.cfg.servo_t_factor
+        self.path = ServoPath(rig, self.cfg, on_event=self._on_event)
+        self.period = self.path.period
         self.fault: str | None = None
         self.log: list[tuple[str, str]] = []  # (kind, detail) of each event, for the run's trace
 
@@ -73,7 +71,7 @@ class Cr5Arms:
             robot.clear_error()
             robot.enable(conf.payload_kg, 1000.0 * np.asarray(conf.mount_offset, dtype=float))
             robot.set_speed_factor(conf.speed_factor)
-        found = self.motion.restart(self._records())
+        found = self.path.restart(self._records())
         if found is None or found:
             self._set_fault("the arms start outside the safety envelope: " + "; ".join(map(str, found or [])))
 
@@ -84,26 +82,26 @@ class Cr5Arms:
         if self.fault is None:
             alarms = [f"{a}: " + ", ".join(f"{i} ({describe_alarm(i)})" for i in self.robots[a].alarms()) for a in ARMS if self.robots[a].alarms()]
             self.fault = why + (f" [alarms: {'; '.join(alarms)}]" if alarms else "")
-            self.motion.counters["faults"] += 1
+            self.path.counters["faults"] += 1
             self._on_event("fault", self.fault)
-        self.motion.pipe.stop()
+        self.path.stop()
 
     def submit(self, cmd: Command, now: float) -> None:
         """The controller's command, as the driver takes it: hold brakes to rest; an increment starts a
         stream from where the controllers command the arms if none runs; refused while faulted."""
         if self.fault is not None:
-            self.motion.counters["rejected"] += 1
+            self.path.counters["rejected"] += 1
             return
         if cmd.mode == "hold":
-            self.motion.hold(cmd.reason or "controller asked to hold", now)
+            self.path.hold(cmd.reason or "controller asked to hold", now)
             return
-        if not self.motion.moving:
-            found = self.motion.restart(self._records())
+        if not self.path.moving:
+            found = self.path.restart(self._records())
             if found is None or found:
                 self._set_fault("cannot restart the stream: " + ("non-finite feedback" if found is None else "; ".join(map(str, found))))
                 return
-            self.motion.counters["reseeds"] += 1
-        self.motion.submit(np.asarray(cmd.u, dtype=float), float(cmd.dt), now)
+            self.path.counters["reseeds"] += 1
+        self.path.submit(np.asarray(cmd.u, dtype=float), float(cmd.dt), now)
 
     def servo(self, now: float) -> None:
         """One servo period: the controllers' alarms, the watchdog, then ServoP to both arms."""
@@ -111,22 +109,17 @@ class Cr5Arms:
             why = controller_fault(rec)
             if why is not None:
                 if self.fault is None:
-                    self.motion.counters["alarms"] += 1
+                    self.path.counters["alarms"] += 1
                 self._set_fault(f"{a}: {why}")
-        self.motion.watchdog(now)
-        out = self.motion.cycle(now, ARMS, check_reach=self.cfg.servo_command == "servoj" or self.cfg.check_reach)
+        self.path.watchdog(now)
+        out = self.path.cycle(now, ARMS)
         if out.fault is not None:
             self._set_fault(out.fault)
         if out.poses is None or self.fault is not None:
             return
-        aheadtime, gain = self.cfg.servo_params(out.halting)
-        for a in ARMS:
-            robot = self.robots[a]
-            if self.cfg.servo_command == "servoj" and out.joints is not None:
-                code = robot.servo_j(np.round(np.degrees(out.joints[a]), 6), self.servo_t, aheadtime, gain)
-            else:
-                pose6 = np.round(cr5.matrix_to_pose6(self.motion.frames[a].flange_in_base(out.poses[a])), 6)  # as the wire carries it
-                code = robot.servo_p(pose6, self.servo_t, aheadtime, gain)
+        for a, cmd in out.servo.items():
+            servo = self.robots[a].servo_j if cmd.name == "ServoJ" else self.robots[a].servo_p
+            code = servo(cmd.on_wire(), cmd.t, cmd.aheadtime, cmd.gain)
             if code != 0:
                 self._set_fault(f"{a}: {self.cfg.servo_command} refused ({code})")
                 return
@@ -134,19 +127,14 @@ class Cr5Arms:
     def states(self) -> dict[ArmName, ArmState]:
         """Each arm as its controller reports it, the driver's fault laid over (as the arm-driver node does)."""
         out = {}
-        aim = self.motion.aim()
         for a, rec in self._records().items():
-            st = feedback_state(a, rec, self.motion.frames[a])
-            update: dict = {"slowed": self.motion.slowing}
-            if aim is not None:
-                update["target_pose"] = np.concatenate([aim[a][:3, 3], matrix_to_rpy(aim[a][:3, :3])])
-            if self.fault is not None and not st.error_reason:
-                update.update(error=True, error_reason=f"driver fault: {self.fault}")
-            out[a] = st.model_copy(update=update)
+            st = feedback_state(a, rec, self.path.frames[a])
+            fault = {"error": True, "error_reason": f"driver fault: {self.fault}"} if self.fault is not None and not st.error_reason else {}
+            out[a] = self.path.lay_over(st, **fault)
         return out
 
     def events(self) -> dict[str, int]:
-        c = self.motion.counters
+        c = self.path.counters
         return {k: int(c.get(k, 0)) for k in ARM_EVENT_KINDS}
 
 

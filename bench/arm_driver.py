@@ -26,9 +26,8 @@ from bagit.common.dual_arm import Poses
 from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.services.arm_driver.client import DobotClient
 from bagit.services.arm_driver.frames import ArmFrames
-from bagit.services.arm_driver.pipeline import MotionPipeline
-from bagit.services.arm_driver.safety import Envelope
-from bagit.services.arm_driver.streaming import N_DOF, Streamer
+from bagit.services.arm_driver.servo_path import ServoPath
+from bagit.services.arm_driver.smoothing import N_DOF, RuckigSmoother
 from bagit.services.sim.harness import home_poses
 
 PERIOD = 0.03
@@ -39,7 +38,7 @@ def _ruckig(n: int) -> dict:
     synchronisation, and a target that moves each cycle (a streamed command never lets it finish)."""
     from ruckig import InputParameter, OutputParameter, Result, Ruckig, Synchronization
 
-    limits = Streamer(RigConfig().safety, PERIOD)  # the driver's per-axis limits, nothing else of it
+    limits = RuckigSmoother(RigConfig().safety, PERIOD)  # the driver's per-axis limits, nothing else of it
     otg, inp, out = Ruckig(N_DOF, PERIOD), InputParameter(N_DOF), OutputParameter(N_DOF)
     inp.max_velocity = limits.max_velocity.tolist()
     inp.max_acceleration = limits.max_acceleration.tolist()
@@ -62,7 +61,7 @@ def _ruckig(n: int) -> dict:
 
 def _offline(n: int) -> dict:
     rig = RigConfig()
-    pipe = MotionPipeline(Envelope.from_rig(rig), PERIOD)
+    pipe = ServoPath(rig)  # its targets, smoothing and limits (`tick`); reach and wire timed apart below
     pipe.reset(home_poses())
     frames = {a: ArmFrames.from_config(rig.arms[a]) for a in ARMS}
     seeds = {}

@@ -373,10 +373,6 @@ class DobotClient:
         """The flange in the base frame, Dobot pose6 (mm, deg)."""
         return self._vector(self.call("GetPose"), 6)
 
-    def get_angle(self) -> np.ndarray:
-        """Joint angles (deg)."""
-        return self._vector(self.call("GetAngle"), 6)
-
     def error_ids(self) -> list[list[int]]:
         """GetErrorID: the controller's alarm ids, then each servo's."""
         return dobot.parse_error_ids(self.call("GetErrorID").raw_values)

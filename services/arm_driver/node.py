@@ -138,7 +138,7 @@ class ArmDriverNode:
         clipped = self.driver.counters.get("clipped", 0)
         if clipped != self._clipped_seen:
             self._clipped_seen = clipped
-            self._on_event("clipped", "; ".join(self.driver.last_violations) or "target clipped")
+            self._on_event("clipped", "; ".join(self.driver.path.last_violations) or "target clipped")
 
     def _may_park(self, cmd: Command, refusal: Refusal) -> bool:
         """Lockstep: the first command of a run that run/state still shows planning waits (unanswered, so
@@ -258,7 +258,7 @@ class ArmDriverNode:
         """What the driver adds to the controller's report: fault, lost link, recent event."""
         d = self.driver
         fault = d.fault  # read without the lock: the driver's state is swapped whole
-        links = d.links_down
+        links = d.state.links
         if fault is not None:
             return {"error": True, "error_reason": f"driver fault: {fault}"}
         if links:

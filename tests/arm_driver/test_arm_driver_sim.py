@@ -371,8 +371,8 @@ def test_a_restart_while_an_arm_still_moves_starts_from_its_target_not_where_it_
     actual = drv.frames["left"].mount_from_pose6(rec["ToolVectorActual"])
     target = drv.frames["left"].mount_from_pose6(rec["ToolVectorTarget"])
     assert np.linalg.norm(target[:3, 3] - actual[:3, 3]) > 1e-3  # the arm lags its target by over a millimetre
-    assert wait_until(lambda: not drv.needs_reset)  # restarted without the arm settling
-    start = drv.pipe.commanded()["left"]
+    assert wait_until(lambda: not drv.state.needs_reset)  # restarted without the arm settling
+    start = drv.path.commanded()["left"]
     assert np.linalg.norm(start[:3, 3] - target[:3, 3]) < 1e-4, (start[:3, 3], target[:3, 3], actual[:3, 3])
     left.step = step
     feed = Streamer(drv, -u).start()

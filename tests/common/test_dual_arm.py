@@ -12,7 +12,7 @@ from bagit.common.dual_arm import (
     pose_increment,
 )
 from bagit.common.so3 import rpy_to_matrix
-from bagit.services.arm_driver.streaming import TargetIntegrator
+from bagit.services.arm_driver.targets import TargetIntegrator
 
 
 def _poses(rng):

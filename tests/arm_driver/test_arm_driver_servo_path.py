@@ -1,5 +1,6 @@
-"""Ruckig streaming and the motion pipeline: jerk-limited, increments integrated exactly, rotations
-composed, smooth stops, and (property test) nothing outside the limits whatever comes in."""
+"""The servo path and its layers: Ruckig smoothing jerk-limited, increments integrated exactly, rotations
+composed, smooth stops, the ServoP each arm gets, and (property test) nothing outside the limits
+whatever comes in."""
 
 import numpy as np
 import pytest
@@ -8,11 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from bagit.common.rig import RigConfig
+from bagit.common import cr5
+from bagit.common.rig import ARMS, RigConfig
 from bagit.common.so3 import so3_exp
-from bagit.services.arm_driver.pipeline import MotionPipeline
-from bagit.services.arm_driver.safety import Envelope, violations
-from bagit.services.arm_driver.streaming import Streamer, TargetIntegrator
+from bagit.services.arm_driver.config import DriverConfig
+from bagit.services.arm_driver.limits import Envelope, violations
+from bagit.services.arm_driver.servo_path import ServoPath
+from bagit.services.arm_driver.smoothing import RuckigSmoother
+from bagit.services.arm_driver.targets import TargetIntegrator
 
 RIG = RigConfig()
 ENV = Envelope.from_rig(RIG)
@@ -51,7 +55,7 @@ def finite_difference_limits(p):
 
 
 def test_a_steady_stream_is_jerk_limited_and_integrates_every_increment():
-    pipe = MotionPipeline(ENV, T)
+    pipe = ServoPath(RIG)
     start = home_poses()
     assert pipe.reset(start) == []
     u = np.zeros(12)
@@ -78,7 +82,7 @@ def test_a_steady_stream_is_jerk_limited_and_integrates_every_increment():
 
 
 def test_rotations_compose_about_world_axes_not_as_euler_sums():
-    pipe = MotionPipeline(ENV, T)
+    pipe = ServoPath(RIG)
     start = home_poses()
     pipe.reset(start)
     a, b = np.zeros(12), np.zeros(12)
@@ -112,9 +116,9 @@ def test_target_integrator_spreads_each_increment_over_its_dt():
     assert ti.target(2.0)["left"][0, 3] == pytest.approx(start["left"][0, 3] + 0.02)
 
 
-def moving_streamer(ticks: int) -> tuple[Streamer, dict]:
+def moving_streamer(ticks: int) -> tuple[RuckigSmoother, dict]:
     """A streamer tracking both arms 0.2 m along x from home, `ticks` cycles into the motion; and that target."""
-    st_ = Streamer(LIM, T)
+    st_ = RuckigSmoother(LIM, T)
     start = home_poses()
     st_.reset(start)
     st_.track()
@@ -150,7 +154,7 @@ def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
 
 
 def test_braking_shares_keep_the_norms_and_go_along_the_motion():
-    from bagit.services.arm_driver.streaming import braking_shares
+    from bagit.services.arm_driver.smoothing import braking_shares
 
     d = braking_shares(np.array([0.04, 0.0, 0.0]), np.zeros(3), 0.25, 1.0)
     assert np.sum(d**2) == pytest.approx(1.0) and d[0] > 0.999 and d[1] == d[2] > 0  # nearly all along x, none zero
@@ -171,7 +175,7 @@ def test_a_halt_from_any_tracking_state_stays_within_the_cartesian_limits_and_co
     """Whatever the trajectory was doing (each axis within its per-axis limits, as tracking leaves it),
     braking keeps the norms of velocity, acceleration and jerk per arm, linear and angular, within the
     Cartesian limits, and ends at rest."""
-    st_ = Streamer(LIM, T)
+    st_ = RuckigSmoother(LIM, T)
     st_.reset(home_poses())
     fr = np.array(state)
     st_.vel = (fr[:, 0] * st_.max_velocity).reshape(2, 6)
@@ -204,17 +208,17 @@ def test_a_halt_from_any_tracking_state_stays_within_the_cartesian_limits_and_co
 def test_tracking_never_goes_through_the_halting_profile():
     """Nominal motion (commands arriving) is the per-axis tracking computation alone: the halting
     Ruckig is only asked once the stream stops."""
-    pipe = MotionPipeline(ENV, T)
+    pipe = ServoPath(RIG)
     pipe.reset(home_poses())
     calls = []
-    otg = pipe.streamer._halt_otg
+    otg = pipe.smoother._halt_otg
 
     class Counting:
         def update(self, inp, out):
             calls.append(1)
             return otg.update(inp, out)
 
-    pipe.streamer._halt_otg = Counting()
+    pipe.smoother._halt_otg = Counting()
     u = np.zeros(12)
     u[0] = u[7] = 0.05 / 30
     ticks = []
@@ -262,7 +266,7 @@ def test_a_ruckig_refusal_while_tracking_brakes_instead_of_escaping_the_servo_lo
 
 
 def test_a_new_stream_starts_where_the_arms_are_not_at_an_old_target():
-    pipe = MotionPipeline(ENV, T)
+    pipe = ServoPath(RIG)
     start = home_poses()
     pipe.reset(start)
     u = np.zeros(12)
@@ -290,7 +294,7 @@ def test_a_restart_from_arms_a_following_error_past_a_limit_is_no_fault_and_the_
     # restart from where the arms then measure is not a fault, and the next commands are inside again
     lim = LIM.min_flange_distance_m
     for past, fault in ((0.0005, False), (0.0015, False), (0.01, True)):
-        pipe = MotionPipeline(ENV, T)
+        pipe = ServoPath(RIG)
         start = home_poses(half_sep=(lim - past) / 2)
         kinds = [v.kind for v in pipe.reset(start)]
         assert kinds == (["min_distance"] if fault else []), (past, kinds)
@@ -309,8 +313,46 @@ def test_a_restart_from_arms_a_following_error_past_a_limit_is_no_fault_and_the_
         assert tick.command is not None
 
 
+def restarted(path: ServoPath) -> ServoPath:
+    """`path` at rest at home, as from the controllers' feedback (poses and the joints they are solved at)."""
+    records = {}
+    for a in ARMS:
+        T_bf = path.frames[a].flange_in_base(home_poses()[a])
+        records[a] = {"ToolVectorTarget": cr5.matrix_to_pose6(T_bf), "QTarget": np.degrees(cr5.ik_all(T_bf)[0])}
+    assert path.restart(records) == []
+    return path
+
+
+def test_each_cycle_ends_in_a_servop_per_active_arm_of_the_pose_it_sent_with_the_halting_parameters_only_when_braking():
+    cfg = DriverConfig()
+    path = restarted(ServoPath(RIG, cfg))
+    u = np.zeros(12)
+    u[0] = u[6] = 0.001
+    path.submit(u, 1 / 30, 0.0)
+    out = path.cycle(0.0)
+    assert out.poses is not None and list(out.servo) == list(ARMS) and not out.halting
+    for a in ARMS:
+        cmd = out.servo[a]
+        assert cmd.name == "ServoP" and (cmd.t, cmd.aheadtime, cmd.gain) == (T, cfg.aheadtime, cfg.gain)
+        assert np.array_equal(cmd.values, cr5.matrix_to_pose6(path.frames[a].flange_in_base(out.poses[a])))
+        assert np.array_equal(cmd.on_wire(), np.round(cmd.values, 6))
+    assert list(path.cycle(T, ["left"]).servo) == ["left"]  # an arm not commandable gets nothing
+    path.stop()
+    braking = path.cycle(2 * T)
+    assert braking.halting and {c.aheadtime for c in braking.servo.values()} == {cfg.halt_aheadtime}
+
+
+def test_servoj_sends_the_joints_the_reach_check_solved():
+    path = restarted(ServoPath(RIG, DriverConfig(servo_command="servoj")))
+    path.submit(np.zeros(12), 1 / 30, 0.0)
+    out = path.cycle(0.0)
+    assert out.joints is not None
+    for a in ARMS:
+        assert out.servo[a].name == "ServoJ" and np.array_equal(out.servo[a].values, np.degrees(out.joints[a]))
+
+
 def test_a_runaway_target_is_pulled_back_and_reported():
-    pipe = MotionPipeline(ENV, T, max_lead_m=0.05)
+    pipe = ServoPath(RIG, DriverConfig(max_target_lead_m=0.05))
     pipe.reset(home_poses())
     u = np.zeros(12)
     u[2] = 0.3  # 30 cm up in one go
@@ -320,13 +362,13 @@ def test_a_runaway_target_is_pulled_back_and_reported():
 
 
 def test_an_overshoot_past_the_box_is_clipped_at_the_gate_and_the_trajectory_continues_from_it():
-    pipe = MotionPipeline(ENV, T)
+    pipe = ServoPath(RIG)
     start = home_poses()
     for a in start:
         start[a][2, 3] = 0.948  # 2 mm under the top of the box, with the flange under the mount
     pipe.reset(start)
     pipe.submit(np.zeros(12), 1 / 30, 0.0)
-    pipe.streamer.vel[:, 2] = LIM.max_tcp_speed_mps / np.sqrt(3)  # rising at full speed: cannot brake in 2 mm
+    pipe.smoother.vel[:, 2] = LIM.max_tcp_speed_mps / np.sqrt(3)  # rising at full speed: cannot brake in 2 mm
     prev, now, kinds, z = pipe.commanded(), 0.0, [], []
     for _ in range(40):
         tick = pipe.tick(now)
@@ -339,11 +381,11 @@ def test_an_overshoot_past_the_box_is_clipped_at_the_gate_and_the_trajectory_con
     assert "workspace" in kinds
     assert max(z) == pytest.approx(0.95, abs=1e-9)  # held at the wall, not through it
     assert z[-1] == pytest.approx(0.948, abs=1e-9)  # then back to the target, smoothly again
-    assert np.abs(pipe.streamer.vel).max() < 1e-9
+    assert np.abs(pipe.smoother.vel).max() < 1e-9
 
 
 def test_non_finite_increments_are_rejected_and_leave_no_trace():
-    pipe = MotionPipeline(ENV, T)
+    pipe = ServoPath(RIG)
     pipe.reset(home_poses())
     bad = np.zeros(12)
     bad[4] = np.nan
@@ -368,7 +410,7 @@ op = st.one_of(
 @settings(max_examples=150, deadline=None, derandomize=True)
 @given(ops=st.lists(op, min_size=1, max_size=40))
 def test_no_input_sequence_gets_a_command_outside_the_limits(ops):
-    pipe = MotionPipeline(ENV, T)
+    pipe = ServoPath(RIG)
     pipe.reset(home_poses())
     prev = pipe.commanded()
     now = 0.0

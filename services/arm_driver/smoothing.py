@@ -1,4 +1,4 @@
-"""Jerk-limited streaming of both arms' mount poses with one 12-DoF Ruckig instance.
+"""Jerk-limited smoothing of both arms' mount poses with one 12-DoF Ruckig instance (`RuckigSmoother`).
 
 Why one instance of 12 DoF: with Ruckig's time synchronisation both arms reach each target at
 the same instant, so the rim is never stretched by one arm running ahead of the other, and both
@@ -23,10 +23,6 @@ with the whole budget along its direction: from 4 cm/s in 2 sqrt(v/j) = 126 ms i
 It is a Ruckig instance of its own, used only in mode 'stopping': tracking (commands arriving) is
 the same computation as without it, bit for bit.
 
-`TargetIntegrator` turns the controller's increments into targets: a `Command` moves the target
-by u over its `dt`, linearly, starting when it arrives; a new command first completes the previous
-one, so every increment is applied exactly once. Positions add, rotations compose
-(R <- exp(drv) R, about world axes, as the controller's own model does).
 """
 
 from __future__ import annotations
@@ -36,7 +32,6 @@ from dataclasses import dataclass
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization
 
-from bagit.common.dual_arm import apply_increment
 from bagit.common.rig import SafetyLimits
 from bagit.common.so3 import left_jacobian, rotvec_between, so3_exp
 from bagit.services.arm_driver.frames import Poses, arrays_to_poses, poses_to_arrays
@@ -81,7 +76,7 @@ class StreamStep:
     error: str | None = None
 
 
-class Streamer:
+class RuckigSmoother:
     """Ruckig over both arms' mount poses; one `step` per servo period.
 
     Modes: 'idle' (at rest, nothing to stream), 'position' (tracking a target pose),
@@ -127,6 +122,10 @@ class Streamer:
     def reset(self, poses: Poses) -> None:
         """At rest at `poses`, nothing to do until a target or a stop."""
         self.p, self.R = poses_to_arrays(poses)
+        self.rest()
+
+    def rest(self) -> None:
+        """At rest where the trajectory is now: no velocity, no acceleration, idle."""
         self.vel[:] = 0.0
         self.acc[:] = 0.0
         self.mode = "idle"
@@ -178,11 +177,12 @@ class Streamer:
 
     # -- one cycle -------------------------------------------------------------------------------
 
-    def _set_current(self) -> None:
+    def _set_current(self, inp: InputParameter) -> None:
+        """The trajectory's state as Ruckig's current state (orientations re-based: r = 0)."""
         zeros = np.zeros(3)
-        self._inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
-        self._inp.current_velocity = self.vel.ravel().tolist()
-        self._inp.current_acceleration = self.acc.ravel().tolist()
+        inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
+        inp.current_velocity = self.vel.ravel().tolist()
+        inp.current_acceleration = self.acc.ravel().tolist()
 
     def step(self, target: Poses | None = None) -> StreamStep:
         """Advance one period towards `target` (mode 'position') or towards rest (mode 'stopping')."""
@@ -192,8 +192,8 @@ class Streamer:
             halted = self._halt_step()
             if halted is not None:
                 return halted
-        self._set_current()
         inp = self._inp
+        self._set_current(inp)
         if self.mode == "position":
             if target is None:
                 raise ValueError("a tracking step needs a target")
@@ -215,9 +215,7 @@ class Streamer:
         self._apply(np.asarray(self._out.new_position), np.asarray(self._out.new_velocity), np.asarray(self._out.new_acceleration))
         finished = result == Result.Finished
         if finished and self.mode == "stopping":
-            self.vel[:] = 0.0
-            self.acc[:] = 0.0
-            self.mode = "idle"
+            self.rest()
         return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), self.at_rest)
 
     def _halt_step(self) -> StreamStep | None:
@@ -226,10 +224,7 @@ class Streamer:
         lim = self.halting_limits()
         inp = self._halt_inp
         inp.max_velocity, inp.max_acceleration, inp.max_jerk = lim[:, 0].tolist(), lim[:, 1].tolist(), lim[:, 2].tolist()
-        zeros = np.zeros(3)
-        inp.current_position = np.concatenate([self.p[0], zeros, self.p[1], zeros]).tolist()
-        inp.current_velocity = self.vel.ravel().tolist()
-        inp.current_acceleration = self.acc.ravel().tolist()
+        self._set_current(inp)
         try:
             result = self._halt_otg.update(inp, self._halt_out)
         except (RuckigError, RuntimeError):
@@ -241,9 +236,7 @@ class Streamer:
         out = self._halt_out
         self._apply(np.asarray(out.new_position), np.asarray(out.new_velocity), np.asarray(out.new_acceleration))
         if result == Result.Finished:
-            self.vel[:] = 0.0
-            self.acc[:] = 0.0
-            self.mode = "idle"
+            self.rest()
         return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), self.at_rest)
 
     def _apply(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:
@@ -264,55 +257,5 @@ class Streamer:
             out = self.step()
             out.error = why
             return out
-        self.vel[:] = 0.0
-        self.acc[:] = 0.0
-        self.mode = "idle"
+        self.rest()
         return StreamStep(self.poses(), self.vel.copy(), self.acc.copy(), True, error=why)
-
-
-class TargetIntegrator:
-    """The target pose both arms stream to, built from the controller's increments.
-
-    The committed target holds every increment already completed; the active segment moves the
-    target from `start` to `end` linearly over its `dt`, from the time its command arrived.
-    """
-
-    def __init__(self) -> None:
-        self.start_p = np.zeros((2, 3))
-        self.start_R = np.tile(np.eye(3), (2, 1, 1))
-        self.end_p = self.start_p.copy()
-        self.end_R = self.start_R.copy()
-        self.t0 = 0.0
-        self.dt = 1.0
-        self._rv = np.zeros((2, 3))  # end = exp(rv) start
-
-    def reset(self, poses: Poses) -> None:
-        p, R = poses_to_arrays(poses)
-        self.start_p, self.start_R = p, R
-        self.end_p, self.end_R = p.copy(), R.copy()
-        self._rv = np.zeros((2, 3))
-        self.t0, self.dt = 0.0, 1.0
-
-    def end(self) -> Poses:
-        """Where the target will be once the active segment completes."""
-        return arrays_to_poses(self.end_p, self.end_R)
-
-    def proposed_end(self, u: np.ndarray) -> Poses:
-        """The end pose after increment `u (12,)` on top of the current end (not applied)."""
-        return apply_increment(self.end(), u)
-
-    def add(self, end: Poses, dt: float, now: float) -> None:
-        """Complete the active segment, then move towards `end` over `dt` seconds from `now`."""
-        self.start_p, self.start_R = self.end_p.copy(), self.end_R.copy()
-        self.end_p, self.end_R = poses_to_arrays(end)
-        self._rv = np.stack([rotvec_between(self.start_R[i], self.end_R[i]) for i in range(2)])
-        self.t0, self.dt = float(now), float(dt)
-
-    def target(self, t: float) -> Poses:
-        """The target pose at time `t`."""
-        f = min(max((t - self.t0) / self.dt, 0.0), 1.0)
-        if f >= 1.0:
-            return self.end()
-        p = self.start_p + f * (self.end_p - self.start_p)
-        R = np.stack([so3_exp(f * self._rv[i]) @ self.start_R[i] for i in range(2)])
-        return arrays_to_poses(p, R)

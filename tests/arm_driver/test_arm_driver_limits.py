@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from bagit.common.rig import ArmConfig, RigConfig
 from bagit.common.so3 import so3_exp
-from bagit.services.arm_driver.safety import (
+from bagit.services.arm_driver.limits import (
     Envelope,
     check_and_clip,
     clip_target,
