@@ -4,7 +4,7 @@ The same pure parts `bagit up` runs as services, wired by direct calls instead o
 the simulator (`SimRig`: the world, the camera, the two CR5 controllers), perception
 (`RimTracker` for the SOI, `detect_object` for the object's marker), the coordinator (`Coordinator`:
 stages, limits, the run's result; `compute_plan`: goal and path), the controller (`ServoSession`)
-and the arm side (`Cr5Arms`: the arm driver's `ArmMotion` streaming to the CR5s; or `IdealArms`,
+and the arm side (`Cr5Arms`: the arm driver's `ServoPath` streaming to the CR5s; or `IdealArms`,
 the floating-gripper ablation). Nothing here decides anything a service decides.
 
 Time is the simulator's: every part is handed `now` = simulated seconds, the camera takes a frame
