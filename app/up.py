@@ -38,6 +38,7 @@ from typing import Any, Literal, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
+from bagit.common.headless import headless_gl
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
 from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES
@@ -259,8 +260,7 @@ class Up:
         self._supervisor.start()
 
     def _spawn(self, c: Child) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "osmesa"),
-                   PYOPENGL_PLATFORM=os.environ.get("PYOPENGL_PLATFORM", "osmesa"))
+        env = headless_gl(dict(os.environ, PYTHONUNBUFFERED="1"))
         setup = functools.partial(_child_setup, 0 if c.name in ON_PATH else OFF_PATH_NICENESS)
         c.proc = subprocess.Popen(
             [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,

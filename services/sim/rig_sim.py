@@ -32,7 +32,7 @@ from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
-from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S  # noqa: E402  (pure Python, no MuJoCo)
+from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S
 
 SETTLE_S = 1.0  # simulated seconds the bag hangs still after a (re)set before the camera's first frame
 
