@@ -230,7 +230,7 @@ class _Run:
         if st.stage not in SERVO_STAGES or self.path is None or self.path.run_id != st.run_id:
             return
         if self.session is None:
-            self.session, out = ServoSession.build(st, self.path, self.goal, {}, self._next_seq, watchdog_s=self.sim.rig.safety.watchdog_s)
+            self.session, out = ServoSession.build(st, self.path, self.goal, self._next_seq, self.sim.rig.safety.watchdog_s)
             self._send(out, now)
         age = None if self.soi is None else now - self.soi.source_stamp
         self._send(self.session.tick_on(self.soi, age, SOI_MAX_AGE_S, states, None, self.path, self.goal, now), now)

@@ -226,7 +226,7 @@ class Up:
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name == "arm-driver":
             args = [name, "--config", str(self.driver_config), "--rig-config", str(rpath)]
-        elif name == "perception":
+        elif name in ("perception", "controller"):
             args = [name, "--rig-config", str(rpath)]
         elif name == "planner":
             args = [name, "--run-time-limit", f"{o.time_limit_s():g}"]

@@ -23,13 +23,16 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
 
 from bagit.common.bus import BusConfig, Keys, bus_config_from_args, declare_alive, open_session, parse_bus_config
 from bagit.common.errors import BadScenario, BusError
+
+if TYPE_CHECKING:
+    from bagit.common.rig import RigConfig
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -107,6 +110,17 @@ def load_service_config(
         bus_data = {**bus_data, "rig": default_rig}
     base = parse_bus_config(bus_data)
     return cfg, bus_config_from_args(args, base)
+
+
+def service_rig(rig_config: str | None, flag: str | None, config_path: str | None) -> RigConfig:
+    """The rig config a service's `rig_config` names (the built-in rig when None): a path from the
+    config file is relative to that file, one from `--rig-config` (`flag`) to the working directory."""
+    from bagit.common.rig import RigConfig
+
+    path = rig_config
+    if path is not None and flag is None and config_path is not None and not Path(path).is_absolute():
+        path = str(Path(config_path).parent / path)
+    return RigConfig.from_file(path) if path else RigConfig()
 
 
 def run_service(

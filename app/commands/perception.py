@@ -9,7 +9,6 @@ A recording played without `--loop` ends the command when it ends.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
@@ -36,8 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from bagit.commands._service import load_service_config, run_service
-    from bagit.common.rig import RigConfig
+    from bagit.commands._service import load_service_config, run_service, service_rig
     from bagit.services.perception.node import PerceptionNode, PerceptionServiceConfig
 
     source = {"kind": args.source or ("realsense-file" if args.file else None), "path": args.file, "serial": args.serial,
@@ -45,10 +43,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     overrides = {"source": source, "rig_config": args.rig_config, "n_x": args.n_x, "bag_kind": args.bag_kind,
                  "cloud_rate_hz": args.cloud_rate}
     cfg, bus = load_service_config(PerceptionServiceConfig, args.config, overrides, args)
-    rig_path = cfg.rig_config
-    if rig_path is not None and args.rig_config is None and args.config is not None and not Path(rig_path).is_absolute():
-        rig_path = str(Path(args.config).parent / rig_path)
-    rig = RigConfig.from_file(rig_path) if rig_path else RigConfig()
+    rig = service_rig(cfg.rig_config, args.rig_config, args.config)
 
     def banner(node) -> str:
         what = {"zenoh": node.keys.camera_rgbd, "realsense": "a live RealSense", "realsense-file": str(cfg.source.path)}[cfg.source.kind]
