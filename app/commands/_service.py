@@ -32,7 +32,7 @@ from bagit.common.bus import BusConfig, Keys, bus_config_from_args, declare_aliv
 from bagit.common.errors import BadScenario, BusError
 
 if TYPE_CHECKING:
-    from bagit.common.rig import RigConfig
+    from bagit.common.rig import CameraConfig, RigConfig
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -121,6 +121,19 @@ def service_rig(rig_config: str | None, flag: str | None, config_path: str | Non
     if path is not None and flag is None and config_path is not None and not Path(path).is_absolute():
         path = str(Path(config_path).parent / path)
     return RigConfig.from_file(path) if path else RigConfig()
+
+
+def flagged_camera(camera: CameraConfig, **flags: Any) -> CameraConfig:
+    """The rig's camera with a command's flags (those given: serial, width, height, fps) over it;
+    CameraError naming the first bad one."""
+    from bagit.common.errors import CameraError
+    from bagit.common.rig import CameraConfig
+
+    try:
+        return CameraConfig.model_validate({**camera.model_dump(), **{k: v for k, v in flags.items() if v is not None}})
+    except ValidationError as e:
+        first = e.errors()[0]
+        raise CameraError(f"bad camera settings: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
 
 
 def run_service(
