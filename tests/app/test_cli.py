@@ -164,6 +164,20 @@ def test_the_controller_reads_the_watchdog_from_the_rig_config_and_refuses_the_s
         assert len(err) == 1 and flag in err[0] and where in err[0], err
 
 
+def test_the_camera_rate_is_the_runs_control_rate_in_lockstep_unless_given(tmp_path):
+    """`bagit up` leaves the camera rate to the simulator, which in lockstep takes each run's control rate
+    (its params, as `bagit run` does: a frame per control tick) and WALL_FPS on the wall clock."""
+    from bagit.services.sim.rig_sim import WALL_FPS, camera_fps
+    from bagit.up import Up, UpOptions
+
+    assert camera_fps(None, True, 15.0) == 15.0 and camera_fps(None, False, 15.0) == WALL_FPS and camera_fps(20.0, True, 15.0) == 20.0
+    up = Up(UpOptions(workdir=tmp_path))
+    zpath, rpath = up._write_configs()
+    assert "--fps" not in up._argv("sim", zpath, rpath)
+    argv = Up(UpOptions(workdir=tmp_path, fps=12.0))._argv("sim", zpath, rpath)
+    assert argv[argv.index("--fps") + 1] == "12"
+
+
 def test_up_gives_the_arm_driver_link_timeouts_for_simulated_controllers(tmp_path):
     """`bagit up` drives simulated CR5s that share the CPU: its arm driver waits longer for their
     feedback and replies than the defaults for a real CR5, and every motion limit stays the rig's."""
