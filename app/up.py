@@ -122,7 +122,7 @@ class UpOptions:
     # (a slow machine makes a run slower, never different); wall: the simulator paced to the wall clock
     clock: Literal["lockstep", "wall"] = "lockstep"
     speed: float | None = None  # simulated seconds per wall second, at most (None: a lockstep run as fast as the rig answers)
-    fps: float | None = None  # None: the simulator's default (`bagit.services.sim.node.camera_fps`: the run's control rate in lockstep)
+    fps: float | None = None  # None: the simulator's default (`bagit.services.sim.rig_sim.camera_fps`: the run's control rate in lockstep)
     # A run's servoing limit: in lockstep on the simulator's clock, as `bagit run`'s; on the wall
     # clock the simulator runs at a fraction of real time when the machine is busy (x0.4 with the
     # dashboard, a browser and every service on 2 cores), and the run with it.
