@@ -47,6 +47,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.clock import ClockKind
+from bagit.common.errors import refuse_moved
 from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER, SERVO_STAGES
@@ -85,10 +86,7 @@ class ControllerServiceConfig(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _refuse_moved(cls, data: Any) -> Any:
-        for key in data if isinstance(data, dict) else ():
-            if key in MOVED_SETTINGS:
-                raise ValueError(f"{key} is no longer a controller setting: it is {MOVED_SETTINGS[key]}")
-        return data
+        return refuse_moved(data, MOVED_SETTINGS, "controller")
 
 
 class ControllerNode:

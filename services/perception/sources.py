@@ -27,7 +27,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bagit.common.errors import CameraError
+from bagit.common.errors import CameraError, refuse_moved
 from bagit.common.messages import CameraInfo, RgbdFrame
 from bagit.common.rig import CameraConfig
 
@@ -51,10 +51,7 @@ class SourceConfig(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _refuse_moved(cls, data: Any) -> Any:
-        for key in data if isinstance(data, dict) else ():
-            if key in CAMERA_SETTINGS:
-                raise ValueError(f"{key} is no longer a source setting: it is the rig config's camera.{key} (rig_config)")
-        return data
+        return refuse_moved(data, {key: f"the rig config's camera.{key} (rig_config)" for key in CAMERA_SETTINGS}, "source")
 
     @model_validator(mode="after")
     def _needs(self) -> SourceConfig:
