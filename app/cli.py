@@ -2,7 +2,7 @@
 
 Errors the user can fix (bad files, bad input, infeasible goals, bad flags) print one line on stderr
 and exit with status 2; a job that ran but did not succeed exits with 1. Set BAGIT_DEBUG=1 for tracebacks.
-The composition root of every process: it sets up logging (`bagit.common.logs`, one format on
+The composition root of every process: it chooses headless OpenGL (`bagit.common.headless`) and sets up logging (`bagit.common.logs`, one format on
 stderr, level from BAGIT_LOG_LEVEL) before a command runs; stdout carries only the command's result.
 """
 
@@ -21,6 +21,7 @@ import numpy as np
 
 from bagit import __version__
 from bagit.common.errors import BagItError
+from bagit.common.headless import headless_gl
 from bagit.common.logs import configure_logging
 
 # The subcommands, in the order `bagit --help` lists them.
@@ -92,6 +93,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    headless_gl()  # before any command imports MuJoCo; the services `bagit up` starts inherit it
     parser, modules = build_parser()
     try:
         args = parser.parse_args(argv)

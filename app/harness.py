@@ -20,6 +20,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, Subscriber, locators, open_session
+from bagit.common.headless import headless_gl
 from bagit.common.messages import Command, RunState
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
@@ -27,7 +28,7 @@ SECURE_ROUTER_CFG = DEPLOY / "secure" / "zenoh-router-secure.json5"
 SECURE_CLIENT_CFG = DEPLOY / "secure" / "client.json5"
 SECURE_IDENTITIES = ("router", "controller", "arm-driver", "perception", "planner", "dashboard", "cli", "intruder")
 
-ENV = dict(os.environ, MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa", PYTHONUNBUFFERED="1")
+ENV = headless_gl(dict(os.environ, PYTHONUNBUFFERED="1"))
 ALL = ("sim", "perception", "planner", "controller", "arm-driver")
 
 

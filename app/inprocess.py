@@ -40,7 +40,7 @@ from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S, Coordinator, Co
 from bagit.services.planner.goal import bottom_frame
 from bagit.services.sim.judge import truth_of
 from bagit.services.sim.lockstep import Schedule
-from bagit.services.sim.rig_sim import SETTLE_S, SimRig
+from bagit.services.sim.rig_sim import SETTLE_S, SimRig, camera_fps
 from bagit.sim_arms import Cr5Arms, IdealArms
 
 log = logging.getLogger("bagit.run")
@@ -87,7 +87,7 @@ def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: 
     sc = opts.scenario
     params = merge_params(sc.params, opts.overrides)
     rate = params.controller.control_rate_hz
-    fps = opts.fps or rate
+    fps = camera_fps(opts.fps, True, rate)  # lockstep: a frame per control tick unless told
     if not 0 < fps <= 120:
         raise BagItError(f"fps must be in (0, 120], got {fps}")
     sim = SimRig(sc, opts.rig, opts.seed)

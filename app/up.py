@@ -38,10 +38,10 @@ from typing import Any, Literal, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
+from bagit.common.headless import headless_gl
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
 from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES
-from bagit.common.params import MethodParams
 from bagit.common.rig import RigConfig
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
 
@@ -61,7 +61,6 @@ ON_PATH = ("sim", *LOCKSTEP_SERVICES)
 # every other service and maybe a browser: a loaded machine keeps them off the CPU for that long
 # (seen on 2 cores), and the driver would then restart the stream or fault a run over a scheduler
 # pause. The watchdog on the controller's commands and every motion limit stay as they are.
-WALL_FPS = 10.0  # --clock wall: camera frames per second a 2-core machine keeps up with beside every service
 WALL_TIME_LIMIT_S = 360.0  # --clock wall: a run's servoing limit, wide for a simulator slower than real time
 WALL_LEASE_MS = 1000  # --clock wall: the links' lease (a silent service is declared gone after it)
 SIM_DRIVER_TIMEOUTS = {"feedback_timeout_s": 1.0, "reply_timeout_s": 2.0}
@@ -123,14 +122,11 @@ class UpOptions:
     # (a slow machine makes a run slower, never different); wall: the simulator paced to the wall clock
     clock: Literal["lockstep", "wall"] = "lockstep"
     speed: float | None = None  # simulated seconds per wall second, at most (None: a lockstep run as fast as the rig answers)
-    fps: float | None = None  # None: the control rate in lockstep (as `bagit run`), WALL_FPS on the wall clock
+    fps: float | None = None  # None: the simulator's default (`bagit.services.sim.rig_sim.camera_fps`: the run's control rate in lockstep)
     # A run's servoing limit: in lockstep on the simulator's clock, as `bagit run`'s; on the wall
     # clock the simulator runs at a fraction of real time when the machine is busy (x0.4 with the
     # dashboard, a browser and every service on 2 cores), and the run with it.
     run_time_limit_s: float | None = None
-
-    def camera_fps(self) -> float:
-        return self.fps or (MethodParams().controller.control_rate_hz if self.clock == "lockstep" else WALL_FPS)
 
     def time_limit_s(self) -> float:
         return self.run_time_limit_s or (SIM_TIME_LIMIT_S if self.clock == "lockstep" else WALL_TIME_LIMIT_S)
@@ -215,7 +211,8 @@ class Up:
         o = self.opts
         bus = ["--rig", o.rig, "--zenoh-config", str(zpath), "--clock", "sim" if o.clock == "lockstep" else "wall"]
         if name == "sim":
-            args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--fps", f"{o.camera_fps():g}", "--seed", str(o.seed)]
+            args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--seed", str(o.seed)]
+            args += ["--fps", f"{o.fps:g}"] if o.fps is not None else []
             args += ["--speed", f"{o.speed:g}"] if o.speed is not None else []
         elif name == "dashboard":
             port = o.dashboard_port or free_port()
@@ -225,7 +222,7 @@ class Up:
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name == "arm-driver":
             args = [name, "--config", str(self.driver_config), "--rig-config", str(rpath)]
-        elif name == "perception":
+        elif name in ("perception", "controller"):
             args = [name, "--rig-config", str(rpath)]
         elif name == "planner":
             args = [name, "--run-time-limit", f"{o.time_limit_s():g}"]
@@ -259,8 +256,7 @@ class Up:
         self._supervisor.start()
 
     def _spawn(self, c: Child) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "osmesa"),
-                   PYOPENGL_PLATFORM=os.environ.get("PYOPENGL_PLATFORM", "osmesa"))
+        env = headless_gl(dict(os.environ, PYTHONUNBUFFERED="1"))
         setup = functools.partial(_child_setup, 0 if c.name in ON_PATH else OFF_PATH_NICENESS)
         c.proc = subprocess.Popen(
             [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bagit.common.headless import headless_gl
 from bagit.common.logs import configure_logging
 from bagit.common.results import RunResult, provenance
 
@@ -41,7 +42,7 @@ def measure(scenario: str, seed: int, arms: str) -> dict[str, Any]:
     """One `bagit run` in a child process: its result, CPU seconds and wall seconds."""
     cmd = [sys.executable, "-m", "bagit.cli", "run", scenario, "--seed", str(seed), "--arms", arms, "--json"]
     cpu0, t0 = _children_cpu_s(), time.perf_counter()
-    out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
+    out = subprocess.run(cmd, capture_output=True, text=True, env=headless_gl(dict(os.environ)))
     wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
     if out.returncode not in (0, 1):
         raise RuntimeError(f"bagit run {scenario} --arms {arms} exited {out.returncode}: {out.stderr.strip()[-300:]}")

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bagit.common.headless import headless_gl
 from bagit.common.logs import configure_logging
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER
 from bagit.common.results import RunResult, provenance
@@ -68,7 +69,7 @@ def deployed(scenario: str, seed: int, controller: str, speed: float | None) -> 
             "--seed", str(seed), "--controller", controller, "--timeout", f"{UP_TIMEOUT_S:g}"]
     argv += ["--speed", f"{speed:g}"] if speed else []
     r = subprocess.run(argv, capture_output=True, text=True, timeout=UP_TIMEOUT_S + 120,
-                       env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")})
+                       env=headless_gl(dict(os.environ)))
     try:
         res = RunResult.model_validate(_last_json(r.stdout))
     except ValueError as e:

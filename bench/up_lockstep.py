@@ -32,6 +32,7 @@ import sys
 import time
 from typing import Any
 
+from bagit.common.headless import headless_gl
 from bagit.common.logs import configure_logging
 
 log = logging.getLogger("bagit.bench.up_lockstep")
@@ -49,7 +50,7 @@ def _children_cpu_s() -> float:
 def _timed(argv: list[str], timeout_s: float) -> tuple[dict[str, Any], str, float, float, int]:
     """Run `argv` to its end: its JSON result (the last line of stdout starting with '{'), its stderr, wall s,
     CPU s of it and every descendant it reaped, and its exit code."""
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
+    env = headless_gl(dict(os.environ))
     cpu0, t0 = _children_cpu_s(), time.perf_counter()
     r = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, env=env)
     wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0

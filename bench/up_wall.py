@@ -92,17 +92,19 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
     from bagit.common.messages import Command, RgbdFrame
     from bagit.common.params import MethodParams
     from bagit.common.rig import RigConfig
+    from bagit.services.sim.rig_sim import camera_fps
     from bagit.up import SERVICES, Up, UpOptions
 
     services = tuple(s for s in SERVICES if dashboard or s != "dashboard")
     opts = UpOptions(scenario=scenario, seed=seed, clock=clock, services=services, fps=fps)
     rig = RigConfig()
+    rate = MethodParams().controller.control_rate_hz  # the bundled scenarios' (no params: block)
     load_before = os.getloadavg()
     out: dict[str, Any] = {"machine": machine(), "load_before": [round(x, 2) for x in load_before]}
     out["params"] = {
         "scenario": scenario, "seed": seed, "clock": clock, "services": list(services),
-        "camera": f"{rig.camera.width}x{rig.camera.height}", "camera_fps": opts.camera_fps(),
-        "control_rate_hz": MethodParams().controller.control_rate_hz, "watchdog_s": rig.safety.watchdog_s,
+        "camera": f"{rig.camera.width}x{rig.camera.height}", "control_rate_hz": rate,
+        "camera_fps": camera_fps(opts.fps, clock == "lockstep", rate), "watchdog_s": rig.safety.watchdog_s,
         "servo_period_s": rig.safety.servo_period_s, "speed": opts.speed,
     }
     timings = _Timings()

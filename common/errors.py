@@ -78,3 +78,12 @@ def first_line(e: BaseException) -> str:
     """The first line of an exception's text (its type's name if it has none): a one-line reason."""
     s = str(e).strip()
     return s.splitlines()[0] if s else type(e).__name__
+
+
+def refuse_moved(data: object, moved: dict[str, str], owner: str) -> object:
+    """`data` (a config mapping before validation) as it is, or ValueError naming the first key that
+    is no longer an `owner` setting and where that setting is now (`moved`: key -> its place)."""
+    for key in data if isinstance(data, dict) else ():
+        if key in moved:
+            raise ValueError(f"{key} is no longer a {owner} setting: it is {moved[key]}")
+    return data

@@ -7,11 +7,12 @@ what this project added that the paper does not have (kept because measured to p
 in docs/experiments.md, with the experiments that did not pay and were removed).
 
 Overrides go on top of the defaults (a scenario's `params:` block), then on top of those (a run's,
-e.g. `bagit run --params`, the dashboard's panel). Both the nested form
-(`{"controller": {"experimental": {"twist_weight": 0}}}`) and each field's flat name
-(`{"twist_weight": 0}`, `PARAM_PATHS`) are accepted, so scenario files, sweep configs and records
-keep their names. Unknown keys are rejected, naming the key, so a typo never silently falls back
-to a default.
+e.g. `bagit run --params`, the dashboard's panel). A parameter has one name, its field's, whatever
+its stage (`{"twist_weight": 0}`, `{"step_m": 0.02}`; `PARAM_PATHS` maps each to its place), and that
+name is what overrides, records, panels and a dumped scenario use. The nested form
+(`{"controller": {...}}`) and the old planner names with a `planner_` prefix are refused with the
+name to write instead; unknown keys are rejected, naming the key, so a typo never silently falls
+back to a default.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
 
 from bagit.common.errors import BadScenario
 
@@ -117,22 +118,22 @@ STAGE_MODELS: dict[str, type[BaseModel]] = {"goal": GoalParams, "planner": Plann
 
 
 def _paths() -> dict[str, tuple[str, ...]]:
-    """Every leaf's flat name -> its path in MethodParams; a planner field's flat name has the
-    `planner_` prefix it had in the flat model (`planner_step_m`), except lambda_4 and lambda_5."""
+    """Every leaf's name -> its path in MethodParams (its stage, `experimental` for an addition, the
+    field); names are unique across the stages, so a name alone says which parameter."""
     out: dict[str, tuple[str, ...]] = {}
     for stage, model in STAGE_MODELS.items():
         for name, info in model.model_fields.items():
-            if name == "experimental":
-                for sub in info.annotation.model_fields:  # type: ignore[union-attr]
-                    out[sub] = (stage, "experimental", sub)
-            else:
-                flat = f"planner_{name}" if stage == "planner" and not name.startswith("lambda_") else name
-                out[flat] = (stage, name)
+            subs = info.annotation.model_fields if name == "experimental" else {name: None}  # type: ignore[union-attr]
+            for sub in subs:
+                path = (stage, "experimental", sub) if name == "experimental" else (stage, name)
+                if sub in out:
+                    raise AssertionError(f"parameter {sub} is in two places: {out[sub]} and {path}; give one another name")
+                out[sub] = path
     return out
 
 
 PARAM_PATHS: dict[str, tuple[str, ...]] = _paths()
-_FLAT_NAMES: dict[tuple[str, ...], str] = {path: name for name, path in PARAM_PATHS.items()}
+_NAMES: dict[tuple[str, ...], str] = {path: name for name, path in PARAM_PATHS.items()}
 
 # Experiments removed from the code (they did not pay; docs/experiments.md has their records): a
 # key naming one is refused with this pointer rather than as a typo.
@@ -143,24 +144,39 @@ REMOVED_PARAMS: dict[str, str] = {
     "max_pitch_deg": "the pitch bound",
     "du_weight": "move suppression",
 }
+# Old spellings, refused with the one to write: the planner's fields once had a `planner_` prefix.
+RENAMED_PARAMS: dict[str, str] = {f"planner_{name}": name for name in PlannerParams.model_fields if not name.startswith("lambda_")}
+
+
+def _leaf_names(value: Mapping[str, Any], path: tuple[str, ...]) -> list[str]:
+    """The parameter names of a nested mapping's leaves under `path` (those that name one)."""
+    out: list[str] = []
+    for k, v in value.items():
+        sub = (*path, str(k))
+        out += _leaf_names(v, sub) if isinstance(v, Mapping) else [_NAMES[sub]] if sub in _NAMES else []
+    return out
 
 
 def _nest(data: Mapping[str, Any]) -> dict[str, Any]:
-    """`data` with flat names moved to their nested place; unknown keys raise ValueError naming them."""
+    """`data` (parameters by name) moved to their nested place; a stage's model (Python construction,
+    `MethodParams(controller=ControllerParams(...))`) is taken as it is. ValueError naming a nested
+    mapping, an old or removed name, or an unknown key."""
     out: dict[str, Any] = {}
     for key, value in data.items():
-        if key in STAGE_MODELS:
-            if isinstance(value, BaseModel):
-                value = value.model_dump(exclude_unset=True)
-            if not isinstance(value, Mapping):
-                raise ValueError(f"{key}: expected a mapping of {key} parameters, got {type(value).__name__}")
-            _deep_set(out, (key,), dict(value))
+        if key in STAGE_MODELS and isinstance(value, BaseModel):
+            _deep_set(out, (key,), value.model_dump(exclude_unset=True))
+        elif key in STAGE_MODELS:
+            names = _leaf_names(value, (key,)) if isinstance(value, Mapping) else []
+            example = ", ".join(f'"{n}"' for n in names) or '"twist_weight"'
+            raise ValueError(f"{key}: parameters are not nested under their stage; give each by its name ({example})")
         elif key in PARAM_PATHS:
             _deep_set(out, PARAM_PATHS[key], value)
+        elif key in RENAMED_PARAMS:
+            raise ValueError(f"{key}: renamed {RENAMED_PARAMS[key]}")
         elif key in REMOVED_PARAMS:
             raise ValueError(f"{key}: {REMOVED_PARAMS[key]} was an experiment removed from the code (docs/experiments.md)")
         else:
-            raise ValueError(f"{key}: unknown parameter; known: {', '.join(sorted(PARAM_PATHS))} (or nested under {', '.join(STAGE_MODELS)})")
+            raise ValueError(f"{key}: unknown parameter; known: {', '.join(sorted(PARAM_PATHS))}")
     return out
 
 
@@ -188,42 +204,55 @@ class MethodParams(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _accept_flat_names(cls, data: Any) -> Any:
+    def _by_name(cls, data: Any) -> Any:
         return _nest(data) if isinstance(data, Mapping) else data
 
+    @model_serializer(mode="plain")
+    def _dump_by_name(self) -> dict[str, Any]:
+        """Dumped (e.g. in a scenario document) as it is written: the set parameters by name."""
+        return self.overrides()
+
     def flat(self) -> dict[str, Any]:
-        """Every parameter under its flat name (`PARAM_PATHS`): what a panel or a record's table shows."""
+        """Every parameter by name (`PARAM_PATHS`): what a panel or a record's table shows."""
         return {name: self.get(name) for name in PARAM_PATHS}
 
     def get(self, name: str) -> Any:
-        """One parameter by its flat name."""
+        """One parameter by its name."""
         node: Any = self
         for k in PARAM_PATHS[name]:
             node = getattr(node, k)
         return node
 
     def overrides(self) -> dict[str, Any]:
-        """The parameters set explicitly (nested), e.g. a scenario's: what later overrides go on top of."""
-        return self.model_dump(exclude_unset=True)
+        """The parameters set explicitly, by name, e.g. a scenario's: what later overrides go on top of."""
+        return {_NAMES[path]: value for path, value in _set_leaves(self, ())}
+
+
+def _set_leaves(model: BaseModel, path: tuple[str, ...]) -> list[tuple[tuple[str, ...], Any]]:
+    """(path, value) of every field set explicitly in `model` and its sub-models, in field order."""
+    out: list[tuple[tuple[str, ...], Any]] = []
+    for name in type(model).model_fields:
+        if name in model.model_fields_set:
+            value = getattr(model, name)
+            out += _set_leaves(value, (*path, name)) if isinstance(value, BaseModel) else [((*path, name), value)]
+    return out
 
 
 def merge_params(base: MethodParams, overrides: Mapping[str, Any] | None) -> MethodParams:
-    """`base`'s explicitly set parameters with `overrides` (a run's, e.g. `bagit run --params`; flat
-    names or nested) on top; BadScenario naming the first bad one."""
+    """`base`'s explicitly set parameters with `overrides` (a run's, e.g. `bagit run --params`; by
+    name) on top; BadScenario naming the first bad one."""
     try:
-        merged = base.overrides()
-        for key, value in _nest(overrides or {}).items():
-            _deep_set(merged, (key,), value)
-        return MethodParams.model_validate(merged)
+        _nest(overrides or {})  # refuse a bad key before merging, naming it
+        return MethodParams.model_validate({**base.overrides(), **(overrides or {})})
     except ValueError as e:  # ValidationError is a ValueError; _nest raises a plain one for an unknown key
         raise BadScenario(params_error(e)) from None
 
 
 def params_error(e: ValueError) -> str:
-    """One line naming the first bad parameter of a failed validation (by its flat name when it has one)."""
+    """One line naming the first bad parameter of a failed validation (by its name when it has one)."""
     if isinstance(e, ValidationError):
         first = e.errors()[0]
         path = tuple(map(str, first["loc"]))
-        loc = _FLAT_NAMES.get(path, ".".join(path))
+        loc = _NAMES.get(path, ".".join(path))
         return f"params.{loc}: {first['msg'].removeprefix('Value error, ')}" if loc else f"params: {first['msg'].removeprefix('Value error, ')}"
     return f"params.{e}"

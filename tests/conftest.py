@@ -2,11 +2,12 @@
 
 import os
 
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+from bus_support import pair  # noqa: F401 - the two-session fixture every bus test takes
+from hypothesis import settings
 
-from bus_support import pair  # noqa: E402, F401 - the two-session fixture every bus test takes
-from hypothesis import settings  # noqa: E402
+from bagit.common.headless import headless_gl
+
+headless_gl()  # before any test module imports MuJoCo (conftest is imported before them)
 
 # Property tests draw the same examples on every run: CI must not pass or fail by luck.
 # BAGIT_HYPOTHESIS=explore draws fresh examples when hunting for new failures by hand.

@@ -98,3 +98,12 @@ def json_object(text: str) -> dict[str, Any]:
     if not isinstance(v, dict):
         raise argparse.ArgumentTypeError("must be a JSON object of method parameters")
     return v
+
+
+def moved(where: str) -> Callable[[str], Any]:
+    """The type of a flag that no longer exists: refused, whatever its value, saying where the setting is now."""
+
+    def refuse(text: str) -> Any:
+        raise argparse.ArgumentTypeError(f"no longer a flag of this command: the setting is {where}")
+
+    return refuse

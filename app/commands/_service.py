@@ -23,13 +23,16 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
 
 from bagit.common.bus import BusConfig, Keys, bus_config_from_args, declare_alive, open_session, parse_bus_config
 from bagit.common.errors import BadScenario, BusError
+
+if TYPE_CHECKING:
+    from bagit.common.rig import CameraConfig, RigConfig
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -107,6 +110,30 @@ def load_service_config(
         bus_data = {**bus_data, "rig": default_rig}
     base = parse_bus_config(bus_data)
     return cfg, bus_config_from_args(args, base)
+
+
+def service_rig(rig_config: str | None, flag: str | None, config_path: str | None) -> RigConfig:
+    """The rig config a service's `rig_config` names (the built-in rig when None): a path from the
+    config file is relative to that file, one from `--rig-config` (`flag`) to the working directory."""
+    from bagit.common.rig import RigConfig
+
+    path = rig_config
+    if path is not None and flag is None and config_path is not None and not Path(path).is_absolute():
+        path = str(Path(config_path).parent / path)
+    return RigConfig.from_file(path) if path else RigConfig()
+
+
+def flagged_camera(camera: CameraConfig, **flags: Any) -> CameraConfig:
+    """The rig's camera with a command's flags (those given: serial, width, height, fps) over it;
+    CameraError naming the first bad one."""
+    from bagit.common.errors import CameraError
+    from bagit.common.rig import CameraConfig
+
+    try:
+        return CameraConfig.model_validate({**camera.model_dump(), **{k: v for k, v in flags.items() if v is not None}})
+    except ValidationError as e:
+        first = e.errors()[0]
+        raise CameraError(f"bad camera settings: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
 
 
 def run_service(

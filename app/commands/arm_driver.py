@@ -9,7 +9,6 @@ An unreachable controller is a one-line error (exit 2).
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
@@ -30,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from bagit.commands._service import load_service_config, run_service
+    from bagit.commands._service import load_service_config, run_service, service_rig
     from bagit.common.rig import RigConfig
     from bagit.services.arm_driver.config import ArmDriverServiceConfig
     from bagit.services.arm_driver.driver import ArmDriver
@@ -40,10 +39,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rigs: list[RigConfig] = []
 
     def load_rig(cfg: ArmDriverServiceConfig) -> str:
-        path = cfg.rig_config
-        if path is not None and args.rig_config is None and args.config is not None and not Path(path).is_absolute():
-            path = str(Path(args.config).parent / path)  # relative to the file that names it
-        rigs.append(RigConfig.from_file(path) if path else RigConfig())
+        rigs.append(service_rig(cfg.rig_config, args.rig_config, args.config))
         return rigs[0].name
 
     cfg, bus = load_service_config(ArmDriverServiceConfig, args.config, overrides, args, default_rig=load_rig)

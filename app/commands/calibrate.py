@@ -51,6 +51,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import numpy as np
     from scipy.spatial.transform import Rotation
 
+    from bagit.commands._service import flagged_camera
     from bagit.common.errors import CameraError
     from bagit.common.geometry import matrix_to_rpy
     from bagit.common.rig import RigConfig
@@ -70,9 +71,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         frames = _frames_from_image(args.image, rig)
         source = "image"
     else:
-        cfg = SourceConfig(kind="realsense-file" if args.file else "realsense", path=args.file, serial=args.serial or camera.serial,
-                           width=camera.width, height=camera.height, fps=int(round(camera.fps)), real_time=False)
-        with RealSenseSource(cfg) as src:  # (open_source without the zenoh case)
+        cfg = SourceConfig(kind="realsense-file" if args.file else "realsense", path=args.file, real_time=False)
+        with RealSenseSource(cfg, flagged_camera(camera, serial=args.serial)) as src:  # (open_source without the zenoh case)
             frames = []
             while len(frames) < args.frames and (f := src.read()) is not None:
                 frames.append(f)

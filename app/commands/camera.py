@@ -42,29 +42,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import threading
     import time
 
-    from pydantic import ValidationError
-
+    from bagit.commands._service import flagged_camera
     from bagit.common.bus import Keys, Publisher, bus_config_from_args, declare_alive, open_session
-    from bagit.common.errors import CameraError
     from bagit.common.messages import RgbdFrame
     from bagit.common.rig import RigConfig
     from bagit.services.perception.sources import RealSenseSource, SourceConfig
 
     rig = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
-    cam = rig.camera
-    try:
-        cfg = SourceConfig(
-            kind="realsense-file" if args.file else "realsense",
-            path=args.file,
-            serial=args.serial or cam.serial,
-            width=args.width or cam.width,
-            height=args.height or cam.height,
-            fps=args.fps or int(round(cam.fps)),
-            real_time=not args.fast,
-            loop=args.loop,
-        )
-    except ValidationError as e:
-        raise CameraError(f"bad camera settings: {e.errors()[0]['msg']}") from None
+    cam = flagged_camera(rig.camera, serial=args.serial, width=args.width, height=args.height, fps=args.fps)
+    cfg = SourceConfig(kind="realsense-file" if args.file else "realsense", path=args.file, real_time=not args.fast, loop=args.loop)
     if args.rig is None:
         args.rig = rig.name
     bus = bus_config_from_args(args)
@@ -75,7 +61,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
     n, size, t0 = 0, 0, time.monotonic()
     try:
-        with RealSenseSource(cfg, cam.T_world_camera()) as source:  # no camera: CameraError before the bus opens
+        with RealSenseSource(cfg, cam) as source:  # no camera: CameraError before the bus opens
             session = open_session(bus)
             try:
                 pub = Publisher(session, keys.camera_rgbd, RgbdFrame)

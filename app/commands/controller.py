@@ -12,7 +12,6 @@ import argparse
 from typing import Any
 
 from bagit.commands import _args
-from bagit.common.names import CONTROLLER_NAMES
 
 NAME = "controller"
 HELP = "servo the current run: SOI and arm states in, arm increments out (mpc, ibvs, ssvs)"
@@ -21,23 +20,26 @@ HELP = "servo the current run: SOI and arm states in, arm increments out (mpc, i
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.common.bus import add_bus_arguments
 
-    p.add_argument("--config", metavar="YAML", help="service config (controller, control_rate_hz, soi_max_age_s, arm_max_age_s, params, bus)")
-    p.add_argument("--controller", choices=CONTROLLER_NAMES, help="force this controller (default: the run's, else mpc)")
-    p.add_argument("--rate", type=_args.positive_number, metavar="HZ", help="control rate (default: the run's params.control_rate_hz)")
-    p.add_argument("--soi-max-age", type=_args.positive_seconds, metavar="S", help="hold on a SOI older than this (default 0.5 s)")
-    p.add_argument("--arm-max-age", type=_args.positive_seconds, metavar="S", help="hold on arm states older than this (default 0.3 s)")
+    p.add_argument("--config", metavar="YAML", help="service config (rig_config, soi_max_age_s, arm_max_age_s, bus); the controller, "
+                   "its parameters and the control rate are the run's")
+    p.add_argument("--rig-config", metavar="YAML", help="rig config: the arm driver's watchdog, safety.watchdog_s (default: built-in rig)")
+    p.add_argument("--soi-max-age", type=_args.positive_seconds, metavar="S", help="hold on a SOI older than this (default: the config's soi_max_age_s)")
+    p.add_argument("--arm-max-age", type=_args.positive_seconds, metavar="S", help="hold on arm states older than this (default: the config's arm_max_age_s)")
+    # flags that once set the run's settings here: refused, naming where they are (the service's MOVED_SETTINGS)
+    p.add_argument("--controller", type=_args.moved("the run's choice (bagit run/up --controller, the dashboard)"), help=argparse.SUPPRESS)
+    p.add_argument("--rate", type=_args.moved("the run's parameter control_rate_hz (a scenario's params:, bagit run --params)"), help=argparse.SUPPRESS)
     p.add_argument("--duration", type=_args.positive_seconds, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     add_bus_arguments(p)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from bagit.commands._service import load_service_config, run_service
+    from bagit.commands._service import load_service_config, run_service, service_rig
     from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
 
-    overrides = {"controller": args.controller, "control_rate_hz": args.rate, "soi_max_age_s": args.soi_max_age,
-                 "arm_max_age_s": args.arm_max_age}
+    overrides = {"rig_config": args.rig_config, "soi_max_age_s": args.soi_max_age, "arm_max_age_s": args.arm_max_age}
     cfg, bus = load_service_config(ControllerServiceConfig, args.config, overrides, args)
-    return run_service("controller", bus, lambda session, keys: ControllerNode(session, keys, cfg, clock=bus.clock), duration=args.duration,
+    rig = service_rig(cfg.rig_config, args.rig_config, args.config)
+    return run_service("controller", bus, lambda session, keys: ControllerNode(session, keys, cfg, clock=bus.clock, rig=rig), duration=args.duration,
                        banner=lambda node: f"following {node.keys.run_state}, commanding on {node.keys.controller_cmd}")
 
 

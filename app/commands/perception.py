@@ -9,7 +9,6 @@ A recording played without `--loop` ends the command when it ends.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 from bagit.commands import _args
@@ -24,10 +23,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="YAML", help="service config (source, n_x, bag_kind, bag_color, cloud_rate_hz, soi, bus, ...)")
     p.add_argument("--source", choices=["zenoh", "realsense", "realsense-file"], help="where frames come from (default zenoh)")
     p.add_argument("--file", metavar="REC", help="realsense-file: the recording (.db3, or an older .bag)")
-    p.add_argument("--serial", help="realsense: the camera's serial number (default: the only one attached)")
+    p.add_argument("--serial", help="realsense: the camera's serial number (default: the rig config's camera.serial, else the only one attached)")
     p.add_argument("--fast", action="store_true", default=None, help="realsense-file: as fast as frames are processed, not at recorded speed")
     p.add_argument("--loop", action="store_true", default=None, help="realsense-file: start again at the end")
-    p.add_argument("--rig-config", metavar="YAML", help="rig config: camera extrinsics for realsense sources (default: built-in rig)")
+    p.add_argument("--rig-config", metavar="YAML", help="rig config: the camera (serial, mode, extrinsics) for realsense sources (default: built-in rig)")
     p.add_argument("--n-x", type=_args.soi_points, help="SOI points (default: the run's scenario, else 32)")
     p.add_argument("--bag-kind", choices=["red-edged", "solid"], help="the bag (default: the run's scenario, else red-edged)")
     p.add_argument("--cloud-rate", type=_args.non_negative_number, metavar="HZ", help="display cloud rate (default 10 Hz; 0: none)")
@@ -36,25 +35,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from bagit.commands._service import load_service_config, run_service
-    from bagit.common.rig import RigConfig
+    from bagit.commands._service import flagged_camera, load_service_config, run_service, service_rig
     from bagit.services.perception.node import PerceptionNode, PerceptionServiceConfig
 
-    source = {"kind": args.source or ("realsense-file" if args.file else None), "path": args.file, "serial": args.serial,
+    source = {"kind": args.source or ("realsense-file" if args.file else None), "path": args.file,
               "real_time": None if args.fast is None else not args.fast, "loop": args.loop}
     overrides = {"source": source, "rig_config": args.rig_config, "n_x": args.n_x, "bag_kind": args.bag_kind,
                  "cloud_rate_hz": args.cloud_rate}
     cfg, bus = load_service_config(PerceptionServiceConfig, args.config, overrides, args)
-    rig_path = cfg.rig_config
-    if rig_path is not None and args.rig_config is None and args.config is not None and not Path(rig_path).is_absolute():
-        rig_path = str(Path(args.config).parent / rig_path)
-    rig = RigConfig.from_file(rig_path) if rig_path else RigConfig()
+    camera = flagged_camera(service_rig(cfg.rig_config, args.rig_config, args.config).camera, serial=args.serial)
 
     def banner(node) -> str:
         what = {"zenoh": node.keys.camera_rgbd, "realsense": "a live RealSense", "realsense-file": str(cfg.source.path)}[cfg.source.kind]
         return f"frames from {what} -> {node.keys.perception_soi}"
 
-    return run_service("perception", bus, lambda session, keys: PerceptionNode(session, keys, cfg, rig.camera.T_world_camera(), clock=bus.clock),
+    return run_service("perception", bus, lambda session, keys: PerceptionNode(session, keys, cfg, camera, clock=bus.clock),
                        duration=args.duration, banner=banner)
 
 

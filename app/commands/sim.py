@@ -35,7 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="simulated seconds per wall second at most (default: real time, and a lockstep run as fast as the rig answers)")
     p.add_argument("--duration", type=_args.positive_seconds, default=None, help="stop after this many simulated seconds (default: run until Ctrl-C)")
     p.add_argument("--no-camera", action="store_true", help="no camera frames (faster)")
-    p.add_argument("--fps", type=_args.positive_number, default=10.0, help="camera frames per simulated second (default 10, at most the camera's rate)")
+    p.add_argument("--fps", type=_args.positive_number, default=None,
+                   help="camera frames per simulated second, at most the camera's rate (default: the run's control rate in lockstep, else 10)")
     p.add_argument("--seed", type=_args.seed, default=0)
     p.add_argument("--ephemeral-ports", action="store_true", help="listen on free ports instead of the rig config's")
     p.add_argument("--no-bus", action="store_true", help="no Zenoh: frames are rendered but not published, no resets")
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.common.scenario import Scenario
     from bagit.scenarios import find_scenario
     from bagit.services.sim.node import SimNodeConfig
-    from bagit.services.sim.rig_sim import RealtimeStats, SimRig
+    from bagit.services.sim.rig_sim import WALL_FPS, RealtimeStats, SimRig
 
     try:  # the node's bounds on the flags, before the world is built
         SimNodeConfig(speed=args.speed, fps=args.fps, truth_hz=args.truth_hz)
@@ -60,6 +61,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadScenario(f"--{str(first['loc'][0]).replace('_', '-')}: {first['msg']}") from None
     scenario = Scenario.from_file(find_scenario(args.scenario))
     rig_cfg = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
+    fps = None if args.fps is None else min(args.fps, rig_cfg.camera.fps)  # None: the node's default (`camera_fps`)
     say = log.info
 
     stop = threading.Event()
@@ -79,9 +81,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             for name, (dash, fb) in ports.items():
                 say(f"{name} CR5: dashboard {rig_cfg.arms[name].host}:{dash}, feedback {rig_cfg.arms[name].host}:{fb}")
             speed = f"x{args.speed:g}" if args.speed else "default"
-            say(f"scenario {scenario.name}, seed {args.seed}, speed {speed}" + (", no camera" if args.no_camera else f", camera {args.fps:g} fps"))
+            say(f"scenario {scenario.name}, seed {args.seed}, speed {speed}" + (", no camera" if args.no_camera else f", camera {fps or 'default'} fps"))
             if not args.no_bus:
-                stats = _run_on_bus(args, rig, scenario.name, min(args.fps, rig_cfg.camera.fps), stop, say)
+                stats = _run_on_bus(args, rig, scenario.name, fps, stop, say)
             else:
                 stats = rig.run_realtime(
                     args.speed or 1.0,
@@ -89,7 +91,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     stop,
                     on_frame=None if args.no_camera else on_frame,
                     on_progress=on_progress,
-                    fps=min(args.fps, rig_cfg.camera.fps),
+                    fps=fps or WALL_FPS,
                 )
             gt = rig.ground_truth()
             modes = {name: arm.robot_mode() for name, arm in rig.arms.items()}
@@ -112,7 +114,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _run_on_bus(args: argparse.Namespace, rig: Any, scenario_name: str, fps: float, stop: threading.Event, say: Any) -> Any:
+def _run_on_bus(args: argparse.Namespace, rig: Any, scenario_name: str, fps: float | None, stop: threading.Event, say: Any) -> Any:
     from bagit.common.bus import Keys, bus_config_from_args, open_session
     from bagit.services.sim.node import SimNode, SimNodeConfig
     from bagit.services.sim.rig_sim import RealtimeStats

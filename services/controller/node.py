@@ -5,7 +5,8 @@
 
 It follows `run/state`. When `planner/path` for the current run arrives (with `planner/goal`,
 whose perimeter is C6's R), it builds the run's controller (`RunState.controller`, default mpc;
-params = the scenario's `params:` overlaid with `RunState.params`) and servos on the wall clock:
+params = the scenario's `params:` overlaid with `RunState.params`, the control rate among them;
+the arm driver's watchdog from the rig config, `SafetyLimits.watchdog_s`) and servos on the wall clock:
 a tick as soon as a new SOI arrives (at most one per 3/4 of a control period), and one a control
 period after the last tick while none comes. Each tick takes the newest SOI (`perception/soi`) and both grippers' poses
 (`arm/<side>/state` tool_pose: world [x y z roll pitch yaw], the driver's convention), calls the
@@ -42,17 +43,17 @@ from typing import Any
 
 import numpy as np
 import zenoh  # noqa: F401 - the node is where the service meets the bus
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bagit.common.bus import Keys, LatestCache, Publisher, Subscriber
 from bagit.common.clock import ClockKind, make_clock
+from bagit.common.errors import refuse_moved
 from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, EStop, Goal, Path, RunState, SoiState, StepAck
 from bagit.common.names import DEFAULT_CONTROLLER, SERVO_STAGES
 from bagit.common.params import MethodParams
-from bagit.common.rig import ARMS, ArmName
-from bagit.services.controller.controller import CONTROLLERS
-from bagit.services.controller.session import ARM_MAX_AGE_S, DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, Outbox, ServoRuns, ServoSession
+from bagit.common.rig import ARMS, ArmName, RigConfig
+from bagit.services.controller.session import ARM_MAX_AGE_S, SOI_MAX_AGE_S, Outbox, ServoRuns, ServoSession
 
 log = logging.getLogger("bagit.controller")
 
@@ -61,19 +62,31 @@ SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at leas
 KEEPALIVE_TICK = "sim-keepalive"  # lockstep: a keep-alive tick from sim/clock, queued with the frames to tick on
 
 
+# Settings the controller's config once had, each now read from the one place that holds it for
+# every service: a config naming one is refused, saying where it is.
+MOVED_SETTINGS: dict[str, str] = {
+    "controller": "the run's choice (bagit run/up --controller, the dashboard)",
+    "control_rate_hz": "the run's parameter control_rate_hz (a scenario's params:, bagit run --params, the dashboard)",
+    "params": "the run's parameters (a scenario's params:, bagit run --params, the dashboard)",
+    "driver_watchdog_s": "the rig config's safety.watchdog_s (rig_config), which the arm driver enforces",
+}
+
+
 class ControllerServiceConfig(BaseModel):
-    """`bagit controller`'s config file (YAML)."""
+    """`bagit controller`'s config file (YAML): what only this service sets. The controller, its
+    parameters and the control rate are the run's; the arm driver's watchdog is the rig's."""
 
     model_config = ConfigDict(extra="forbid")
 
-    controller: str | None = Field(None, description="mpc | ibvs | ssvs; None: the run's choice (RunState.controller), else mpc")
-    control_rate_hz: float | None = Field(None, gt=0.0, le=500.0, description="None: the run's params.controller.control_rate_hz")
+    rig_config: str | None = Field(None, description="rig config YAML: the arm driver's watchdog (safety.watchdog_s), which "
+                                   "a command's dt stays under and keep-alives beat (default: built-in rig)")
     soi_max_age_s: float = Field(SOI_MAX_AGE_S, gt=0.0, le=10.0, description="a SOI older than this: hold")
     arm_max_age_s: float = Field(ARM_MAX_AGE_S, gt=0.0, le=10.0, description="an arm state older than this: hold")
-    params: dict[str, Any] = Field(default_factory=dict, description="method parameter overrides laid over the run's")
-    driver_watchdog_s: float = Field(DRIVER_WATCHDOG_S, gt=0.0, le=5.0,
-                                     description="the arm driver's watchdog: a command's dt stays under it, and while servoing "
-                                     "a command goes out at least every third of it (keep-alives)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _refuse_moved(cls, data: Any) -> Any:
+        return refuse_moved(data, MOVED_SETTINGS, "controller")
 
 
 class ControllerNode:
@@ -85,23 +98,20 @@ class ControllerNode:
         keys: Keys,
         cfg: ControllerServiceConfig | None = None,
         clock: ClockKind = "wall",
+        rig: RigConfig | None = None,
     ) -> None:
         self.cfg = cfg or ControllerServiceConfig()
         self.lockstep = clock == "sim"
         self.clock = make_clock(clock)  # ages: by stamps at the step (lockstep) or by arrival
-        if self.cfg.controller is not None and self.cfg.controller not in CONTROLLERS:
-            from bagit.common.errors import BadControlInput
-
-            raise BadControlInput(f"unknown controller {self.cfg.controller!r}; choose from {', '.join(CONTROLLERS)}")
         self.keys = keys
-        self.rig_watchdog_s = self.cfg.driver_watchdog_s
+        self.rig_watchdog_s = (rig or RigConfig()).safety.watchdog_s
         self._lock = threading.Lock()
         self._run_state: RunState | None = None
         self._paths: dict[str | None, Path] = {}
         self._goals: dict[str | None, Goal] = {}
         self._estop = False
         self._seq = 0
-        self.servo = ServoRuns(self._next_seq, self.cfg.params, self.cfg.controller, self.cfg.control_rate_hz, self.rig_watchdog_s)
+        self.servo = ServoRuns(self._next_seq, self.rig_watchdog_s)
         self.counters: dict[str, int] = {"ticks": 0, "servo": 0, "hold": 0, "keepalive": 0, "errors": 0, "runs": 0}
         self.last_reason: str | None = None
         self.runs_done: list[dict[str, Any]] = []
@@ -290,7 +300,7 @@ class ControllerNode:
         run = self._run
         if run is not None:
             return run.tick_s  # the control period, or the keep-alive pace of a slower control rate
-        return 1.0 / (self.cfg.control_rate_hz or MethodParams().controller.control_rate_hz)
+        return 1.0 / MethodParams().controller.control_rate_hz  # no run yet: the default rate
 
     def _tick(self, now: float | None = None) -> None:
         """One control tick at `now` (the rig's clock; None: this host's), through `ServoRuns` as `bagit run` ticks."""

@@ -4,11 +4,11 @@ Whoever hosts it (the `bagit controller` node on Zenoh, `bagit run`'s in-process
 simulator's clock) hands it the newest SOI, the grippers' poses and what the arms report, and
 publishes what it returns: the command for the arm driver and the status for the coordinator.
 
-    runs = ServoRuns(next_seq)                                  # what both hosts hold across runs
+    runs = ServoRuns(next_seq, rig.safety.watchdog_s)           # what both hosts hold across runs
     outs = runs.tick(run_state, path, goal, False, soi, soi_age_s, soi_max_age_s, states, None, now)
     runs.servoing(run_id)                                       # a keep-alive tick is due while this holds
 
-    s, out = ServoSession.build(run_state, path, goal, overrides, next_seq)  # a finished s: out says why
+    s, out = ServoSession.build(run_state, path, goal, next_seq, rig.safety.watchdog_s)  # a finished s: out says why
     out = s.tick_on(soi, soi_age_s, soi_max_age_s, states, None, path, goal, now)  # out.command, out.status
     out = s.end("run aborted", now)                                           # one hold, then nothing
 
@@ -40,7 +40,7 @@ from bagit.common.geometry import pose_to_matrix
 from bagit.common.messages import ArmState, Command, ControllerStatus, Goal, Path, RunState, SoiState
 from bagit.common.names import ACTIVE_STAGES, DEFAULT_CONTROLLER
 from bagit.common.params import MethodParams, merge_params
-from bagit.common.rig import ARMS, ArmName, SafetyLimits
+from bagit.common.rig import ARMS, ArmName
 from bagit.common.scenario import Scenario
 from bagit.services.controller.controller import Controller, make_controller
 
@@ -51,15 +51,15 @@ WATCHDOG_MARGIN = 0.9
 # rate, and keep-alives between slower control ticks): the watchdog halts the arms after a gap of at
 # least 3/4 of it (`SafetyLimits.halt_gap_s`), so one late or lost command never stops them.
 KEEPALIVE_SHARE = 1 / 3
-DRIVER_WATCHDOG_S = SafetyLimits().watchdog_s
 KEEPALIVE = "keep-alive: no new SOI yet"  # the reason a zero servo increment carries
 SOI_MAX_AGE_S = 0.5  # a SOI older than this (by its camera stamp): hold
 ARM_MAX_AGE_S = 0.3  # an arm state older than this: hold
 
 
-def tick_period(rate_hz: float, watchdog_s: float = DRIVER_WATCHDOG_S) -> float:
+def tick_period(rate_hz: float, watchdog_s: float) -> float:
     """How often a host ticks a session at control rate `rate_hz` (`ServoSession.tick_s`): the control
-    period, or the keep-alive pace (KEEPALIVE_SHARE of the watchdog) when that is shorter. A lockstep
+    period, or the keep-alive pace (KEEPALIVE_SHARE of the rig's watchdog, `SafetyLimits.watchdog_s`)
+    when that is shorter. A lockstep
     simulator schedules keep-alive ticks at this pace between sparser camera frames (`Schedule`)."""
     return min(1.0 / rate_hz, KEEPALIVE_SHARE * watchdog_s)
 
@@ -129,7 +129,7 @@ class ServoSession:
     """One run being servoed (see the module docstring)."""
 
     def __init__(self, run_id: str | None, name: str, controller: Controller | None, params: MethodParams,
-                 rate_hz: float, next_seq: Callable[[], int], watchdog_s: float = DRIVER_WATCHDOG_S):
+                 rate_hz: float, next_seq: Callable[[], int], watchdog_s: float):
         self.run_id = run_id
         self.name = name
         self.controller = controller
@@ -153,33 +153,31 @@ class ServoSession:
     # -- building ----------------------------------------------------------------------------------
 
     @classmethod
-    def build(cls, state: RunState, path: Path, goal: Goal | None, overrides: dict[str, Any], next_seq: Callable[[], int],
-              controller: str | None = None, rate_hz: float | None = None,
-              watchdog_s: float = DRIVER_WATCHDOG_S) -> tuple[ServoSession, Outbox]:
-        """The run's session from its run state and path (params: the scenario's, the run's overrides,
-        then `overrides`); a finished one whose outbox says why when it cannot be built."""
+    def build(cls, state: RunState, path: Path, goal: Goal | None, next_seq: Callable[[], int],
+              watchdog_s: float) -> tuple[ServoSession, Outbox]:
+        """The run's session from its run state and path: its controller (the run's choice), its params
+        (the scenario's with the run's on top, the control rate among them) and the rig's watchdog
+        (`SafetyLimits.watchdog_s`); a finished one whose outbox says why when it cannot be built."""
         if not path.success:
             why = f"the planner found no path for run {state.run_id}"
-            return cls._finished(state.run_id, why, next_seq), Outbox(status=ControllerStatus(run_id=state.run_id, reason=why))
+            return cls._finished(state.run_id, why, next_seq, watchdog_s), Outbox(status=ControllerStatus(run_id=state.run_id, reason=why))
         try:
             base = Scenario.model_validate(state.scenario_doc).params if state.scenario_doc is not None else MethodParams()
-            params = merge_params(merge_params(base, state.params), overrides)
-            name = controller or state.controller or DEFAULT_CONTROLLER
-            rate = rate_hz or params.controller.control_rate_hz
-            if rate != params.controller.control_rate_hz:
-                params = merge_params(params, {"control_rate_hz": rate})
+            params = merge_params(base, state.params)
+            name = state.controller or DEFAULT_CONTROLLER
+            rate = params.controller.control_rate_hz
             nodes = np.asarray(path.nodes, dtype=float)
             ctrl = make_controller(name, params, nodes.shape[1])
         except Exception as e:  # noqa: BLE001 - a bad run must not take the host down
             reason = f"cannot build the controller for run {state.run_id}: {type(e).__name__}: {str(e).splitlines()[0]}"
-            return cls._finished(state.run_id, reason, next_seq), Outbox(status=ControllerStatus(run_id=state.run_id, reason=reason), report=reason)
+            return cls._finished(state.run_id, reason, next_seq, watchdog_s), Outbox(status=ControllerStatus(run_id=state.run_id, reason=reason), report=reason)
         note = f"run {state.run_id}: {name} at {rate:g} Hz on a path of {len(nodes)} nodes (g† at {path.dagger_index})"
         return cls(state.run_id, name, ctrl, params, rate, next_seq, watchdog_s), Outbox(report=note)
 
     @classmethod
-    def _finished(cls, run_id: str | None, why: str, next_seq: Callable[[], int]) -> ServoSession:
+    def _finished(cls, run_id: str | None, why: str, next_seq: Callable[[], int], watchdog_s: float) -> ServoSession:
         """A run that is never servoed (no path, or no controller): the reason is told once, not every tick."""
-        s = cls(run_id, "none", None, MethodParams(), MethodParams().controller.control_rate_hz, next_seq)
+        s = cls(run_id, "none", None, MethodParams(), MethodParams().controller.control_rate_hz, next_seq, watchdog_s)
         s.finished = why
         return s
 
@@ -305,12 +303,9 @@ class ServoRuns:
     Pure: the host hands it what it has heard (run state, path, goal, e-stop, SOI, arm states) and `now`, and
     sends what it returns, in order."""
 
-    def __init__(self, next_seq: Callable[[], int], overrides: dict[str, Any] | None = None, controller: str | None = None,
-                 rate_hz: float | None = None, watchdog_s: float = DRIVER_WATCHDOG_S) -> None:
+    def __init__(self, next_seq: Callable[[], int], watchdog_s: float) -> None:
+        """`watchdog_s`: the rig's (`SafetyLimits.watchdog_s`), which the arm driver enforces."""
         self.next_seq = next_seq
-        self.overrides = overrides or {}
-        self.controller = controller
-        self.rate_hz = rate_hz
         self.watchdog_s = watchdog_s
         self.session: ServoSession | None = None
         self.runs = 0  # sessions built with a controller
@@ -349,7 +344,7 @@ class ServoRuns:
         if estop or state is None or state.stage not in ACTIVE_STAGES or path is None:
             return out
         if s is None:
-            s, built = ServoSession.build(state, path, goal, self.overrides, self.next_seq, self.controller, self.rate_hz, self.watchdog_s)
+            s, built = ServoSession.build(state, path, goal, self.next_seq, self.watchdog_s)
             self.session = s
             self.runs += s.controller is not None
             out.append(built)

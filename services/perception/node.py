@@ -54,6 +54,7 @@ from bagit.common.geometry import transform_points
 from bagit.common.lockstep import StepWait
 from bagit.common.messages import ArmState, ObjectDetection, PointCloud, RgbdFrame, RunState, SoiState, StepAck
 from bagit.common.names import ACTIVE_STAGES, MAX_N_X, MIN_N_X
+from bagit.common.rig import CameraConfig
 from bagit.common.scenario import Scenario
 from bagit.services.perception.marker import MARKER_RATE_HZ, MARKER_SETTLE_S, MarkerSchedule, ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.rgbd import masked_points
@@ -119,7 +120,7 @@ class PerceptionNode:
         session: zenoh.Session,
         keys: Keys,
         cfg: PerceptionServiceConfig | None = None,
-        T_world_camera: np.ndarray | None = None,
+        camera: CameraConfig | None = None,
         clock: ClockKind = "wall",
     ) -> None:
         self.cfg = cfg or PerceptionServiceConfig()
@@ -148,7 +149,7 @@ class PerceptionNode:
         self._last_cloud = -1e9
         self.solve_ms: list[float] = []
         # the source first: no camera is an error before anything is declared
-        self._source = open_source(self.cfg.source, T_world_camera)
+        self._source = open_source(self.cfg.source, camera)  # the rig's camera: device, mode, extrinsics
         self._library = self._open_library()
         self._mcond = threading.Condition()
         self._mpending: RgbdFrame | None = None

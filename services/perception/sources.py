@@ -2,8 +2,8 @@
 
 `SourceConfig.kind` picks one:
 - `realsense`: a live RealSense (a D455, or any model with depth and colour) through pyrealsense2,
-  the device picked by serial number (or the only one attached); depth aligned to colour, 640x480
-  at 30 Hz by default; intrinsics and depth scale read from the device.
+  the rig's camera (`CameraConfig`: its serial, or the only one attached, and its mode, 640x480 at
+  30 Hz by default); depth aligned to colour; intrinsics and depth scale read from the device.
 - `realsense-file`: a RealSense recording played back through pyrealsense2: the `.db3` (ROS 2 bag)
   files pyrealsense2 2.59 records (`rs_recording.write_recording` writes them from any frames),
   and older `.bag` (ROS 1) files where the library still reads them; at recorded speed or as
@@ -11,8 +11,8 @@
 - `zenoh`: frames published on `camera/rgbd` (the simulator, `bagit camera` on another machine).
   These come from the bus, so the perception node subscribes itself: `open_source` returns None.
 
-Camera-to-world extrinsics are not the camera's to know: they come from the rig config
-(`CameraConfig.T_world_camera`, estimated by `bagit calibrate`) and are passed in.
+Which camera, its mode and its camera-to-world extrinsics are the rig config's (`CameraConfig`, one
+place for every command that opens it; `T_world_camera` estimated by `bagit calibrate`), passed in.
 Frames are `RgbdFrame`s: colour RGB uint8 `(H, W, 3)`, depth uint16 `(H, W)` in depth-scale units,
 registered to the colour pixels.
 """
@@ -27,11 +27,13 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bagit.common.errors import CameraError
+from bagit.common.errors import CameraError, refuse_moved
 from bagit.common.messages import CameraInfo, RgbdFrame
+from bagit.common.rig import CameraConfig
 
 SourceKind = Literal["zenoh", "realsense", "realsense-file"]
 RECORDING_SUFFIXES = (".db3", ".bag")
+CAMERA_SETTINGS = ("serial", "width", "height", "fps")  # once a source's too; now only the rig config's camera
 
 
 class SourceConfig(BaseModel):
@@ -40,15 +42,16 @@ class SourceConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     kind: SourceKind = "zenoh"
-    serial: str | None = Field(None, description="realsense: the device's serial number (None: the only one attached)")
-    width: int = Field(640, ge=16, le=4096, description="realsense: stream width")
-    height: int = Field(480, ge=16, le=4096, description="realsense: stream height")
-    fps: int = Field(30, ge=1, le=300, description="realsense: frame rate")
     path: Path | None = Field(None, description="realsense-file: the recording (.db3, or an older .bag)")
     real_time: bool = Field(True, description="realsense-file: at recorded speed (False: as fast as frames are read)")
     loop: bool = Field(False, description="realsense-file: start again at the end")
     align: bool = Field(True, description="register depth to the colour pixels (skipped when they already are)")
     timeout_s: float = Field(5.0, gt=0, le=120, description="no frame for this long: CameraError")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _refuse_moved(cls, data: Any) -> Any:
+        return refuse_moved(data, {key: f"the rig config's camera.{key} (rig_config)" for key in CAMERA_SETTINGS}, "source")
 
     @model_validator(mode="after")
     def _needs(self) -> SourceConfig:
@@ -68,12 +71,12 @@ class FrameSource(Protocol):
     def close(self) -> None: ...
 
 
-def open_source(cfg: SourceConfig, T_world_camera: np.ndarray | None = None) -> RealSenseSource | None:
+def open_source(cfg: SourceConfig, camera: CameraConfig | None = None) -> RealSenseSource | None:
     """The frame source `cfg` names; None for kind `zenoh` (the node subscribes to camera/rgbd).
-    `T_world_camera (4, 4)`: the rig's camera-to-world extrinsics, stamped on every frame."""
+    `camera`: the rig's (`RealSenseSource`)."""
     if cfg.kind == "zenoh":
         return None
-    return RealSenseSource(cfg, T_world_camera)
+    return RealSenseSource(cfg, camera)
 
 
 def _rs():
@@ -181,13 +184,17 @@ class RealSenseSource:
     """A live RealSense (a pyrealsense2 pipeline, depth aligned by librealsense) or a RealSense
     recording (its playback device's sensors, depth and colour paired by timestamp here)."""
 
-    def __init__(self, cfg: SourceConfig, T_world_camera: np.ndarray | None = None):
+    def __init__(self, cfg: SourceConfig, camera: CameraConfig | None = None):
+        """`camera`: the rig's: which device (serial), its mode (width, height, fps) and the extrinsics
+        stamped on every frame; None: a camera in no rig, the only one attached at the default mode,
+        frames in its own frame."""
         if cfg.kind not in ("realsense", "realsense-file"):
             raise CameraError(f"a RealSenseSource reads kind realsense or realsense-file, not {cfg.kind!r}")
         rs = _rs()
         self.cfg = cfg
+        self.camera = camera or CameraConfig()
         self._rs = rs
-        self._T = np.eye(4) if T_world_camera is None else np.asarray(T_world_camera, dtype=float)
+        self._T = np.eye(4) if camera is None else camera.T_world_camera()
         if self._T.shape != (4, 4) or not np.all(np.isfinite(self._T)):
             raise CameraError("T_world_camera must be a finite 4x4 transform")
         self.live = cfg.kind == "realsense"
@@ -206,12 +213,14 @@ class RealSenseSource:
         self._pipe = rs.pipeline()
         config = rs.config()
         config.enable_device(self.serial)
-        config.enable_stream(rs.stream.depth, cfg.width, cfg.height, rs.format.z16, cfg.fps)
-        config.enable_stream(rs.stream.color, cfg.width, cfg.height, rs.format.rgb8, cfg.fps)
+        cam = self.camera
+        fps = int(round(cam.fps))
+        config.enable_stream(rs.stream.depth, cam.width, cam.height, rs.format.z16, fps)
+        config.enable_stream(rs.stream.color, cam.width, cam.height, rs.format.rgb8, fps)
         try:
             profile = self._pipe.start(config)
         except RuntimeError as e:
-            raise CameraError(f"cannot start RealSense {self.serial} at {cfg.width}x{cfg.height}@{cfg.fps} (depth z16 + colour rgb8): {e}") from None
+            raise CameraError(f"cannot start RealSense {self.serial} at {cam.width}x{cam.height}@{fps} (depth z16 + colour rgb8): {e}") from None
         self._started = True
         try:
             dev = profile.get_device()
@@ -226,7 +235,7 @@ class RealSenseSource:
 
     def _pick_device(self) -> str:
         devices = connected_devices()
-        want = self.cfg.serial
+        want = self.camera.serial
         if not devices:
             raise CameraError(
                 f"no RealSense camera found (looked for {'serial ' + want if want else 'any RealSense'} over USB with librealsense); "

@@ -8,20 +8,16 @@ printed top-left corner, x right, y down, z into the board) sits on that face.
 
 from __future__ import annotations
 
-import os
+import cv2
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
 
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-
-import cv2  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
-
-from bagit.common.board import BoardSpec  # noqa: E402
-from bagit.common.messages import RgbdFrame  # noqa: E402
-from bagit.common.rig import RigConfig  # noqa: E402
-from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise  # noqa: E402
-from bagit.services.sim.scene import TABLE_RGBA, camera_mjcf  # noqa: E402
+from bagit.common.board import BoardSpec
+from bagit.common.messages import RgbdFrame
+from bagit.common.rig import RigConfig
+from bagit.services.sim.camera import DepthNoise, RgbdRenderer, add_depth_noise
+from bagit.services.sim.scene import TABLE_RGBA, camera_mjcf
 
 BOARD_THICKNESS_M = 0.003
 MARGIN_SQUARES = 0.5

@@ -10,19 +10,16 @@ metric, 0 where there is no return.
 from __future__ import annotations
 
 import os
+import sys
+import weakref
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 
-os.environ.setdefault("MUJOCO_GL", "osmesa")
+import mujoco
+import numpy as np
 
-import sys  # noqa: E402
-import weakref  # noqa: E402
-from concurrent.futures import Future, ThreadPoolExecutor  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-
-from bagit.common.rig import CameraConfig  # noqa: E402
-from bagit.services.sim.scene import CAMERA_NAME  # noqa: E402
+from bagit.common.rig import CameraConfig
+from bagit.services.sim.scene import CAMERA_NAME
 
 
 @dataclass

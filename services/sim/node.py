@@ -1,7 +1,8 @@
 """The simulator on Zenoh: the services' camera, and the world reset between runs.
 
 `SimNode.run()` paces the simulated rig (bagit.services.sim.rig_sim.SimRig, its CR5s on TCP) to
-the wall clock and publishes an RgbdFrame on camera/rgbd `fps` times per simulated second,
+the wall clock and publishes an RgbdFrame on camera/rgbd `fps` times per simulated second (by
+default WALL_FPS; in lockstep the run's control rate, a frame per control tick as in `bagit run`),
 stamped with the wall-clock time the image was taken (so perception and control can judge its
 age). If the machine cannot keep up, simulated time runs slower than the wall clock: frames then
 come less often per wall second, and the node says its real-time factor on stderr and in
@@ -44,11 +45,11 @@ from bagit.common.errors import BagItError
 from bagit.common.lockstep import LOCKSTEP_TIMEOUT_S
 from bagit.common.messages import ClockTick, RgbdFrame, RunState, SimTruth, StepAck
 from bagit.common.names import FINAL_STAGES
-from bagit.common.params import merge_params
+from bagit.common.params import MethodParams, merge_params
 from bagit.common.scenario import Scenario
 from bagit.services.controller.session import tick_period
 from bagit.services.sim.lockstep import Lockstep, Schedule
-from bagit.services.sim.rig_sim import SETTLE_S, SimRig
+from bagit.services.sim.rig_sim import SETTLE_S, SimRig, camera_fps
 from bagit.services.sim.truth import GroundTruth
 
 EXPIRE_CHECK_S = 1.0  # lockstep: while waiting, how often (wall) a silent service's time-out is looked at
@@ -64,7 +65,8 @@ class SimNodeConfig(BaseModel):
 
     speed: float | None = Field(None, gt=0, le=1000, description="simulated seconds per wall second at most; None: a lockstep run as "
                                 "fast as the rig answers, real time otherwise (between runs, on the wall clock)")
-    fps: float = Field(10.0, gt=0, le=120, description="camera frames per simulated second (0 < fps <= the camera's rate)")
+    fps: float | None = Field(None, gt=0, le=120, description="camera frames per simulated second (at most the camera's rate); "
+                              "None: `camera_fps`'s default, the run's control rate in lockstep, WALL_FPS on the wall clock")
     camera: bool = True
     chunk_s: float = Field(0.02, gt=0, le=0.2, description="simulated seconds stepped between checks")
     settle_s: float = Field(SETTLE_S, ge=0, le=10, description="simulated seconds the bag hangs still after a reset, no frames")
@@ -111,6 +113,7 @@ class SimNode:
         self._lock = threading.Lock()
         self._pending: tuple[str, dict[str, Any], int, str | None, dict[str, Any]] | None = None
         self._keep_s: float | None = None  # lockstep: the run's controller keep-alive pace (`tick_period`)
+        self._fps = camera_fps(self.cfg.fps, clock == "sim", MethodParams().controller.control_rate_hz)  # the run's, from its reset
         self._seen_runs: set[str] = set()
         self._world_frames = 0  # frames of the current world (lockstep numbers frames per world)
         self._ended: str | None = None  # the last run whose final truth went out (or is due)
@@ -178,6 +181,7 @@ class SimNode:
         self._camera_paused = None
         self._world_frames = 0
         self._keep_s = tick_period(rate, self.rig.rig.safety.watchdog_s)
+        self._fps = camera_fps(self.cfg.fps, self.clock == "sim", rate)
         self.run_id = run_id
         self.scenario_name = name or scenario.name
         self.stats.resets += 1
@@ -260,9 +264,9 @@ class SimNode:
                 frame.stamp = taken  # wall clock of the image, not simulated time
                 self._frame_pub.put(frame)
                 self.stats.frames += 1
-                next_frame += 1.0 / cfg.fps
+                next_frame += 1.0 / self._fps
                 if next_frame < self.rig.time:  # behind: skip frames rather than bunch them up
-                    next_frame = self.rig.time + 1.0 / cfg.fps
+                    next_frame = self.rig.time + 1.0 / self._fps
             now = time.monotonic()
             next_truth = self._truths(now, next_truth)
             if now >= next_report:
@@ -290,7 +294,7 @@ class SimNode:
         period = float(rig.rig.safety.servo_period_s)
         # The events fall on the world's time (as `bagit run` steps by it, so both round the steps
         # alike); what goes out is stamped on the rig's clock, which never goes back.
-        sched = Schedule.starting(rig.time, 1.0 / cfg.fps, period)
+        sched = Schedule.starting(rig.time, 1.0 / self._fps, period)
         t_sim0, t_wall0 = rig.clock_s, time.monotonic()
         start, wall_start = rig.clock_s, time.monotonic()
         next_truth = next_report = time.monotonic()
@@ -306,7 +310,7 @@ class SimNode:
                     with self._cond:
                         self.lockstep.start_run(self.run_id)
                 rig.push_feedback()
-                sched = Schedule.starting(rig.time, 1.0 / cfg.fps, period, sched.ticks, keep_s=self._keep_s)
+                sched = Schedule.starting(rig.time, 1.0 / self._fps, period, sched.ticks, keep_s=self._keep_s)
                 t_sim0, t_wall0 = rig.clock_s, time.monotonic()
                 continue
             now, world_t = rig.clock_s, rig.time

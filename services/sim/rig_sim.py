@@ -32,9 +32,16 @@ from bagit.common.rig import ARMS, ArmName, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.sim.cr5_sim import SimulatedCR5
 from bagit.services.sim.dobot_server import DobotControllerServer
-from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S  # noqa: E402  (pure Python, no MuJoCo)
+from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S
 
 SETTLE_S = 1.0  # simulated seconds the bag hangs still after a (re)set before the camera's first frame
+WALL_FPS = 10.0  # on the wall clock: camera frames per simulated second a 2-core machine keeps up with beside every service
+
+
+def camera_fps(fps: float | None, lockstep: bool, rate_hz: float) -> float:
+    """Camera frames per simulated second: `fps` when given; else in lockstep the run's control rate
+    `rate_hz` (a frame per control tick, as `bagit run` takes them), WALL_FPS on the wall clock."""
+    return fps or (rate_hz if lockstep else WALL_FPS)
 
 
 class World(Protocol):

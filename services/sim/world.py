@@ -9,27 +9,23 @@ can make the fabric explode. Same scenario, rig, seed and calls: the same run, f
 
 from __future__ import annotations
 
-import os
+from collections.abc import Mapping
+from dataclasses import dataclass
 
-os.environ.setdefault("MUJOCO_GL", "osmesa")
+import mujoco
+import numpy as np
 
-from collections.abc import Mapping  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-
-from bagit.common.errors import BadControlInput, BadScenario, SimulationFailed  # noqa: E402
-from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed  # noqa: E402
-from bagit.common.messages import RgbdFrame  # noqa: E402
-from bagit.common.mounts import rim_frame  # noqa: E402
-from bagit.common.rig import ARMS, ArmName, RigConfig  # noqa: E402
-from bagit.common.scenario import Scenario  # noqa: E402
-from bagit.services.sim.bag import BagLayout, bag_layout  # noqa: E402
-from bagit.services.sim.camera import DepthNoise, DrawsAhead, RgbdRenderer, add_depth_noise, depth_units  # noqa: E402
-from bagit.services.sim.objects import object_mesh, object_parts, object_pose  # noqa: E402
-from bagit.services.sim.scene import TIMESTEP, build_mjcf, scene_files  # noqa: E402
-from bagit.services.sim.truth import GroundTruth, PenetrationMonitor  # noqa: E402
+from bagit.common.errors import BadControlInput, BadScenario, SimulationFailed
+from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed
+from bagit.common.messages import RgbdFrame
+from bagit.common.mounts import rim_frame
+from bagit.common.rig import ARMS, ArmName, RigConfig
+from bagit.common.scenario import Scenario
+from bagit.services.sim.bag import BagLayout, bag_layout
+from bagit.services.sim.camera import DepthNoise, DrawsAhead, RgbdRenderer, add_depth_noise, depth_units
+from bagit.services.sim.objects import object_mesh, object_parts, object_pose
+from bagit.services.sim.scene import TIMESTEP, build_mjcf, scene_files
+from bagit.services.sim.truth import GroundTruth, PenetrationMonitor
 
 DEFAULT_PERIMETER_M = 0.68  # the paper's bag
 RIM_BELOW_OBJECT_M = 0.12  # default start: the rim this far below the object's lowest point ...

@@ -108,7 +108,7 @@ def test_the_service_example_configs_load():
     p, bus = load_service_config(PerceptionServiceConfig, deploy / "perception.yaml", {"n_x": 24}, args)
     assert p.source.kind == "realsense" and p.n_x == 24 and bus.rig == "lab"
     c, _ = load_service_config(ControllerServiceConfig, deploy / "controller.yaml", {"soi_max_age_s": 0.4}, args)
-    assert c.soi_max_age_s == 0.4 and c.controller is None
+    assert c.soi_max_age_s == 0.4 and c.rig_config == "rig.yaml"
     a, _ = load_service_config(ArmDriverServiceConfig, deploy / "arm-driver.yaml", {"driver": {"servo_command": "servoj"}}, args)
     assert a.driver.servo_command == "servoj" and a.driver.feedback_timeout_s == 0.2 and a.rig_config == "rig.yaml"
     with pytest.raises(BagItError, match="soi_max_age_s"):
@@ -127,6 +127,55 @@ def test_planner_run_time_limit_is_validated(capsys, tmp_path):
 
     up = Up(UpOptions(run_time_limit_s=400.0, workdir=tmp_path))
     assert up._argv("planner", Path("z.json5"), Path("rig.yaml"))[:3] == ["planner", "--run-time-limit", "400"]
+
+
+def test_the_controller_reads_the_watchdog_from_the_rig_config_and_refuses_the_settings_that_moved(tmp_path, capsys):
+    """The watchdog is the rig's (`safety.watchdog_s`, what the arm driver enforces), given to the
+    controller by the same rig config as the driver's (`bagit up` passes both); the controller, its
+    parameters and the control rate are the run's: a config or a flag setting one is refused, naming
+    where it is now."""
+    import argparse
+
+    from bagit.commands._service import load_service_config, service_rig
+    from bagit.common.errors import BagItError
+    from bagit.common.rig import RigConfig, SafetyLimits
+    from bagit.services.controller.node import ControllerServiceConfig
+    from bagit.up import Up, UpOptions
+
+    rig = RigConfig(safety=SafetyLimits(watchdog_s=0.3))
+    (tmp_path / "rig.yaml").write_text(rig.to_yaml())
+    (tmp_path / "controller.yaml").write_text("rig_config: rig.yaml\n")  # relative to the file
+    args = argparse.Namespace(rig="lab")
+    cfg, _ = load_service_config(ControllerServiceConfig, tmp_path / "controller.yaml", {}, args)
+    assert service_rig(cfg.rig_config, None, str(tmp_path / "controller.yaml")).safety.watchdog_s == 0.3
+    up = Up(UpOptions(workdir=tmp_path))
+    zpath, rpath = up._write_configs()
+    argv = up._argv("controller", zpath, rpath)
+    assert argv[argv.index("--rig-config") + 1] == str(rpath)
+
+    for key, where in [("control_rate_hz", "the run's parameter control_rate_hz"), ("driver_watchdog_s", "the rig config's safety.watchdog_s"),
+                       ("controller", "the run's choice"), ("params", "the run's parameters")]:
+        (tmp_path / "old.yaml").write_text(f"{key}: null\n")
+        with pytest.raises(BagItError, match=f"{key} is no longer a controller setting: it is {where}"):
+            load_service_config(ControllerServiceConfig, tmp_path / "old.yaml", {}, args)
+    for flag, where in [("--rate", "control_rate_hz"), ("--controller", "the run's choice")]:
+        assert main(["controller", flag, "15", "--duration", "1"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and flag in err[0] and where in err[0], err
+
+
+def test_the_camera_rate_is_the_runs_control_rate_in_lockstep_unless_given(tmp_path):
+    """`bagit up` leaves the camera rate to the simulator, which in lockstep takes each run's control rate
+    (its params, as `bagit run` does: a frame per control tick) and WALL_FPS on the wall clock."""
+    from bagit.services.sim.rig_sim import WALL_FPS, camera_fps
+    from bagit.up import Up, UpOptions
+
+    assert camera_fps(None, True, 15.0) == 15.0 and camera_fps(None, False, 15.0) == WALL_FPS and camera_fps(20.0, True, 15.0) == 20.0
+    up = Up(UpOptions(workdir=tmp_path))
+    zpath, rpath = up._write_configs()
+    assert "--fps" not in up._argv("sim", zpath, rpath)
+    argv = Up(UpOptions(workdir=tmp_path, fps=12.0))._argv("sim", zpath, rpath)
+    assert argv[argv.index("--fps") + 1] == "12"
 
 
 def test_up_gives_the_arm_driver_link_timeouts_for_simulated_controllers(tmp_path):

@@ -24,10 +24,10 @@ from bagit.common.clock import sim_time
 from bagit.common.dual_arm import apply_increment
 from bagit.common.geometry import matrix_to_rpy
 from bagit.common.messages import ArmState, ClockTick, Command, ControllerStatus, Path, RunState, SoiState, StepAck
-from bagit.common.rig import ArmName
+from bagit.common.rig import ArmName, SafetyLimits
 from bagit.inprocess import control_tick
 from bagit.services.controller.node import ControllerNode, ControllerServiceConfig
-from bagit.services.controller.session import DRIVER_WATCHDOG_S, KEEPALIVE, ServoRuns, tick_period
+from bagit.services.controller.session import KEEPALIVE, ServoRuns, tick_period
 from bagit.services.controller.synthetic import SyntheticRim
 from bagit.services.perception.marker import MarkerSchedule
 from bagit.services.perception.node import PerceptionNode, PerceptionServiceConfig
@@ -36,6 +36,8 @@ from bagit.services.perception.sources import SourceConfig
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
 PARAMS = {"max_linear_speed_mps": 0.15, "max_angular_speed_rps": 0.9, "control_rate_hz": 30.0}
 RUN = "r1"
+
+WATCHDOG_S = SafetyLimits().watchdog_s  # the rig's default, which both hosts read
 
 
 class Plant:
@@ -60,7 +62,7 @@ class Plant:
 def events() -> list[tuple[str, float, bool]]:
     """(kind, time, with an SOI): frames at the control rate, then frames sparser than the keep-alive pace
     with keep-alive ticks between them, then frames without an SOI until it is stale, then the run's end."""
-    keep = tick_period(PARAMS["control_rate_hz"], DRIVER_WATCHDOG_S)
+    keep = tick_period(PARAMS["control_rate_hz"], WATCHDOG_S)
     out = [("frame", k / 30, True) for k in range(40)]
     t = out[-1][1]
     for _ in range(6):  # a frame every 2.5 keep-alive periods: two keep-alive ticks between frames
@@ -86,7 +88,7 @@ def run_inprocess(model: SyntheticRim, state: RunState, path: Path, evs: list[tu
     """`bagit run`'s control ticks (`control_tick`, as its loop calls it: at each frame and keep-alive tick)."""
     plant = Plant(model)
     seq = iter(range(1, 10_000))
-    servo = ServoRuns(lambda: next(seq), watchdog_s=DRIVER_WATCHDOG_S)
+    servo = ServoRuns(lambda: next(seq), watchdog_s=WATCHDOG_S)
     cmds: list[Command] = []
     statuses: list[ControllerStatus] = []
     soi: SoiState | None = None

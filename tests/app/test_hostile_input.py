@@ -6,17 +6,25 @@ CLI prints as one line with exit status 2): never a traceback, an out-of-memory 
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import math
+import signal
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from suite_support import HANG_S
 
 from bagit.bench.probes import npy_with_header
 from bagit.cli import main
-from bagit.common.errors import BadScenario
+from bagit.common.errors import BadScenario, BagItError
 from bagit.common.scenario import MAX_SCENARIO_BYTES, MAX_SCENARIO_DEPTH, Scenario
 from bagit.common.shapes import MAX_COORDINATE_M, MAX_SIZE_M
 from bagit.scenarios import find_scenario
@@ -375,18 +383,6 @@ def test_bad_run_params_are_one_line(capsys, monkeypatch):
 
 
 # --- 7. fuzz: scenario fields, cloud headers and numeric flags --------------------------------------
-
-import argparse  # noqa: E402
-import contextlib  # noqa: E402
-import math  # noqa: E402
-import signal  # noqa: E402
-from collections.abc import Iterator  # noqa: E402
-from typing import Any  # noqa: E402
-
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-
-from bagit.common.errors import BagItError  # noqa: E402
 
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 CLEAR_ERRORS = (BagItError, ValueError)  # what the CLI prints as one line with exit status 2

@@ -5,7 +5,7 @@ import pytest
 
 from bagit.common.dual_arm import apply_increment, pose_increment
 from bagit.common.messages import ArmState, Path, RunState, SoiState
-from bagit.common.rig import SafetyLimits
+from bagit.common.rig import RigConfig, SafetyLimits
 from bagit.common.so3 import matrix_to_rpy
 from bagit.services.controller.session import (
     KEEPALIVE,
@@ -27,7 +27,7 @@ def _session(n_x: int = 16, params: dict = FAST):
     nodes = np.stack([m.rim(apply_increment(m.home(), U_GOAL * s)) for s in np.linspace(0, 1, 6)])
     seqs = iter(range(1, 10**6))
     state = RunState(run_id="r1", stage="pre-bagging", controller="mpc", params=params)
-    s, out = ServoSession.build(state, Path(run_id="r1", nodes=nodes, dagger_index=4), None, {}, lambda: next(seqs))
+    s, out = ServoSession.build(state, Path(run_id="r1", nodes=nodes, dagger_index=4), None, lambda: next(seqs), RigConfig().safety.watchdog_s)
     assert s.controller is not None and out.report.startswith(f"run r1: mpc at {params['control_rate_hz']:g} Hz")
     return s, m, nodes
 

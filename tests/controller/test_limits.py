@@ -8,18 +8,11 @@ import pytest
 
 from bagit.common.dual_arm import apply_increment
 from bagit.common.messages import Path, RunState, SoiState
-from bagit.common.rig import RigConfig, SafetyLimits
-from bagit.services.controller.node import ControllerServiceConfig
-from bagit.services.controller.session import DRIVER_WATCHDOG_S, SOI_MAX_AGE_S, ServoSession
+from bagit.common.rig import SafetyLimits
+from bagit.services.controller.session import SOI_MAX_AGE_S, ServoSession
 from bagit.services.controller.synthetic import SyntheticRim
 
 U_GOAL = np.array([0.05, 0.03, 0.15, 0, 0, 0.2, 0.05, -0.03, 0.15, 0, 0, 0.2]) * 0.5
-
-
-def test_the_controllers_idea_of_the_watchdog_is_the_drivers():
-    """The controller node's default and the session's are the rig's watchdog, not a copy of a number."""
-    assert DRIVER_WATCHDOG_S == RigConfig().safety.watchdog_s
-    assert ControllerServiceConfig().driver_watchdog_s == RigConfig().safety.watchdog_s
 
 
 @pytest.mark.parametrize("watchdog_s", [0.12, 0.2, 0.5])
@@ -37,7 +30,7 @@ def test_while_servoing_no_gap_between_commands_reaches_the_watchdogs_halt(watch
     params = {"max_linear_speed_mps": 0.15, "max_angular_speed_rps": 0.9, "control_rate_hz": rate_hz}
     state = RunState(run_id="r1", stage="pre-bagging", controller="mpc", params=params)
     path = Path(run_id="r1", nodes=nodes, dagger_index=4)
-    s, _ = ServoSession.build(state, path, None, {}, lambda: next(seqs), watchdog_s=lim.watchdog_s)
+    s, _ = ServoSession.build(state, path, None, lambda: next(seqs), lim.watchdog_s)
     assert s.controller is not None
     g, t, sent, frame = m.home(), 0.0, [], None
     for k in range(int(3.0 / s.tick_s)):  # three seconds of the rig's time

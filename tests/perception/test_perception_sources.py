@@ -11,6 +11,7 @@ import pytest
 from bagit.common.errors import CameraError
 from bagit.common.geometry import make_transform, points_to_polyline_distance
 from bagit.common.messages import CameraInfo, RgbdFrame
+from bagit.common.rig import CameraConfig
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.perception import extract_soi, red_rim_mask, rim_cloud
@@ -45,7 +46,7 @@ def recording(sim, tmp_path_factory):
 def test_playback_gives_back_the_written_frames_and_the_soi(sim, recording):
     frames, T_wc, true_rim = sim
     cfg = SourceConfig(kind="realsense-file", path=recording, real_time=False)
-    with open_source(cfg, T_wc) as src:
+    with open_source(cfg, CameraConfig().with_pose(T_wc)) as src:
         assert src.serial == "BAGIT-SIM"
         got = list(src)
     assert len(got) == N_FRAMES
@@ -78,7 +79,7 @@ def test_no_camera_is_a_clear_error():
     if connected_devices():
         pytest.skip("a RealSense is attached to this machine")
     with pytest.raises(CameraError, match="no RealSense camera found .*serial 123456789012"):
-        open_source(SourceConfig(kind="realsense", serial="123456789012"))
+        open_source(SourceConfig(kind="realsense"), CameraConfig(serial="123456789012"))
     with pytest.raises(CameraError, match="any RealSense"):
         open_source(SourceConfig(kind="realsense"))
 
@@ -90,6 +91,8 @@ def test_bad_recordings_and_configs(tmp_path, sim):
         (tmp_path / name).write_bytes(b"not a recording\n" * 10)
         with pytest.raises(CameraError, match="cannot read RealSense recording"):
             open_source(SourceConfig(kind="realsense-file", path=tmp_path / name))
+    with pytest.raises(pydantic.ValidationError, match="fps is no longer a source setting: it is the rig config's camera.fps"):
+        SourceConfig(kind="realsense", fps=15)  # which camera and its mode: the rig config's, one place
     with pytest.raises(pydantic.ValidationError, match="needs `path`"):
         SourceConfig(kind="realsense-file")
     with pytest.raises(pydantic.ValidationError, match=r"\.db3"):
