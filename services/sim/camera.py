@@ -16,7 +16,7 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 import sys  # noqa: E402
 import weakref  # noqa: E402
 from concurrent.futures import Future, ThreadPoolExecutor  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
+from dataclasses import dataclass, replace  # noqa: E402
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
@@ -39,6 +39,11 @@ class DepthNoise:
     grazing_full_deg: float = 84.0  # ... and beyond this all of them
     speckle_dropout: float = 0.002  # isolated holes anywhere (matching failures)
     enabled: bool = True  # False: the true depth, only cut to the sensor's range (for tests and ground truth)
+
+    def scaled(self, k: float) -> DepthNoise:
+        """This noise with its standard deviation times `k` (a scenario's sim.camera.depth_noise); the
+        dropouts and flying pixels, which come from the scene's edges and angles, stay as they are."""
+        return replace(self, sigma_at_1m=self.sigma_at_1m * k)
 
 
 class _PixelRays:
