@@ -122,7 +122,7 @@ class _Run:
         self.coord = Coordinator(CoordinatorConfig(run_time_limit_s=opts.time_limit_s, object_source=opts.object_source), now=sim.clock_s,
                                  rig=sim.rig)
         r, g, b = sc.bag.color
-        self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, (r, g, b))
+        self.tracker = RimTracker(sc.bag.n_x, sc.bag.kind, (r, g, b), rim_color=sc.bag.rim.color)  # the lab's perception config
         library = ObjectLibrary.from_scenarios()
         try:
             library = with_run_object(library, sc)

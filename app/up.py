@@ -108,6 +108,15 @@ def _child_setup(niceness: int = 0) -> None:  # pragma: no cover - runs in the c
         pass
 
 
+def lab_perception_config(world: str) -> dict[str, Any]:
+    """What a lab writes once into perception's config for the bag on its table, here the simulated
+    world's: its binding's colour (perception never reads the simulator's truth, nor the scenario's binding)."""
+    from bagit.common.scenario import Scenario
+    from bagit.scenarios import find_scenario
+
+    return {"bag_rim_color": list(Scenario.from_file(find_scenario(world)).bag.rim.color)}
+
+
 @dataclass
 class UpOptions:
     scenario: str | None = None
@@ -160,6 +169,7 @@ class Up:
         self.dir = Path(tempfile.mkdtemp(prefix="bagit-up-")) if opts.workdir is None else Path(opts.workdir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.driver_config = self.dir / "arm-driver.yaml"  # the arm driver's link time-outs (SIM_DRIVER_TIMEOUTS)
+        self.perception_config = self.dir / "perception.yaml"  # the lab's bag: its binding colour (`lab_perception_config`)
         self.keys = Keys(opts.rig)
         self.children: dict[str, Child] = {}
         self._stopping = threading.Event()
@@ -205,6 +215,7 @@ class Up:
         rpath = self.dir / "rig.yaml"
         rpath.write_text(rig.to_yaml(), encoding="utf-8")
         self.driver_config.write_text(json.dumps({"driver": SIM_DRIVER_TIMEOUTS}, indent=2), encoding="utf-8")
+        self.perception_config.write_text(json.dumps(lab_perception_config(self.opts.scenario or self.opts.world), indent=2), encoding="utf-8")
         return zpath, rpath
 
     def _argv(self, name: str, zpath: Path, rpath: Path) -> list[str]:
@@ -222,7 +233,9 @@ class Up:
             args = ["recorder", "--dir", str(o.record or "recordings")]
         elif name == "arm-driver":
             args = [name, "--config", str(self.driver_config), "--rig-config", str(rpath)]
-        elif name in ("perception", "controller"):
+        elif name == "perception":
+            args = [name, "--config", str(self.perception_config), "--rig-config", str(rpath)]
+        elif name == "controller":
             args = [name, "--rig-config", str(rpath)]
         elif name == "planner":
             args = [name, "--run-time-limit", f"{o.time_limit_s():g}"]

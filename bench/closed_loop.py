@@ -308,13 +308,18 @@ def add_sweep_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=_args.positive_int, default=1, help="for `sweep`: processes of the local cluster (one run each)")
 
 
-def run_from_args(a: argparse.Namespace) -> dict:
-    """A sweep from parsed flags (`bagit bench sweep` and this module's own command line); progress on stderr."""
+def quiet_engine_logs() -> None:
+    """A sweep's logging: the in-process rigs' warnings, the sweep's progress, the engine's troubles only."""
     configure_logging(logging.WARNING)  # a sweep runs many in-process rigs: only their warnings, and its own progress
     log.setLevel(logging.INFO)
     with suppress(ImportError):  # Dask sets its loggers' levels when first imported: import it before quieting them
         import distributed  # noqa: F401
     logging.getLogger("distributed").setLevel(logging.WARNING)  # the local scheduler's chatter: only what goes wrong
+
+
+def run_from_args(a: argparse.Namespace) -> dict:
+    """A sweep from parsed flags (`bagit bench sweep` and this module's own command line); progress on stderr."""
+    quiet_engine_logs()
     split = lambda s: s.split(",") if s else None  # noqa: E731
     only = [o for item in a.only for o in item.split(",") if o] if a.only else None
     return run(a.quick, a.seeds, split(a.controllers), only, split(a.planners), a.jsonl, a.workers, a.timeout_s, a.seed_from, a.params,

@@ -50,11 +50,15 @@ def run_one(
 ) -> dict[str, Any]:
     """One whole run, `bagit run`'s own, as a JSON-able record (its RunResult) in this process.
     `params`: method parameters overriding the scenario's (an ablation), kept in the record."""
+    from bagit.bench.zoo import is_zoo_name, zoo_scenario
     from bagit.common.scenario import Scenario
     from bagit.inprocess import RunOptions, run_inprocess
     from bagit.scenarios import find_scenario
 
-    sc = Scenario.from_file(find_scenario(scenario))
+    if is_zoo_name(scenario):  # a bag of the zoo, built again from its name
+        sc = zoo_scenario(scenario)[0]
+    else:
+        sc = Scenario.from_file(find_scenario(scenario))
     r = run_inprocess(RunOptions(scenario=sc, name=scenario, controller=controller, planner=planner, seed=seed, arms=arms,
                                  overrides=dict(params or {}), time_limit_s=time_limit_s))
     return r.model_dump(mode="json")

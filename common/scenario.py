@@ -15,6 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from bagit.common.aruco import ARUCO_DICTIONARIES, ArucoDictionary
+from bagit.common.bag import FabricSpec, RimSpec, SimSpec
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import closed_polyline_length, make_transform, pca, pose_to_matrix, resample_closed
 from bagit.common.names import MAX_N_X, MIN_N_X
@@ -168,6 +169,8 @@ class BagSpec(BaseModel):
     kind: Literal["red-edged", "solid"] = "red-edged"
     depth: float = Field(0.30, gt=0.02, lt=2.0, description="bag depth (m), for the simulator")
     color: tuple[float, float, float] = Field((0.15, 0.35, 0.75), description="RGB of the fabric, each in [0, 1]")
+    fabric: FabricSpec = Field(default_factory=FabricSpec, description="the fabric's physics (simulator; defaults: the bag of every earlier run)")
+    rim: RimSpec = Field(default_factory=RimSpec, description="the binding's bending stiffness and colour")
 
     @field_validator("color")
     @classmethod
@@ -248,6 +251,7 @@ class Scenario(BaseModel):
     bag: BagSpec = BagSpec()
     obstacles: list[Obstacle] = []
     params: MethodParams = MethodParams()
+    sim: SimSpec = Field(default_factory=SimSpec, description="the simulator's light and camera noise (a real rig ignores it)")
 
     def lambda_d(self) -> float:
         """The goal lift λd: the parameter when set, else half the object's height."""

@@ -1,6 +1,7 @@
 """`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
 (`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings
-(`probes`), re-run a sample of a record file and test it against the record (`verify`), compare runs (`compare`)."""
+(`probes`), re-run a sample of a record file and test it against the record (`verify`), compare runs (`compare`), run
+bags of other fabrics, sizes, colours and light (`zoo`)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ log = logging.getLogger("bagit.bench")
 NAME = "bench"
 HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), "
         "`probes` (issue 25's findings re-run), `verify RECORDS` (re-run a sample of a record file: bit for bit? the same distribution?), "
-        "or `compare OLD NEW`")
+        "`zoo` (bags of other fabrics, sizes, colours, light), or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency", "up_wall", "up_lockstep",
@@ -30,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.bench.closed_loop import add_sweep_arguments
     from bagit.bench.verify import add_verify_arguments
 
-    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare"], help="which benchmark")
+    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare", "zoo"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json; for `verify`: the record files (.jsonl)")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None,
@@ -45,6 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--closed-loop", type=Path, action="append", default=None,
         help="for `paper`: closed-loop results (.jsonl runs or .json); default: closed-loop*.json[l] in the results folder",
     )
+    p.add_argument("--bags", type=_args.positive_int, default=None, help="for `zoo`: bags to draw (default 100; --quick 4)")
+    p.add_argument("--zoo-seed", type=_args.seed, default=0, help="for `zoo`: bag i is drawn from (zoo seed, i)")
+    p.add_argument("--record", action="store_true", help="for `zoo`: write the runs and the report under bench/results (or --out)")
     add_sweep_arguments(p)
     add_verify_arguments(p)
 
@@ -80,6 +84,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from bagit.bench import closed_loop
 
         return closed_loop.run_from_args(args)
+    if args.what == "zoo":
+        from bagit.bench import zoo
+
+        return zoo.run_from_args(args)
     if args.what == "verify":
         from bagit.bench import verify
 
@@ -145,6 +153,10 @@ def compare(old: Path, new: Path) -> dict[str, Any]:
 
 
 def human(result: dict[str, Any]) -> str:
+    if result.get("kind") == "zoo":
+        from bagit.bench.zoo import markdown as zoo_markdown
+
+        return zoo_markdown(result) + (f"\nwritten: {result['files']['markdown']}" if "files" in result else "")
     if result.get("kind") == "verify":
         from bagit.bench.verify import markdown
 

@@ -16,7 +16,8 @@ stamp, solve_ms, the share of rim-cloud points within `inlier_m` of the SOI) and
 `cloud_rate_hz`, a down-sampled coloured `PointCloud` of the scene on perception/cloud (after the
 SOI: the display never delays the control loop).
 n_x and the bag (kind, colour) come from the config, else from the current run's scenario
-(run/state's scenario_doc), else 32 and red-edged. A bad frame is counted with its reason and
+(run/state's scenario_doc), else 32 and red-edged; a red-edged bag's binding colour only from the
+config (`bag_rim_color`, the lab's bag, set once like the camera pose; else red). A bad frame is counted with its reason and
 reported on stderr (rate-limited); it never stops the node.
 
 Which object, and where (as in the paper): at most `marker_rate_hz` (and on the first frame of a
@@ -77,6 +78,8 @@ class PerceptionServiceConfig(BaseModel):
     n_x: int | None = Field(None, ge=MIN_N_X, le=MAX_N_X, description="SOI points; None: the run's scenario, else 32")
     bag_kind: Literal["red-edged", "solid"] | None = Field(None, description="None: the run's scenario, else red-edged")
     bag_color: tuple[float, float, float] | None = Field(None, description="solid bag colour, RGB 0..1; None: the run's scenario")
+    bag_rim_color: tuple[float, float, float] | None = Field(
+        None, description="the binding colour of the lab's red-edged bag, RGB 0..1, set once like the camera pose; None: red")
     max_jump_m: float = Field(0.05, gt=0.0, le=1.0, description="a warm SOI further than this from the last one: refit cold")
     inlier_m: float = Field(0.015, gt=0.0, le=0.2, description="rim-cloud points this close to the SOI count as inliers")
     cloud_rate_hz: float = Field(10.0, ge=0.0, le=60.0, description="perception/cloud at most this often (0: never)")
@@ -140,7 +143,7 @@ class PerceptionNode:
         self._last_report = {"bad": -1e9, "object": -1e9, "hint": -1e9}
         self.last_object_error: str | None = None
         self._rim: RimTracker | None = None  # the SOI over frames (warm starts), for the run's bag
-        self._rim_bag: tuple[int, str, tuple[float, float, float]] | None = None
+        self._rim_bag: tuple[int, str, tuple[float, float, float], tuple[float, float, float] | None] | None = None
         self._run_id: str | None = None
         self._run_active = False  # run/state shows a run under way (lockstep: its frames wait for their arm state)
         self._runs_seen: set[str] = set()  # lockstep: the runs whose run/state came (a frame of one waits for it)
@@ -294,12 +297,12 @@ class PerceptionNode:
 
     # -- work --------------------------------------------------------------------------------------
 
-    def _bag(self) -> tuple[int, str, tuple[float, float, float]]:
+    def _bag(self) -> tuple[int, str, tuple[float, float, float], tuple[float, float, float] | None]:
         s = self._scenario
         n_x = self.cfg.n_x or (s.bag.n_x if s is not None else 32)
         kind = self.cfg.bag_kind or (s.bag.kind if s is not None else "red-edged")
         color = self.cfg.bag_color or (_rgb(s.bag.color) if s is not None else (0.15, 0.35, 0.75))
-        return n_x, kind, color
+        return n_x, kind, color, self.cfg.bag_rim_color  # the binding's colour: the rig's, never the scenario's
 
     def _work(self) -> None:
         while not self._stop.is_set():
@@ -341,8 +344,8 @@ class PerceptionNode:
         """The run's rim tracker (a new one when the bag changes: n_x, kind or colour)."""
         bag = self._bag()
         if self._rim is None or self._rim_bag != bag:
-            n_x, kind, color = bag
-            self._rim, self._rim_bag = RimTracker(n_x, kind, color, self.cfg.soi, self.cfg.max_jump_m), bag
+            n_x, kind, color, rim_color = bag
+            self._rim, self._rim_bag = RimTracker(n_x, kind, color, self.cfg.soi, self.cfg.max_jump_m, rim_color), bag
         return self._rim
 
     def _process(self, frame: RgbdFrame) -> None:

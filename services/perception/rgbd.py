@@ -19,6 +19,7 @@ from bagit.common.messages import CameraInfo, RgbdFrame
 
 # Red wraps round hue 0 in OpenCV's 0-179 hue scale: two bands.
 RED_HUE_BANDS: tuple[tuple[int, int], ...] = ((0, 10), (170, 179))
+RIM_HUE_TOL = 10  # a binding's pixels lie within this of its hue (OpenCV's 0-179 scale), as the red bands do round 0
 MIN_SATURATION = 110
 MIN_VALUE = 50
 
@@ -50,6 +51,30 @@ def hsv_segmenter(
 
 
 _red = hsv_segmenter(RED_HUE_BANDS)
+
+
+def opencv_hue(color_rgb: tuple[float, float, float]) -> int:
+    """OpenCV's hue (0-179) of an RGB colour (each in [0, 1])."""
+    rgb = np.array([[[int(c * 255) for c in color_rgb]]], dtype=np.uint8)
+    return int(cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)[0, 0, 0])
+
+
+def hue_bands(color_rgb: tuple[float, float, float], tol: int = RIM_HUE_TOL) -> tuple[tuple[int, int], ...]:
+    """The inclusive OpenCV hue bands within `tol` of `color_rgb`'s hue: one band, or two where it wraps
+    round 0/179 (red's: RED_HUE_BANDS)."""
+    h = opencv_hue(color_rgb)
+    lo, hi = h - tol, h + tol
+    if lo < 0:
+        return ((0, hi), (180 + lo, 179))
+    if hi > 179:
+        return ((0, hi - 180), (lo, 179))
+    return ((lo, hi),)
+
+
+def rim_color_segmenter(color_rgb: tuple[float, float, float]) -> Segmenter:
+    """The segmenter of a binding of colour `color_rgb` (RGB 0..1): its hue's band at red_rim_mask's
+    saturation and value (the same mask as red_rim_mask's for the default red binding)."""
+    return hsv_segmenter(hue_bands(color_rgb))
 
 
 def red_rim_mask(frame: RgbdFrame) -> np.ndarray:
@@ -158,8 +183,7 @@ def solid_rim_segmenter(
     and within `depth_m` of the bag's highest point (the bag's bottom, seen through its opening, is a
     local top too, but far lower). A single global top band would keep only the upper arc of a rim
     tilted by more than `band_m`, as it is whenever the grippers lift it round an object."""
-    rgb = np.array([[[int(c * 255) for c in color_rgb]]], dtype=np.uint8)
-    hue = int(cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)[0, 0, 0])
+    hue = opencv_hue(color_rgb)
 
     def mask(frame: RgbdFrame) -> np.ndarray:
         hsv = cv2.cvtColor(np.ascontiguousarray(frame.color), cv2.COLOR_RGB2HSV)

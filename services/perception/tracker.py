@@ -21,16 +21,18 @@ import numpy as np
 from bagit.common.errors import BagItError
 from bagit.common.geometry import points_to_polyline_distance
 from bagit.common.messages import ArmState, RgbdFrame, SoiState
-from bagit.services.perception.rgbd import Segmenter, red_rim_mask, rim_cloud, solid_rim_segmenter
+from bagit.services.perception.rgbd import Segmenter, red_rim_mask, rim_cloud, rim_color_segmenter, solid_rim_segmenter
 from bagit.services.perception.soi import DEFAULT_PARAMS, SoiParams, extract_soi
 
 MAX_JUMP_M = 0.05  # a warm SOI further than this from the last one: refit cold
 
 
-def segmenter_for(kind: str, color: tuple[float, float, float] | None = None) -> Segmenter:
-    """The rim's segmenter for a bag: its red edge, or the solid bag's own colour (RGB 0..1)."""
+def segmenter_for(kind: str, color: tuple[float, float, float] | None = None,
+                  rim_color: tuple[float, float, float] | None = None) -> Segmenter:
+    """The rim's segmenter for a bag: its binding's colour (`rim_color`, RGB 0..1; None: red), or the
+    solid bag's own colour (`color`)."""
     if kind == "red-edged":
-        return red_rim_mask
+        return red_rim_mask if rim_color is None else rim_color_segmenter(rim_color)
     return solid_rim_segmenter(color if color is not None else (0.15, 0.35, 0.75))
 
 
@@ -38,9 +40,10 @@ class RimTracker:
     """One camera's SOI over time (see the module docstring)."""
 
     def __init__(self, n_x: int, kind: str = "red-edged", color: tuple[float, float, float] | None = None,
-                 params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M):
+                 params: SoiParams | None = None, max_jump_m: float = MAX_JUMP_M,
+                 rim_color: tuple[float, float, float] | None = None):
         self.n_x = int(n_x)
-        self.segmenter = segmenter_for(kind, color)
+        self.segmenter = segmenter_for(kind, color, rim_color)
         self.params = params if params is not None else DEFAULT_PARAMS
         self.max_jump_m = float(max_jump_m)
         self.prev: np.ndarray | None = None  # (n_x, 3), the last SOI

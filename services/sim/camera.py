@@ -13,7 +13,7 @@ import os
 import sys
 import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
@@ -36,6 +36,11 @@ class DepthNoise:
     grazing_full_deg: float = 84.0  # ... and beyond this all of them
     speckle_dropout: float = 0.002  # isolated holes anywhere (matching failures)
     enabled: bool = True  # False: the true depth, only cut to the sensor's range (for tests and ground truth)
+
+    def scaled(self, k: float) -> DepthNoise:
+        """This noise with its standard deviation times `k` (a scenario's sim.camera.depth_noise); the
+        dropouts and flying pixels, which come from the scene's edges and angles, stay as they are."""
+        return replace(self, sigma_at_1m=self.sigma_at_1m * k)
 
 
 class _PixelRays:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bagit.common.bag import RIM_TUBE_RADIUS_M, LightSpec
 from bagit.common.rig import CameraConfig, RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.sim.bag import BagLayout
@@ -21,13 +22,12 @@ from bagit.services.sim.objects import object_files, object_mjcf
 
 CAMERA_NAME = "rgbd"
 TIMESTEP = 0.004  # s, the physics step (discrete integrator, as flex elasticity requires)
-BAG_MASS_KG = 0.08  # a light woven bag
-YOUNG_PA = 8e6  # with 1 mm thickness: a membrane stiffness of 8 kN/m, a fabric that stretches little
+# The fabric's stiffness, mass, damping and friction, and the binding's bending and colour, come from
+# the scenario (bag.fabric, bag.rim; defaults in common/bag.py: the bag of every earlier run). The
+# membrane is a shell of THICKNESS_M whose Young's modulus gives the scenario's stretch stiffness E*t.
 POISSON = 0.3
 THICKNESS_M = 0.001
-FABRIC_DAMPING_S = 0.002  # Rayleigh damping of the membrane (time units)
 FLEX_RADIUS_M = 0.003  # collision and rendering half-thickness of the fabric
-FABRIC_FRICTION = 0.5
 # Fabric contact uses MuJoCo's IPC mode (penetration-free, verified by continuous collision detection,
 # frictionless): soft constraint contacts let a taut, light fabric be cut by an object's edge between
 # its vertices. IPC resolves flex contacts with planes, spheres, capsules, boxes and meshes, so round
@@ -38,17 +38,22 @@ CONTACT_SOLREF = "0.008 1"  # as stiff as the 4 ms step allows
 CONTACT_SOLIMP = "0.95 0.99 0.002"
 CLAMP_SOLREF = "0.008 1"
 CLAMP_SOLIMP = "0.9999 0.9999 0.001"  # near-hard: a clamped vertex gives < 1 mm under the arms' pull
-RIM_RGBA = (0.85, 0.05, 0.05, 1.0)  # the red edge
-RIM_TUBE_RADIUS_M = 0.006  # the binding's radius (drawn, and its bending section)
-# The red binding along the opening is a hem, a rod (dim-1 flex through the rim vertices, no contacts)
-# with a little bending stiffness: EI = E pi r^4 / 4 = 1e-4 N m^2, a doubled fabric strip's. It keeps
-# the opening rounded under its own weight; compressed, it buckles and sags.
-RIM_YOUNG_PA = 1e5
+# The binding along the opening is a hem, a rod (dim-1 flex of radius RIM_TUBE_RADIUS_M through the
+# rim vertices, no contacts) with a little bending stiffness: EI = E pi r^4 / 4 (bag.rim.bending_nm2;
+# by default ~1e-4 N m^2, a doubled fabric strip's). It keeps the opening rounded under its own
+# weight; compressed, it buckles and sags.
 MOUNT_RGBA = "0.2 0.2 0.22 1"
 MOUNT_ARC_DROP_M = 0.014  # the connector arc runs this far under the rim
 FLANGE_RGBA = "0.75 0.75 0.78 1"
 OBSTACLE_RGBA = "0.15 0.15 0.15 1"
 TABLE_RGBA = "0.55 0.55 0.52 1"
+# The lights at sim.light.intensity 1: a key lamp 2.5 m from the table's origin along -sim.light.direction,
+# a fill lamp, and the camera's headlight (MuJoCo's defaults); all scale with the intensity.
+KEY_LIGHT_DISTANCE_M = 2.5
+KEY_LIGHT_DIFFUSE = 0.8
+FILL_LIGHT_DIFFUSE = 0.4
+HEADLIGHT_AMBIENT = 0.1
+HEADLIGHT_DIFFUSE = 0.4
 
 
 def _v(x) -> str:
@@ -97,6 +102,26 @@ def _mount_body(name: str, T_home: np.ndarray, rim_local: np.ndarray, T_flange_m
     return f'<body name="mount_{name}" mocap="true" pos="{_v(T_home[:3, 3])}" quat="{_v(_quat(T_home[:3, :3]))}">{arc}{stem}{disc}{wrist}</body>'
 
 
+def lights_mjcf(light: LightSpec) -> tuple[str, str]:
+    """The MJCF <headlight> (inside <visual>) and the <light>s of the world body for the scenario's light."""
+    k = light.intensity
+    d = light.unit_direction()
+    pos = -KEY_LIGHT_DISTANCE_M * d + 0.0  # + 0.0: no negative zeros in the file
+
+    def grey(x: float) -> str:
+        return _v([x * k] * 3)
+
+    head = f'<headlight ambient="{grey(HEADLIGHT_AMBIENT)}" diffuse="{grey(HEADLIGHT_DIFFUSE)}"/>'
+    lamps = (f'<light pos="{_v(pos)}" dir="{_v(d + 0.0)}" diffuse="{grey(KEY_LIGHT_DIFFUSE)}"/>\n'
+             f'    <light pos="1 1 2" dir="-0.5 -0.5 -1" diffuse="{grey(FILL_LIGHT_DIFFUSE)}"/>')
+    return head, lamps
+
+
+def rim_young_pa(bending_nm2: float) -> float:
+    """The binding rod's Young's modulus (Pa) for a bending stiffness EI (N m^2): E = 4 EI / (pi r^4)."""
+    return 4.0 * bending_nm2 / (np.pi * RIM_TUBE_RADIUS_M**4)
+
+
 def scene_files(scenario: Scenario) -> dict[str, bytes]:
     """Files `build_mjcf`'s XML refers to (textures), for `MjModel.from_xml_string(xml, assets=...)`."""
     return object_files(scenario.object)
@@ -124,8 +149,11 @@ def build_mjcf(scenario: Scenario, rig: RigConfig, layout: BagLayout) -> str:
             anchor = (layout.vertices[i] - T[:3, 3]) @ T[:3, :3]
             clamps += f'<connect body1="mount_{name}" body2="bag_{i}" anchor="{_v(anchor)}" solref="{CLAMP_SOLREF}" solimp="{CLAMP_SOLIMP}"/>'
 
-    body_rgba = _v(scenario.bag.color) + " 1"
-    rim_rgba = RIM_RGBA if scenario.bag.kind == "red-edged" else (*scenario.bag.color, 1.0)
+    bag = scenario.bag
+    fabric = bag.fabric
+    body_rgba = _v(bag.color) + " 1"
+    rim_rgba = (*(bag.rim.color if bag.kind == "red-edged" else bag.color), 1.0)
+    headlight, lamps = lights_mjcf(scenario.sim.light)
     return f"""<mujoco model="bagit-rig">
   <compiler angle="radian"/>
   <size memory="{ARENA}"/>  <!-- room for the contacts of a crumpled bag (IPC); the default arena overflows -->
@@ -135,26 +163,27 @@ def build_mjcf(scenario: Scenario, rig: RigConfig, layout: BagLayout) -> str:
     <global offwidth="{max(cam.width, 640)}" offheight="{max(cam.height, 480)}"/>
     <map znear="0.01" zfar="5"/>
     <quality shadowsize="0" offsamples="0"/>  <!-- no multisampling: the software-rendered camera stays fast -->
+    {headlight}
   </visual>
   <asset>{"".join(assets)}</asset>
   <worldbody>
-    <light pos="0 0 2.5" dir="0 0 -1" diffuse="0.8 0.8 0.8"/>
-    <light pos="1 1 2" dir="-0.5 -0.5 -1" diffuse="0.4 0.4 0.4"/>
+    {lamps}
     <geom name="table" type="plane" size="3 3 0.05" pos="0 0 {rig.table_height}" rgba="{TABLE_RGBA}"/>
     {camera_mjcf(cam, cam.T_world_camera())}
     {obj_xml}
     {obstacles}
     {mounts}
-    <flexcomp name="bag" type="direct" dim="2" radius="{FLEX_RADIUS_M}" mass="{BAG_MASS_KG}" rgba="{body_rgba}"
+    <flexcomp name="bag" type="direct" dim="2" radius="{FLEX_RADIUS_M}" mass="{fabric.mass_kg:.9g}" rgba="{body_rgba}"
       point="{_v(layout.vertices)}" element="{" ".join(str(int(i)) for i in layout.elements.ravel())}">
-      <elasticity young="{YOUNG_PA}" poisson="{POISSON}" thickness="{THICKNESS_M}" damping="{FABRIC_DAMPING_S}" elastic2d="stretch"/>
-      <contact selfcollide="auto" condim="3" solref="{CONTACT_SOLREF}" solimp="{CONTACT_SOLIMP}" friction="{FABRIC_FRICTION}"/>
+      <elasticity young="{fabric.stretch_n_per_m / THICKNESS_M:.9g}" poisson="{POISSON}" thickness="{THICKNESS_M}" damping="{fabric.damping_s:.9g}"
+        elastic2d="stretch"/>
+      <contact selfcollide="auto" condim="3" solref="{CONTACT_SOLREF}" solimp="{CONTACT_SOLIMP}" friction="{fabric.friction:.9g}"/>
     </flexcomp>
   </worldbody>
   <deformable>
     <flex name="rim" dim="1" radius="{RIM_TUBE_RADIUS_M}" rgba="{_v(rim_rgba)}" body="{" ".join(f"bag_{i}" for i in layout.rim)}"
       element="{" ".join(f"{k} {(k + 1) % len(layout.rim)}" for k in range(len(layout.rim)))}">
-      <elasticity young="{RIM_YOUNG_PA}" poisson="0.3"/>
+      <elasticity young="{rim_young_pa(bag.rim.bending_nm2):.9g}" poisson="0.3"/>
       <contact contype="0" conaffinity="0"/>
     </flex>
   </deformable>

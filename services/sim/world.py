@@ -114,7 +114,7 @@ class SimWorld:
         self._camera_enabled = camera
         self._renderer: RgbdRenderer | None = None
         self._draws = DrawsAhead()  # the next frame's noise draws, made while the world steps
-        self.noise = DepthNoise()
+        self.noise = DepthNoise().scaled(scenario.sim.camera.depth_noise)
         self.failure: str | None = None  # why the physics went unstable (then step() refuses to go on)
         # live views of MuJoCo's instability warning counters (indexing data.warning anew costs ~20 us a step)
         self._warnings = [self.data.warning[w] for w in INSTABILITY_WARNINGS]

@@ -1,0 +1,70 @@
+"""`bagit bench zoo`: bags drawn reproducibly from the documented core ranges, each a valid scenario."""
+
+import math
+
+import pytest
+
+from bagit.bench import zoo
+from bagit.common.bag import FABRIC_DAMPING_S, RIM_BENDING_NM2
+from bagit.common.errors import BagItError
+
+
+def test_bag_i_is_the_same_whatever_the_zoo_size_and_differs_by_seed():
+    a = zoo.zoo_bag(zoo.zoo_name("core", 0, 3))
+    assert a == zoo.zoo_bag("zoo-core-0-3")
+    assert a["values"] != zoo.zoo_bag("zoo-core-1-3")["values"] and a["values"] != zoo.zoo_bag("zoo-core-0-4")["values"]
+    with pytest.raises(BagItError):
+        zoo.zoo_bag("zoo-nowhere-0-1")
+
+
+def test_bags_lie_in_the_core_ranges_with_distinct_hues():
+    for i in range(40):
+        b = zoo.zoo_bag(f"zoo-core-7-{i}")
+        for k, r in zoo.CORE.items():
+            assert r.lo <= b["values"][k] <= r.hi, (i, k)
+        obj = zoo._hue_deg(zoo.OBJECT_RGB)
+        if b["kind"] == "solid":
+            assert b["binding_color"] is None and "solid" in b["classes"]
+            assert zoo._hue_gap(zoo._hue_deg(b["fabric_color"]), obj) >= zoo.MIN_HUE_GAP_DEG
+        else:
+            h = zoo._hue_deg(b["binding_color"])
+            assert zoo._hue_gap(h, obj) >= zoo.MIN_HUE_GAP_DEG and zoo._hue_gap(h, zoo._hue_deg(b["fabric_color"])) >= zoo.MIN_HUE_GAP_DEG
+
+
+def test_a_range_names_the_classes_of_its_tails():
+    r = zoo.CORE["stretch_n_per_m"]
+    assert r.classes(1000.0) == ["soft"] and r.classes(64000.0) == ["stiff"] and r.classes(8000.0) == []
+    assert zoo.CORE["mass_kg"].classes(0.03) == []
+
+
+def test_a_zoo_bag_is_a_scenario_of_its_values():
+    sc, b = zoo.zoo_scenario("zoo-core-0-2")
+    v = b["values"]
+    assert sc.name == "zoo-core-0-2" and sc.bag.kind == b["kind"]
+    assert sc.bag.fabric.stretch_n_per_m == v["stretch_n_per_m"] and sc.bag.fabric.mass_kg == v["mass_kg"]
+    assert math.isclose(sc.bag.fabric.damping_s, v["damping_x"] * FABRIC_DAMPING_S)
+    assert math.isclose(sc.bag.rim.bending_nm2, v["bending_x"] * RIM_BENDING_NM2)
+    assert sc.sim.light.intensity == v["light_x"] and sc.sim.camera.depth_noise == v["depth_noise_x"]
+    assert math.isclose(sc.bag.rim_perimeter, b["perimeter_m"]) and zoo.CORE["perimeter_m"].lo <= b["perimeter_m"] <= zoo.CORE["perimeter_m"].hi
+    rim_z = sum(p[2] for p in sc.bag.initial_rim) / len(sc.bag.initial_rim)
+    assert sc.bag.depth <= rim_z - zoo.DEPTH_CLEARANCE_M + 1e-9  # hangs clear of the table
+    el = math.degrees(math.asin(-sc.sim.light.unit_direction()[2]))
+    assert zoo.CORE["light_elevation_deg"].lo - 1e-6 <= el <= zoo.CORE["light_elevation_deg"].hi + 1e-6
+
+
+def test_summary_per_class_and_files_only_when_asked(tmp_path, monkeypatch):
+    names = [zoo.zoo_name("core", 0, i) for i in range(3)]
+    runs = [{"scenario": n, "success": i != 1, "error_cm": 0.5 * (i + 1), "duration_s": 10.0 + i, "stage_reached": "done"}
+            for i, n in enumerate(names)]
+    monkeypatch.setattr(zoo, "sweep", lambda keys, jsonl, *a: [dict(r) for r in runs][: len(keys)])
+    monkeypatch.setattr(zoo, "RESULTS_DIR", tmp_path / "results")
+    r = zoo.run(3)
+    assert "files" not in r and not (tmp_path / "results").exists()
+    s = r["summary"]["all"]
+    assert (s["success"], s["of"]) == (2, 3) and math.isclose(s["error_cm_mean"], 1.0) and math.isclose(s["time_s_mean"], 11.0)
+    for c, row in r["summary"].items():
+        assert row["of"] == sum(c == "all" or c in x["zoo_bag"]["classes"] for x in r["runs"])
+    q = zoo.run(3, quick=True)
+    assert q["files"]["markdown"].startswith(str(tmp_path / "results" / "quick"))
+    rec = zoo.run(3, record=True)
+    assert rec["files"]["json"] == str(tmp_path / "results" / "zoo-core-0.json")
