@@ -67,3 +67,13 @@ def test_the_up_lockstep_record_reads_as_a_table_with_its_provenance_ratios_and_
     for text in ("| commit | abc |", "| up / run: wall, CPU | 1.1, 1.333", "bit_for_bit yes, wall_ratio yes, cpu_ratio no",
                  "lockstep, 10 frames/s | sim 0.400", "wall, 10 frames/s | sim 0.600"):
         assert text in md, (text, md)
+
+
+def test_the_up_lockstep_goals_judge_the_whole_life_and_the_run_alone_apart():
+    from bagit.bench.up_lockstep import goals
+
+    r = {"bit_for_bit": True, "ratio": {"wall": 1.4, "cpu": 1.7}, "ratio_the_run": {"wall": 1.05, "cpu": 1.35}}
+    assert goals(r, exact=True) == {"bit_for_bit": True, "wall_ratio": False, "cpu_ratio": False,
+                                    "wall_ratio_the_run": True, "cpu_ratio_the_run": False}
+    assert goals({**r, "ratio_the_run": None}, exact=False)["bit_for_bit"] is False
+    assert not goals({**r, "ratio_the_run": None}, exact=True)["wall_ratio_the_run"]
