@@ -109,15 +109,29 @@ def test_an_interrupted_sweep_resumes_where_it_stopped(reference, tmp_path):
     """Ctrl-C after the first record: no process of the sweep outlives it, and the same command runs only the rest."""
     out = tmp_path / "closed-loop.jsonl"
     p = subprocess.Popen(_sweep_cmd(out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    listening: set[str] = set()  # what the sweep's processes listen on while it runs, sampled beside the wait
+    watching = threading.Event()
+    watching.set()
+
+    def watch() -> None:
+        while watching.is_set():
+            try:
+                procs = [psutil.Process(p.pid), *psutil.Process(p.pid).children(recursive=True)]
+            except psutil.NoSuchProcess:
+                return
+            listening.update(c.laddr.ip for q in procs for c in _connections(q) if c.status == psutil.CONN_LISTEN)
+            time.sleep(0.2)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
     deadline = time.monotonic() + 90
-    family: list[psutil.Process] = []
-    listening: set[str] = set()
     while not (out.exists() and out.read_text().count("\n")) and time.monotonic() < deadline and p.poll() is None:
-        family = [psutil.Process(p.pid), *psutil.Process(p.pid).children(recursive=True)]
-        listening = {c.laddr.ip for q in family for c in _connections(q) if c.status == psutil.CONN_LISTEN}
         time.sleep(0.05)
-    p.send_signal(signal.SIGINT)  # at once after the first record: looking at sockets first let a busy machine finish the sweep
-    assert listening == {"127.0.0.1"}  # the local cluster's scheduler, workers and HTTP pages, while running: loopback only
+    family = [psutil.Process(p.pid), *psutil.Process(p.pid).children(recursive=True)]
+    p.send_signal(signal.SIGINT)  # at once after the first record (a socket scan in this loop once let the sweep finish first)
+    watching.clear()
+    watcher.join(10)
+    assert listening == {"127.0.0.1"}  # the local cluster's scheduler, workers and HTTP pages: loopback only
     _, err = p.communicate(timeout=60)
     assert p.returncode == 130, err
     _, alive = psutil.wait_procs(family, timeout=10)
