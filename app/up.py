@@ -23,6 +23,7 @@ import ctypes
 import functools
 import json
 import os
+import resource
 import shutil
 import signal
 import socket
@@ -335,6 +336,11 @@ class Up:
                 continue
             out[n] = round((int(fields[11]) + int(fields[12])) / tick, 2)  # utime, stime
         return out
+
+    def rig_cpu_s(self) -> float:
+        """CPU seconds so far of every running child and of this process (`bagit up` itself)."""
+        me = resource.getrusage(resource.RUSAGE_SELF)
+        return sum(self.cpu_s().values()) + me.ru_utime + me.ru_stime
 
     def status(self) -> dict[str, Any]:
         return {

@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise BadScenario(f"services not up after {opts.ready_timeout_s:g} s: {', '.join(missing)}")
         up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
         run_id = None
-        run_t0, run_cpu0 = time.monotonic(), _rig_cpu_s(up)
+        run_t0, run_cpu0 = time.monotonic(), up.rig_cpu_s()
         if args.scenario:
             rep = up.start_run(args.scenario)
             if not rep.accepted:
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 raise BadScenario("--exit-when-done: no run to follow (the run was started without a run id)")
             state = up.wait_run(run_id, stop, timeout=args.timeout)
             # what the run itself cost a rig already up (the benchmarks compare it with `bagit run`'s)
-            up.say(f"the run: {time.monotonic() - run_t0:.2f} s wall, {_rig_cpu_s(up) - run_cpu0:.2f} CPU s (every service and bagit up)")
+            up.say(f"the run: {time.monotonic() - run_t0:.2f} s wall, {up.rig_cpu_s() - run_cpu0:.2f} CPU s (every service and bagit up)")
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
             up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
             return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
@@ -125,14 +125,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         up.say("stopped: " + ", ".join(f"{n} {c}" for n, c in codes.items()))
         for s, h in previous.items():
             signal.signal(s, h)
-
-
-def _rig_cpu_s(up: Any) -> float:
-    """CPU seconds so far of every running service and of this process."""
-    import resource
-
-    me = resource.getrusage(resource.RUSAGE_SELF)
-    return sum(up.cpu_s().values()) + me.ru_utime + me.ru_stime
 
 
 def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argparse.Namespace, wall_s: float) -> Any:
