@@ -359,11 +359,15 @@ class ArmDriver:
             self.stalled(f"no servo cycle for {gap * 1000:.0f} ms (the process was paused or starved): "
                          "the arms stopped at their last target and hold; a new command starts a new stream")
 
-    def stalled(self, why: str) -> None:
+    def stalled(self, why: str, unsent: bool = False) -> None:
         """Drop the trajectory (the arms stopped at their last target when its ServoP ran out: braking from
-        the trajectory's old velocity would move them again); a new command starts a new stream."""
+        the trajectory's old velocity would move them again); a new command starts a new stream. `unsent`:
+        the last cycle's ServoPs did not go out, so the arms rest where the cycle before sent them."""
         with self._lock:
-            self.path.halt()
+            if unsent:
+                self.path.unsend()
+            else:
+                self.path.halt()
             self.counters["stalls"] += 1
             self.event("stalled", why)
 

@@ -32,7 +32,7 @@ class CycleHost(Protocol):
 
     def make_cycle(self) -> tuple[Cycle, float] | None: ...  # one period's ServoPs and when they were made (None: nothing)
     def send_cycle(self, out: Cycle) -> list[ArmName]: ...  # the arms its ServoPs went to
-    def stalled(self, why: str) -> None: ...  # the poses made were too old to send
+    def stalled(self, why: str, unsent: bool = False) -> None: ...  # the loop did not run in time / `unsent`: the poses made were too old to send
     def cycle_failed(self, e: Exception) -> None: ...  # a cycle raised: a fault
     def step_ready(self, t: float) -> bool: ...  # lockstep: both arms' feedback shows the step at `t`
     def step_done(self, tick: int | None, sent: dict[str, int], late: str | None) -> None: ...  # lockstep: states, answer
@@ -97,7 +97,7 @@ class ServoLoop:
                     time.sleep(wait)
                 if spaced and (late := time.monotonic() - made_at) > self.watchdog_s:
                     self.host.stalled(f"this period's poses were {late * 1000:.0f} ms old when they could go out (the "
-                                      "process was paused or starved): not sent; a new command starts a new stream")
+                                      "process was paused or starved): not sent; a new command starts a new stream", unsent=True)
                 else:
                     self.last_send = time.monotonic()
                     self.send_times.append(self.last_send)

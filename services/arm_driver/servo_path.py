@@ -98,6 +98,7 @@ class ServoPath:
         self.q_seed: Joints = {}
         self.last_cmd_t = -np.inf
         self.slowing = False  # the last period's step was shortened to the joints' speed
+        self._before: tuple[Poses, Joints] | None = None  # the poses sent and joint seeds before the last cycle (`unsend`)
 
     def _event(self, kind: str, detail: str) -> None:
         if self.on_event is not None:
@@ -179,6 +180,18 @@ class ServoPath:
         """Drop the trajectory at once (the controllers stopped the arms themselves: e-stop, a pause); idle."""
         self.smoother.rest()
 
+    def unsend(self) -> None:
+        """The last cycle's ServoPs never went out (too old to send): at rest where the arms were last sent,
+        so that a new stream starts there (from the unsent poses, its first ServoP would jump by every
+        step the arms never got)."""
+        if self._before is None:
+            self.halt()
+            return
+        poses, q = self._before
+        self._before = None
+        self.reset(poses)
+        self.q_seed = q
+
     # -- in: targets -----------------------------------------------------------------------------
 
     def submit(self, u: np.ndarray, dt: float, now: float) -> list[Violation]:
@@ -258,6 +271,7 @@ class ServoPath:
         """The ServoPs (or ServoJs) for the `active` arms for the period starting at `now`. The reach
         check runs for ServoJ (it solves the joints) and when `check_reach` is set."""
         prev = self.last_sent
+        self._before = None if prev is None else (prev, {a: q.copy() for a, q in self.q_seed.items()})
         tick = self.tick(now)  # a stop in progress carries on whatever else is wrong
         self.record(tick.violations)
         if tick.command is None or prev is None:

@@ -154,7 +154,8 @@ def test_commands_move_the_arms_only_for_the_run_run_state_shows_servoing(rigbus
     # the servoing run's own commands move the arms
     _send(cmd, "r1", 12, seq0=500)
     assert wait_until(lambda: states.get(keys.arm_state("left")).tool_pose[0] > start["left"][0] + 0.01)
-    assert node.status()["rejections"] == {NO_ACTIVE_RUN: 15, WRONG_RUN: 10}
+    late = node.status()["rejections"]
+    assert {k: n for k, n in late.items() if k != STALE} == {NO_ACTIVE_RUN: 15, WRONG_RUN: 10}  # a loaded machine may deliver one late: refused stale
 
 
 def test_the_arms_hold_when_the_run_they_streamed_for_ends_while_its_commands_keep_coming(rigbus):
@@ -171,10 +172,12 @@ def test_the_arms_hold_when_the_run_they_streamed_for_ends_while_its_commands_ke
     t_end = time.monotonic()
     _send(cmd, "r1", 12, seq0=100)
     assert wait_until(lambda: node.driver.mode == "holding")
-    # braked on the run's end (not the watchdog: commands kept coming) and every later command was refused
-    assert node.driver.counters["watchdog_stops"] == 0
+    # braked on the run's end (not the watchdog: commands kept coming; a loaded machine may have let one
+    # lapse before it, a stream the next command started again) and every later command was refused
+    events = list(node.events)
+    ended = events.index("hold: run r1 failed: perception gone")
+    assert not [e for e in events[ended:] if e.startswith("watchdog")], events
     assert node.status()["rejections"].get(NO_ACTIVE_RUN, 0) >= 10
-    assert any(e == "hold: run r1 failed: perception gone" for e in node.events), node.events
     for srv in sims.servers.values():  # braked to rest, then nothing more moves (how soon: bench/stop_time.py)
         assert wait_until(lambda: stream_at_rest(srv, t_end))
         t_rest = servo_positions(srv, t0=t_end)[0][-1]

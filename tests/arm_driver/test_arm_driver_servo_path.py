@@ -289,6 +289,34 @@ def test_a_new_stream_starts_where_the_arms_are_not_at_an_old_target():
     assert tick.command["left"][0, 3] == pytest.approx(stopped, abs=1e-12)
 
 
+def test_cycles_made_but_never_sent_leave_the_next_stream_where_the_arms_were_sent():
+    """A starved servo loop makes a cycle whose poses are too old to send: the arms stay at the last
+    ServoP they got, so the next stream starts there, not at the poses never sent (a jump per lost step)."""
+    pipe = restarted(ServoPath(RIG))  # at rest with its joints known: the reach check runs as the driver's
+    u = np.zeros(12)
+    u[0] = 0.1 / 30  # 0.1 m/s to the left arm's x
+    now, sent = 0.0, []
+    for k in range(40):
+        pipe.submit(u, 1 / 30, now)
+        out = pipe.cycle(now)
+        if k < 30:
+            sent.append(out.poses["left"][:3, 3])
+        else:  # the last ten were made and never went out: each time the loop drops them
+            pipe.unsend()
+        now += T
+    last = sent[-1]
+    assert pipe.commanded()["left"][:3, 3] == pytest.approx(last, abs=1e-12)
+    pipe.submit(u, 1 / 30, now)  # a fresh command: a new stream from rest where the arm was sent
+    for _ in range(5):
+        out = pipe.cycle(now)
+        sent.append(out.poses["left"][:3, 3])
+        now += T
+        pipe.submit(u, 1 / 30, now)
+    v, a, j = finite_difference_limits(np.array(sent[-6:]))
+    assert v <= LIM.max_tcp_speed_mps * (1 + 1e-9)
+    assert a <= LIM.max_tcp_accel_mps2 * (1 + 1e-6)  # from rest: no jump over the steps never sent
+
+
 def test_a_restart_from_arms_a_following_error_past_a_limit_is_no_fault_and_the_stream_pulls_them_in():
     # targets clipped onto the separation limit are reached with the servo's following error: a
     # restart from where the arms then measure is not a fault, and the next commands are inside again
