@@ -45,6 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-inexact", action="store_true",
                    help="with --exit-when-done: exit 0 for a successful lockstep run that could not stay exact (a service "
                         "dropped from the wait, an answer made without what it waited for); by default that exits 1")
+    p.add_argument("--no-fork-server", action="store_true",
+                   help="start every service as an interpreter of its own (default: forks of one that imported what they share)")
     p.add_argument("--workdir", type=Path, help="folder for the generated Zenoh config and rig YAML (default: a temporary one)")
 
 
@@ -84,7 +86,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadScenario(f"--services: unknown service {unknown[0]!r}; choose from {', '.join(SERVICES)}, recorder")
     opts = UpOptions(scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed, rig=args.rig,
                      services=services, record=args.record, fps=args.fps, dashboard_port=args.dashboard_port, workdir=args.workdir,
-                     status_file=args.status_file, clock=args.clock, speed=args.speed)
+                     status_file=args.status_file, clock=args.clock, speed=args.speed,
+                     fork_server=not args.no_fork_server)
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}

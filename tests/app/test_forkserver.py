@@ -1,0 +1,88 @@
+"""`bagit.forkserver`: `bagit up`'s services forked from one interpreter that imported what they share.
+
+Each test runs the real server process and real `bagit` commands through it: what a child gets
+(its output on its pipe, its own process group, its niceness, SIGSTOP and SIGCONT, its exit status)
+and what happens when the server goes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+from pathlib import Path
+
+import pytest
+from suite_support import HANG_S, wait_until
+
+from bagit.forkserver import PRELOAD, ForkServer
+from bagit.up import Up
+
+pytestmark = [pytest.mark.processes, pytest.mark.timeout(180)]
+
+
+def _stat(pid: int) -> list[str]:
+    """/proc/PID/stat's fields after the command name: [0] state, [1] ppid, [2] pgrp, [16] nice."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
+@pytest.fixture
+def server():
+    fs = ForkServer(Up._child_env())
+    yield fs
+    fs.close()
+
+
+@pytest.fixture
+def planner_argv(tmp_path):
+    """A real service with nothing to talk to: the planner on a bus of its own (no peers, no scouting)."""
+    z = tmp_path / "zenoh.json5"
+    z.write_text(json.dumps({"mode": "peer", "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
+                             "scouting": {"multicast": {"enabled": False}}}), encoding="utf-8")
+    return ["planner", "--rig", "forktest", "--zenoh-config", str(z)]
+
+
+def test_a_command_forked_by_the_server_prints_on_its_pipe_and_its_exit_status_is_reported(server):
+    ok = server.spawn(["--version"])
+    assert ok.stdout.read().strip().startswith("bagit ")
+    assert ok.wait(HANG_S) == 0
+    bad = server.spawn(["run", "exp02", "--seed", "-1"])
+    err = bad.stdout.read()
+    assert bad.wait(HANG_S) == 2  # a usage error, as `bagit run --seed -1` gives it
+    assert err.count("\n") == 1 and "--seed" in err
+
+
+def test_a_service_forked_by_the_server_is_a_fork_in_its_own_group_niced_pausable_and_stops_on_sigterm(server, planner_argv):
+    p = server.spawn(planner_argv, niceness=1)  # a little: a loaded machine leaves a niced stop little CPU
+    lines: list[str] = []
+    assert wait_until(lambda: lines.append(p.stdout.readline()) or "Ctrl-C to stop" in lines[-1], HANG_S, 0), lines
+    st = _stat(p.pid)
+    assert int(st[1]) == server.proc.pid  # forked by the server, no interpreter of its own
+    assert Path(f"/proc/{p.pid}/cmdline").read_bytes().split(b"\0")[1:3] == [b"-m", b"bagit.forkserver"]
+    assert int(st[2]) == p.pid and int(st[16]) == 1  # its own process group, its niceness
+    os.kill(p.pid, signal.SIGSTOP)
+    assert wait_until(lambda: _stat(p.pid)[0] == "T", HANG_S, 0.01)
+    assert p.poll() is None  # a stopped child has not exited
+    os.kill(p.pid, signal.SIGCONT)
+    assert wait_until(lambda: _stat(p.pid)[0] != "T", HANG_S, 0.01)
+    os.killpg(p.pid, signal.SIGTERM)
+    assert p.wait(HANG_S) == 0  # the planner's clean stop
+    assert "planner stopped" in p.stdout.read()
+    q = server.spawn(planner_argv)
+    with pytest.raises(subprocess.TimeoutExpired):
+        q.wait(0.5)  # still running: wait gives up as Popen's does
+    os.killpg(q.pid, signal.SIGTERM)
+    assert q.wait(HANG_S) in (0, -signal.SIGTERM)  # stopped cleanly, or by the signal before its handler was set
+
+
+def test_the_server_imports_the_shared_modules_and_its_children_die_with_it(server, planner_argv):
+    p = server.spawn(planner_argv)
+    assert wait_until(lambda: "Ctrl-C to stop" in p.stdout.readline(), HANG_S, 0)
+    maps = Path(f"/proc/{server.proc.pid}/maps").read_text()
+    assert "numpy" in maps and "scipy" in maps and "zenoh" in maps  # preloaded before any fork
+    assert "open3d" not in maps and "mujoco" not in maps  # one service's library stays in its child
+    assert {"numpy", "bagit.common.bus"} <= set(PRELOAD)
+    server.proc.kill()
+    assert p.wait(HANG_S) == -signal.SIGTERM  # its parent-death signal; nobody is left to report, so -SIGTERM
+    assert not server.alive
