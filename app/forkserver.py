@@ -175,7 +175,7 @@ class ForkServer:
             stdout=subprocess.DEVNULL, env=env, pass_fds=(theirs.fileno(),), preexec_fn=child_setup,
         )
         theirs.close()
-        self._on_exit = on_exit
+        self.on_exit = on_exit  # called on the reader thread with (pid, exit status)
         self._cond = threading.Condition()
         self._pids: list[int] = []  # spawn replies not yet taken, in request order
         self._exits: dict[int, int] = {}
@@ -206,8 +206,8 @@ class ForkServer:
                 else:
                     self._pids.append(int(msg["pid"]))
                 self._cond.notify_all()
-            if "exit" in msg and self._on_exit is not None:
-                self._on_exit(int(msg["exit"]), int(msg["code"]))
+            if "exit" in msg and self.on_exit is not None:
+                self.on_exit(int(msg["exit"]), int(msg["code"]))
 
     def spawn(self, argv: Sequence[str], niceness: int = 0, timeout_s: float = 60.0) -> ForkedProcess:
         """Fork `bagit ARGV...` (its output on a new pipe, read from the returned process's stdout)."""

@@ -53,6 +53,7 @@ SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboa
 # simulator serves; on a real rig the controllers are already up).
 AFTER = {"arm-driver": "sim"}
 SUPERVISE_S = 1.0  # the supervisor's backstop wake-up (events wake it first)
+STOP_CHECK_S = 0.25  # how often a wait woken by the bus also looks at its `stop` event (Ctrl-C)
 # Services no step waits for (the dashboard, the recorder: they watch and record) run at this niceness: on
 # a busy machine the simulator and the services a step waits for come first, so a lockstep run is not
 # slowed by its display, and on the wall clock the control loop keeps its pace.
@@ -99,6 +100,11 @@ def zenoh_config(hub: str, lease_ms: int = WALL_LEASE_MS) -> dict[str, Any]:
         "scouting": {"multicast": {"enabled": False}, "delay": 0},
         "transport": {"link": {"tx": {"lease": lease_ms, "keep_alive": 4}}},
     }
+
+
+def child_env() -> dict[str, str]:
+    """The services' environment: this one, headless OpenGL, unbuffered output (each line reaches its prefix at once)."""
+    return dict(headless_gl(dict(os.environ, PYTHONUNBUFFERED="1")))
 
 
 def lab_perception_config(world: str) -> dict[str, Any]:
@@ -157,7 +163,8 @@ class Child:
 class Up:
     """The rig's processes and the hub session (see the module docstring)."""
 
-    def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None) -> None:
+    def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None,
+                 forks: ForkServer | None = None) -> None:
         self.opts = opts
         self.log = log
         self.on_line = on_line
@@ -170,6 +177,7 @@ class Up:
         self.children: dict[str, Child] = {}
         self._stopping = threading.Event()
         self._wake = threading.Event()  # the supervisor has something to look at
+        self._changed = threading.Condition()  # a service came or went, or a child exited: wakes `wait_ready`
         self._print_lock = threading.Lock()
         self.session: Any = None
         self.watcher: LivelinessWatcher | None = None
@@ -181,7 +189,7 @@ class Up:
         self.hub = ""
         self.dashboard_url: str | None = None
         self._supervisor: threading.Thread | None = None
-        self.forks: ForkServer | None = None
+        self.forks = forks  # started by the caller (earlier: its imports overlap the caller's), else by `start`
 
     # -- set-up ----------------------------------------------------------------------------------
 
@@ -249,8 +257,10 @@ class Up:
         missing = [n for n in names if n not in modules]
         if missing:
             raise BusError(f"no `bagit {missing[0]}` command in this build: cannot start the {missing[0]} service")
-        if self.opts.fork_server:  # first: its imports overlap the rest of the set-up
-            self.forks = ForkServer(self._child_env(), on_exit=lambda *_: self._wake.set())
+        if self.opts.fork_server and self.forks is None:  # first: its imports overlap the rest of the set-up
+            self.forks = ForkServer(child_env())
+        if self.forks is not None:
+            self.forks.on_exit = lambda *_: self._wake.set()  # a child exited: the supervisor restarts it
         zpath, rpath = self._write_configs()
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
@@ -267,10 +277,6 @@ class Up:
         self._supervisor = threading.Thread(target=self._supervise, name="up-supervisor", daemon=True)
         self._supervisor.start()
 
-    @staticmethod
-    def _child_env() -> dict[str, str]:
-        return dict(headless_gl(dict(os.environ, PYTHONUNBUFFERED="1")))
-
     def _spawn(self, c: Child) -> None:
         niceness = 0 if c.name in ON_PATH else OFF_PATH_NICENESS
         c.proc = None
@@ -282,7 +288,7 @@ class Up:
         if c.proc is None:
             c.proc = subprocess.Popen(
                 [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT, env=self._child_env(), preexec_fn=functools.partial(child_setup, niceness),
+                stderr=subprocess.STDOUT, env=child_env(), preexec_fn=functools.partial(child_setup, niceness),
                 text=True, errors="replace", bufsize=1,
             )
         threading.Thread(target=self._pump, args=(c.name, c.proc), name=f"log-{c.name}", daemon=True).start()
@@ -298,6 +304,11 @@ class Up:
     def _on_alive(self, service: str, alive: bool) -> None:
         self.say(f"service {service} {'up' if alive else 'gone'}")
         self._wake.set()  # a service waited for may be up
+        self._notify_changed()
+
+    def _notify_changed(self) -> None:
+        with self._changed:
+            self._changed.notify_all()
 
     def _supervise(self) -> None:
         """Start the services waiting for another once it is up; restart the ones that exited. Woken by
@@ -319,6 +330,7 @@ class Up:
                 if c.restarts >= self.opts.max_restarts:
                     self.say(f"{c.name} exited with {code}; not restarted ({c.restarts} restarts already)")
                     c.proc = None
+                    self._notify_changed()  # `wait_ready` gives up on it
                     continue
                 self.say(f"{c.name} exited with {code}; restarting in {self.opts.restart_delay_s:g} s")
                 c.proc = None
@@ -380,13 +392,14 @@ class Up:
         deadline = time.monotonic() + (timeout if timeout is not None else self.opts.ready_timeout_s)
         want = set(self.children)
         while True:
-            missing = sorted(want - self.watcher.alive())
-            if not missing or time.monotonic() > deadline or (stop is not None and stop.is_set()):
-                return missing
-            dead = [n for n in missing if self.children[n].restarts >= self.opts.max_restarts and self.children[n].proc is None]
-            if dead:
-                return missing
-            time.sleep(0.1)
+            with self._changed:  # checked under the condition: a change after the check wakes the wait
+                missing = sorted(want - self.watcher.alive())
+                if not missing or time.monotonic() > deadline or (stop is not None and stop.is_set()):
+                    return missing
+                dead = [n for n in missing if self.children[n].restarts >= self.opts.max_restarts and self.children[n].proc is None]
+                if dead:
+                    return missing
+                self._changed.wait(min(STOP_CHECK_S, max(0.0, deadline - time.monotonic())))  # the backstop: `stop`
 
     # -- runs ------------------------------------------------------------------------------------
 
@@ -399,18 +412,18 @@ class Up:
         """Follow run/state until run `run_id` ends (done, failed, aborted); None if stopped first."""
         assert self.run_state is not None
         deadline = None if timeout is None else time.monotonic() + timeout
-        last_stage = None
+        last_stage, seen = None, 0.0
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-            s = self.run_state.get()
-            if s is None or s.run_id != run_id:
-                stop.wait(0.1)
-                continue
-            if s.stage != last_stage:
-                last_stage = s.stage
-                self.say(f"run {run_id}: {s.stage}" + (f" ({s.reason})" if s.reason else ""))
-            if s.stage in FINAL_STAGES:
-                return s
-            stop.wait(0.1)
+            item = self.run_state.get_with_time()
+            if item is not None:
+                s, seen = item
+                if s.run_id == run_id and s.stage != last_stage:
+                    last_stage = s.stage
+                    self.say(f"run {run_id}: {s.stage}" + (f" ({s.reason})" if s.reason else ""))
+                if s.run_id == run_id and s.stage in FINAL_STAGES:
+                    return s
+            # woken by the next state (`stop` is looked at every STOP_CHECK_S)
+            self.run_state.wait(STOP_CHECK_S if deadline is None else max(0.0, min(STOP_CHECK_S, deadline - time.monotonic())), newer_than=seen)
         return None
 
     # -- tear-down -------------------------------------------------------------------------------

@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bagit.commands import _args
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES
+
+if TYPE_CHECKING:
+    from bagit.up import UpOptions
 
 NAME = "up"
 HELP = "bring the whole simulated rig up: sim, perception, planner, controller, arm driver, dashboard"
@@ -50,16 +53,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workdir", type=Path, help="folder for the generated Zenoh config and rig YAML (default: a temporary one)")
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
-    import threading
-    import time
-
+def options(args: argparse.Namespace) -> UpOptions:
+    """The rig's `UpOptions` from the command line, after every check a child would only fail later."""
     from pydantic import ValidationError
 
     from bagit.common.errors import BadScenario
     from bagit.common.rig import RigConfig
-    from bagit.up import SERVICES, Up, UpOptions
+    from bagit.up import SERVICES, UpOptions
 
     # Everything a child would only refuse after the rig is up (their logs have the reason; `up` would
     # only see them missing after ready_timeout_s) is refused here, before any child starts.
@@ -84,15 +84,33 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     unknown = [s for s in services if s not in SERVICES + ("recorder",)]
     if unknown:
         raise BadScenario(f"--services: unknown service {unknown[0]!r}; choose from {', '.join(SERVICES)}, recorder")
-    opts = UpOptions(scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed, rig=args.rig,
+    return UpOptions(scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed, rig=args.rig,
                      services=services, record=args.record, fps=args.fps, dashboard_port=args.dashboard_port, workdir=args.workdir,
                      status_file=args.status_file, clock=args.clock, speed=args.speed,
                      fork_server=not args.no_fork_server)
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    import signal
+    import threading
+    import time
+
+    from bagit.common.errors import BadScenario
+    from bagit.forkserver import ForkServer
+    from bagit.up import Up, child_env
+
+    forks = None if args.no_fork_server else ForkServer(child_env())  # first: its imports overlap the checks
+    try:
+        opts = options(args)
+    except BaseException:
+        if forks is not None:
+            forks.close()
+        raise
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
     t0 = time.monotonic()
-    up = Up(opts)
+    up = Up(opts, forks=forks)
     try:
         up.start()
         if up.dashboard_url:

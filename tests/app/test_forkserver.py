@@ -17,7 +17,7 @@ import pytest
 from suite_support import HANG_S, wait_until
 
 from bagit.forkserver import PRELOAD, ForkServer
-from bagit.up import Up
+from bagit.up import child_env
 
 pytestmark = [pytest.mark.processes, pytest.mark.timeout(180)]
 
@@ -29,7 +29,7 @@ def _stat(pid: int) -> list[str]:
 
 @pytest.fixture
 def server():
-    fs = ForkServer(Up._child_env())
+    fs = ForkServer(child_env())
     yield fs
     fs.close()
 
