@@ -23,6 +23,7 @@ Only `bagit up` uses it: a deployed rig (Procfiles, systemd units) starts `bagit
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import json
 import os
@@ -129,17 +130,25 @@ def serve(sock: socket.socket) -> list[str] | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m bagit.forkserver FD`: preload, then serve the socket FD; in a child, run its command."""
+    """`python -m bagit.forkserver FD`: preload, then serve the socket FD; in a child, run its command
+    and exit with its status."""
     args = list(sys.argv[1:] if argv is None else argv)
     sock = socket.socket(fileno=int(args[0]))
     preload()
     cmd = serve(sock)
-    if cmd is None:
-        return 0
+    if cmd is None:  # every child reaped and reported: nothing of the server's is left to close or flush
+        os._exit(0)
     from bagit.cli import main as cli_main
 
     sys.argv = ["bagit", *cmd]
-    return cli_main(cmd)
+    code = cli_main(cmd)
+    # The command has returned: its sessions, servers and files are closed by its own code. A forked child
+    # ends as multiprocessing's do, without the interpreter's finalization (about a second of tearing down
+    # every module, for a process that is about to be gone): the exit handlers run, the output is flushed.
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(code)
 
 
 class ForkedProcess:

@@ -359,11 +359,14 @@ class Up:
             out[n] = round((int(fields[11]) + int(fields[12])) / tick, 2)  # utime, stime
         return out
 
-    def rig_cpu_s(self) -> float:
-        """CPU seconds so far of every running child and of this process (`bagit up` itself)."""
+    def own_cpu_s(self) -> dict[str, float]:
+        """CPU seconds so far of `bagit up` itself and of its fork server (the imports the services share)."""
         me = resource.getrusage(resource.RUSAGE_SELF)
-        forks = self.forks.cpu_s() if self.forks is not None else 0.0  # the shared imports
-        return sum(self.cpu_s().values()) + forks + me.ru_utime + me.ru_stime
+        return {"bagit up": round(me.ru_utime + me.ru_stime, 2), "fork server": round(self.forks.cpu_s(), 2) if self.forks is not None else 0.0}
+
+    def rig_cpu_s(self) -> float:
+        """CPU seconds so far of every running child, of this process (`bagit up` itself) and of the fork server."""
+        return sum(self.cpu_s().values()) + sum(self.own_cpu_s().values())
 
     def status(self) -> dict[str, Any]:
         return {

@@ -137,6 +137,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up.say(f"the run: {time.monotonic() - run_t0:.2f} s wall, {up.rig_cpu_s() - run_cpu0:.2f} CPU s (every service and bagit up)")
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
             up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
+            up.say("own cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.own_cpu_s().items()))  # the rest of the rig's
             return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
         up.say("up; Ctrl-C to stop everything")
         stop.wait()
