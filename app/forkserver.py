@@ -39,17 +39,26 @@ from typing import IO, Any
 
 # What every service imports before it does anything of its own (seen with `python -X importtime`): the
 # CLI (with every subcommand's parser), the bus and its messages, the rig and scenario models (scipy.spatial
-# through `bagit.common.geometry`), the service glue. Not a library only one service uses: each child
-# imports its own (MuJoCo, Open3D, viser, OpenCV), so those imports still run in parallel.
+# through `bagit.common.geometry`), the service glue, and what two services or more import. Not a library only
+# one service uses: each child imports its own (MuJoCo, Open3D, viser), so those imports still run in parallel.
+# Not OpenCV either (perception, planner, simulator): it starts a thread pool as it loads, and a fork keeps
+# only the forking thread.
 PRELOAD: tuple[str, ...] = (
     "numpy",
+    "scipy.linalg",
     "scipy.spatial",
     "scipy.sparse",
+    "scipy.optimize",  # the planner's and perception's (with scipy.fft)
+    "scipy.fft",
     "bagit.cli",
     "bagit.commands._service",
     "bagit.common.bus",
     "bagit.common.rig",
     "bagit.common.scenario",
+    "bagit.common.lockstep",
+    "bagit.common.dual_arm",
+    "bagit.common.cr5",
+    "bagit.services.controller",  # the controller's, and the simulator's (its control session)
 )
 MAX_PACKET = 1 << 16
 
