@@ -227,15 +227,18 @@ class ForkServer:
             if "exit" in msg and self.on_exit is not None:
                 self.on_exit(int(msg["exit"]), int(msg["code"]))
 
-    def spawn(self, argv: Sequence[str], niceness: int = 0, timeout_s: float = 60.0) -> ForkedProcess:
-        """Fork `bagit ARGV...` (its output on a new pipe, read from the returned process's stdout)."""
+    def spawn(self, argv: Sequence[str], niceness: int = 0) -> ForkedProcess:
+        """Fork `bagit ARGV...` (its output on a new pipe, read from the returned process's stdout). Waits for
+        the server to answer however long its imports take (a request given up on would still be forked:
+        a service twice); OSError if the server is gone."""
         r, w = os.pipe()
         try:
             with self._spawn_lock:
                 socket.send_fds(self._sock, [json.dumps({"argv": list(argv), "niceness": niceness}).encode()], [w])
                 with self._cond:
-                    if not self._cond.wait_for(lambda: self._pids or self._closed, timeout_s) or not self._pids:
-                        raise OSError("the fork server did not start the child")
+                    self._cond.wait_for(lambda: self._pids or self._closed)
+                    if not self._pids:
+                        raise OSError("the fork server is gone")
                     pid = self._pids.pop(0)
         except BaseException:
             os.close(r)

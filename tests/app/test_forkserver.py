@@ -99,3 +99,5 @@ def test_the_server_imports_the_shared_modules_and_its_children_die_with_it(serv
     server.proc.kill()
     assert p.wait(HANG_S) == -signal.SIGTERM  # its parent-death signal; nobody is left to report, so -SIGTERM
     assert not server.alive
+    with pytest.raises(OSError):
+        server.spawn(["--version"])  # `bagit up` then starts the service as an interpreter of its own
