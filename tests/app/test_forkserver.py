@@ -101,3 +101,20 @@ def test_the_server_imports_the_shared_modules_and_its_children_die_with_it(serv
     assert not server.alive
     with pytest.raises(OSError):
         server.spawn(["--version"])  # `bagit up` then starts the service as an interpreter of its own
+
+
+@pytest.mark.parametrize("flags, runs_as", [((), b"bagit.forkserver"), (("--no-fork-server",), b"bagit.cli")])
+def test_bagit_up_forks_its_services_from_the_server_unless_told_not_to(tmp_path, flags, runs_as):
+    from up_support import start_up, up_log, wait_status
+
+    from bagit.harness import stop_process
+
+    proc, status = start_up(tmp_path, "--services", "planner", *flags)
+    try:
+        pid = wait_status(status, ("planner",))["children"]["planner"]
+        assert wait_until(lambda: "all services up" in up_log(tmp_path), HANG_S, 0.1), up_log(tmp_path)
+        assert Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[1:3] == [b"-m", runs_as]
+        assert "[planner]" in up_log(tmp_path)  # its output relayed with its prefix either way
+    finally:
+        assert stop_process(proc) == 0
+    assert "stopped: planner " in up_log(tmp_path)  # its exit status reached bagit up
