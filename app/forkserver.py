@@ -118,6 +118,7 @@ def serve(sock: socket.socket) -> list[str] | None:
                 open_ = False
                 continue
             req = json.loads(data)
+            server = os.getpid()
             pid = os.fork()
             if pid == 0:  # the child: the server's descriptors and signal set-up are not its own
                 signal.set_wakeup_fd(-1)
@@ -126,6 +127,8 @@ def serve(sock: socket.socket) -> list[str] | None:
                     os.close(fd)
                 sock.close()
                 child_setup(int(req.get("niceness", 0)))
+                if os.getppid() != server:  # the server died before the parent-death signal was set
+                    os._exit(1)
                 out = fds[0]
                 os.dup2(out, 1)
                 os.dup2(out, 2)
