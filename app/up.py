@@ -163,8 +163,7 @@ class Child:
 class Up:
     """The rig's processes and the hub session (see the module docstring)."""
 
-    def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None,
-                 forks: ForkServer | None = None) -> None:
+    def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None) -> None:
         self.opts = opts
         self.log = log
         self.on_line = on_line
@@ -189,7 +188,7 @@ class Up:
         self.hub = ""
         self.dashboard_url: str | None = None
         self._supervisor: threading.Thread | None = None
-        self.forks = forks  # started by the caller (earlier: its imports overlap the caller's), else by `start`
+        self.forks: ForkServer | None = None  # the services' fork server (`UpOptions.fork_server`), started by `start`
 
     # -- set-up ----------------------------------------------------------------------------------
 
@@ -257,10 +256,9 @@ class Up:
         missing = [n for n in names if n not in modules]
         if missing:
             raise BusError(f"no `bagit {missing[0]}` command in this build: cannot start the {missing[0]} service")
-        if self.opts.fork_server and self.forks is None:  # first: its imports overlap the rest of the set-up
-            self.forks = ForkServer(child_env())
-        if self.forks is not None:
-            self.forks.on_exit = lambda *_: self._wake.set()  # a child exited: the supervisor restarts it
+        if self.opts.fork_server:  # first: its imports overlap the rest of the set-up
+            # a child exited: the supervisor restarts it
+            self.forks = ForkServer(child_env(), on_exit=lambda *_: self._wake.set())
         zpath, rpath = self._write_configs()
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)

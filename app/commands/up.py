@@ -96,21 +96,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import time
 
     from bagit.common.errors import BadScenario
-    from bagit.forkserver import ForkServer
-    from bagit.up import Up, child_env
+    from bagit.up import Up
 
-    forks = None if args.no_fork_server else ForkServer(child_env())  # first: its imports overlap the checks
-    try:
-        opts = options(args)
-    except BaseException:
-        if forks is not None:
-            forks.close()
-        raise
+    opts = options(args)  # refused here, before any process starts
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
     t0 = time.monotonic()
-    up = Up(opts, forks=forks)
+    up = Up(opts)
     try:
         up.start()
         if up.dashboard_url:
