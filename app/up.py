@@ -5,7 +5,9 @@ The composition root of the distributed rig. It writes, in a scratch folder, a Z
 every peer connected to the hub session
 this process listens with), a rig YAML (free ports for the simulated CR5s) and an arm-driver
 config (link time-outs for controllers that share the CPU, `SIM_DRIVER_TIMEOUTS`), then starts
-the services as child processes (`python -m bagit.cli <service> ...`), streams their output with
+the services as child processes running `bagit <service> ...`: forked by `bagit.forkserver`, one
+interpreter that imported what they share once (`--no-fork-server`: `python -m bagit.cli <service>`
+each, as a deployed rig starts them), streams their output with
 `[service]` prefixes, waits for each one's liveliness token, and can start a run on run/control
 and wait for its end.
 
@@ -19,7 +21,6 @@ tests can kill one.
 
 from __future__ import annotations
 
-import ctypes
 import functools
 import json
 import os
@@ -44,6 +45,7 @@ from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
 from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES
 from bagit.common.rig import RigConfig
+from bagit.forkserver import ForkedProcess, ForkServer, child_setup
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
 
 SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboard")
@@ -51,6 +53,7 @@ SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboa
 # simulator serves; on a real rig the controllers are already up).
 AFTER = {"arm-driver": "sim"}
 SUPERVISE_S = 1.0  # the supervisor's backstop wake-up (events wake it first)
+STOP_CHECK_S = 0.25  # how often a wait woken by the bus also looks at its `stop` event (Ctrl-C)
 # Services no step waits for (the dashboard, the recorder: they watch and record) run at this niceness: on
 # a busy machine the simulator and the services a step waits for come first, so a lockstep run is not
 # slowed by its display, and on the wall clock the control loop keeps its pace.
@@ -99,14 +102,9 @@ def zenoh_config(hub: str, lease_ms: int = WALL_LEASE_MS) -> dict[str, Any]:
     }
 
 
-def _child_setup(niceness: int = 0) -> None:  # pragma: no cover - runs in the child between fork and exec
-    os.setsid()
-    if niceness:
-        os.nice(niceness)
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+def child_env() -> dict[str, str]:
+    """The services' environment: this one, headless OpenGL, unbuffered output (each line reaches its prefix at once)."""
+    return dict(headless_gl(dict(os.environ, PYTHONUNBUFFERED="1")))
 
 
 def lab_perception_config(world: str) -> dict[str, Any]:
@@ -146,6 +144,9 @@ class UpOptions:
     ready_timeout_s: float = 180.0
     restart_delay_s: float = 1.0
     max_restarts: int = 5
+    # Start the services as forks of one interpreter that imported what they share (`bagit.forkserver`),
+    # not as an interpreter each: the same commands, a fraction of the start-up CPU.
+    fork_server: bool = True
     extra_args: dict[str, list[str]] = field(default_factory=dict)
 
 
@@ -153,7 +154,7 @@ class UpOptions:
 class Child:
     name: str
     argv: list[str]
-    proc: subprocess.Popen | None = None
+    proc: subprocess.Popen | ForkedProcess | None = None
     restarts: int = 0
     exit_codes: list[int] = field(default_factory=list)
     waiting_for: str | None = None  # started once this service's liveliness token is up
@@ -175,6 +176,7 @@ class Up:
         self.children: dict[str, Child] = {}
         self._stopping = threading.Event()
         self._wake = threading.Event()  # the supervisor has something to look at
+        self._changed = threading.Condition()  # a service came or went, or a child exited: wakes `wait_ready`
         self._print_lock = threading.Lock()
         self.session: Any = None
         self.watcher: LivelinessWatcher | None = None
@@ -186,6 +188,7 @@ class Up:
         self.hub = ""
         self.dashboard_url: str | None = None
         self._supervisor: threading.Thread | None = None
+        self.forks: ForkServer | None = None  # the services' fork server (`UpOptions.fork_server`), started by `start`
 
     # -- set-up ----------------------------------------------------------------------------------
 
@@ -253,6 +256,9 @@ class Up:
         missing = [n for n in names if n not in modules]
         if missing:
             raise BusError(f"no `bagit {missing[0]}` command in this build: cannot start the {missing[0]} service")
+        if self.opts.fork_server:  # first: its imports overlap the rest of the set-up
+            # a child exited: the supervisor restarts it
+            self.forks = ForkServer(child_env(), on_exit=lambda *_: self._wake.set())
         zpath, rpath = self._write_configs()
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
@@ -270,17 +276,24 @@ class Up:
         self._supervisor.start()
 
     def _spawn(self, c: Child) -> None:
-        env = headless_gl(dict(os.environ, PYTHONUNBUFFERED="1"))
-        setup = functools.partial(_child_setup, 0 if c.name in ON_PATH else OFF_PATH_NICENESS)
-        c.proc = subprocess.Popen(
-            [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT, env=env, preexec_fn=setup, text=True, errors="replace", bufsize=1,
-        )
+        niceness = 0 if c.name in ON_PATH else OFF_PATH_NICENESS
+        c.proc = None
+        if self.forks is not None and self.forks.alive:
+            try:
+                c.proc = self.forks.spawn(c.argv, niceness)
+            except OSError as e:  # the server is gone: an interpreter of its own, as without it
+                self.say(f"fork server: {e}; starting {c.name} as a process of its own")
+        if c.proc is None:
+            c.proc = subprocess.Popen(
+                [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT, env=child_env(), preexec_fn=functools.partial(child_setup, niceness),
+                text=True, errors="replace", bufsize=1,
+            )
         threading.Thread(target=self._pump, args=(c.name, c.proc), name=f"log-{c.name}", daemon=True).start()
         self.say(f"started {c.name} (pid {c.proc.pid})")
         self._write_status()
 
-    def _pump(self, name: str, proc: subprocess.Popen) -> None:
+    def _pump(self, name: str, proc: subprocess.Popen | ForkedProcess) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
             self.say(line.rstrip("\n"), who=name)
@@ -289,6 +302,11 @@ class Up:
     def _on_alive(self, service: str, alive: bool) -> None:
         self.say(f"service {service} {'up' if alive else 'gone'}")
         self._wake.set()  # a service waited for may be up
+        self._notify_changed()
+
+    def _notify_changed(self) -> None:
+        with self._changed:
+            self._changed.notify_all()
 
     def _supervise(self) -> None:
         """Start the services waiting for another once it is up; restart the ones that exited. Woken by
@@ -304,11 +322,13 @@ class Up:
                     self._spawn(c)
                 if c.proc is None or c.proc.poll() is None:
                     continue
-                code = c.proc.returncode
+                code = c.proc.poll()
+                assert code is not None
                 c.exit_codes.append(code)
                 if c.restarts >= self.opts.max_restarts:
                     self.say(f"{c.name} exited with {code}; not restarted ({c.restarts} restarts already)")
                     c.proc = None
+                    self._notify_changed()  # `wait_ready` gives up on it
                     continue
                 self.say(f"{c.name} exited with {code}; restarting in {self.opts.restart_delay_s:g} s")
                 c.proc = None
@@ -337,10 +357,14 @@ class Up:
             out[n] = round((int(fields[11]) + int(fields[12])) / tick, 2)  # utime, stime
         return out
 
-    def rig_cpu_s(self) -> float:
-        """CPU seconds so far of every running child and of this process (`bagit up` itself)."""
+    def own_cpu_s(self) -> dict[str, float]:
+        """CPU seconds so far of `bagit up` itself and of its fork server (the imports the services share)."""
         me = resource.getrusage(resource.RUSAGE_SELF)
-        return sum(self.cpu_s().values()) + me.ru_utime + me.ru_stime
+        return {"bagit up": round(me.ru_utime + me.ru_stime, 2), "fork server": round(self.forks.cpu_s(), 2) if self.forks is not None else 0.0}
+
+    def rig_cpu_s(self) -> float:
+        """CPU seconds so far of every running child, of this process (`bagit up` itself) and of the fork server."""
+        return sum(self.cpu_s().values()) + sum(self.own_cpu_s().values())
 
     def status(self) -> dict[str, Any]:
         return {
@@ -369,13 +393,14 @@ class Up:
         deadline = time.monotonic() + (timeout if timeout is not None else self.opts.ready_timeout_s)
         want = set(self.children)
         while True:
-            missing = sorted(want - self.watcher.alive())
-            if not missing or time.monotonic() > deadline or (stop is not None and stop.is_set()):
-                return missing
-            dead = [n for n in missing if self.children[n].restarts >= self.opts.max_restarts and self.children[n].proc is None]
-            if dead:
-                return missing
-            time.sleep(0.1)
+            with self._changed:  # checked under the condition: a change after the check wakes the wait
+                missing = sorted(want - self.watcher.alive())
+                if not missing or time.monotonic() > deadline or (stop is not None and stop.is_set()):
+                    return missing
+                dead = [n for n in missing if self.children[n].restarts >= self.opts.max_restarts and self.children[n].proc is None]
+                if dead:
+                    return missing
+                self._changed.wait(min(STOP_CHECK_S, max(0.0, deadline - time.monotonic())))  # the backstop: `stop`
 
     # -- runs ------------------------------------------------------------------------------------
 
@@ -388,18 +413,18 @@ class Up:
         """Follow run/state until run `run_id` ends (done, failed, aborted); None if stopped first."""
         assert self.run_state is not None
         deadline = None if timeout is None else time.monotonic() + timeout
-        last_stage = None
+        last_stage, seen = None, 0.0
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-            s = self.run_state.get()
-            if s is None or s.run_id != run_id:
-                stop.wait(0.1)
-                continue
-            if s.stage != last_stage:
-                last_stage = s.stage
-                self.say(f"run {run_id}: {s.stage}" + (f" ({s.reason})" if s.reason else ""))
-            if s.stage in FINAL_STAGES:
-                return s
-            stop.wait(0.1)
+            item = self.run_state.get_with_time()
+            if item is not None:
+                s, seen = item
+                if s.run_id == run_id and s.stage != last_stage:
+                    last_stage = s.stage
+                    self.say(f"run {run_id}: {s.stage}" + (f" ({s.reason})" if s.reason else ""))
+                if s.run_id == run_id and s.stage in FINAL_STAGES:
+                    return s
+            # woken by the next state (`stop` is looked at every STOP_CHECK_S)
+            self.run_state.wait(STOP_CHECK_S if deadline is None else max(0.0, min(STOP_CHECK_S, deadline - time.monotonic())), newer_than=seen)
         return None
 
     # -- tear-down -------------------------------------------------------------------------------
@@ -433,6 +458,9 @@ class Up:
         if self.session is not None:
             self.session.close()
             self.session = None
+        if self.forks is not None:
+            self.forks.close()
+            self.forks = None
         if self._own_dir:  # a scratch folder of ours (generated configs, status): gone with the rig
             shutil.rmtree(self.dir, ignore_errors=True)
         return codes
@@ -444,7 +472,7 @@ class Up:
         self.stop()
 
 
-def _signal_group(p: subprocess.Popen, sig: int) -> None:
+def _signal_group(p: subprocess.Popen | ForkedProcess, sig: int) -> None:
     try:
         os.killpg(p.pid, sig)  # the child is its own process group's leader (setsid)
     except (ProcessLookupError, PermissionError):

@@ -45,11 +45,12 @@ def _last_json(text: str) -> dict[str, Any]:
     return json.loads(lines[-1])
 
 
-def cpu_per_service(stderr: str) -> dict[str, float]:
-    """The CPU seconds `bagit up` said each service used ('[up] cpu s: sim 12.3, perception 4.5, ...')."""
-    line = next((ln for ln in reversed(stderr.splitlines()) if ln.startswith("[up] cpu s: ")), "")
+def cpu_per_service(stderr: str, prefix: str = "[up] cpu s: ") -> dict[str, float]:
+    """The CPU seconds `bagit up` said each service used ('[up] cpu s: sim 12.3, perception 4.5, ...'); with
+    prefix '[up] own cpu s: ', its own and its fork server's ('bagit up 1.2, fork server 0.6')."""
+    line = next((ln for ln in reversed(stderr.splitlines()) if ln.startswith(prefix)), "")
     out = {}
-    for item in line.removeprefix("[up] cpu s: ").split(", "):
+    for item in line.removeprefix(prefix).split(", "):
         name, _, v = item.rpartition(" ")
         if name:
             out[name] = float(v)

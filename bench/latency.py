@@ -271,12 +271,12 @@ def run(quick: bool = False, nodes: bool = True) -> dict[str, Any]:
             pub = Publisher(a, keys.camera_rgbd, RgbdFrame)
             if nodes:
                 feed = _RigFeed(a, keys, prep)
-            from bagit.up import _child_setup  # own session, and SIGTERM when this process dies: no orphans
+            from bagit.forkserver import child_setup  # own session, and SIGTERM when this process dies: no orphans
 
             for name, argv in (_node_children if nodes else _stage_children)(ep, data, Path(td)):
                 log = open(Path(td) / f"{name}.log", "w+", encoding="utf-8")
                 procs.append((name, subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=log, stderr=subprocess.STDOUT,
-                                                     preexec_fn=_child_setup), log))
+                                                     preexec_fn=child_setup), log))
             for name, p, log in procs:
                 if not watch.wait_for(name, True, 120):
                     log.seek(0)

@@ -1,6 +1,6 @@
 """`bagit up` in lockstep against `bagit run`, side by side: the same run, its wall time and its CPU.
 
-    python -m bagit.bench.up_lockstep [--scenario exp02] [--seed 0] [--no-dashboard] [--hogs N] [--record] [--json]
+    python -m bagit.bench.up_lockstep [--scenario exp02] [--seed 0] [--no-dashboard] [--no-fork-server] [--hogs N] [--record] [--json]
 
 Both commands run as child processes of this one, one after the other, on the same machine:
 
@@ -9,7 +9,8 @@ Both commands run as child processes of this one, one after the other, on the sa
 2. `bagit up SCENARIO --exit-when-done --json` in lockstep (the default), with every service and the
    dashboard: wall time from launch to exit; CPU of the whole process tree (`bagit up` and every
    service it started and reaped), and per service over its life (its `[up] cpu s:` line), per
-   simulated second of the run. Also the run alone, as a standing rig pays it: from its start to
+   simulated second of the run, and `bagit up`'s own and its fork server's (the imports the services
+   share; `--no-fork-server`: every service an interpreter of its own, as before). Also the run alone, as a standing rig pays it: from its start to
    its end, wall and CPU of every service and `bagit up` (its `[up] the run:` line); six
    interpreters starting and stopping are the rest.
 
@@ -58,7 +59,8 @@ def _timed(argv: list[str], timeout_s: float) -> tuple[dict[str, Any], str, floa
     return (json.loads(lines[-1]) if lines else {}), r.stderr, wall, cpu, r.returncode
 
 
-def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, hogs: int = 0, timeout_s: float = 900.0) -> dict[str, Any]:
+def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, hogs: int = 0, timeout_s: float = 900.0,
+            fork_server: bool = True) -> dict[str, Any]:
     """`bagit run` then `bagit up` (lockstep) of one scenario and seed, measured (see the module doc)."""
     from bagit.bench.common import machine
     from bagit.bench.deployed import Hogs, cpu_per_service, run_cost
@@ -66,17 +68,19 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, hogs
     cli = [sys.executable, "-m", "bagit.cli"]
     out: dict[str, Any] = {"machine": machine(), "load_before": [round(x, 2) for x in os.getloadavg()]}
     out["params"] = {"scenario": scenario, "seed": seed, "clock": "lockstep", "dashboard": dashboard, "hogs": hogs,
-                     "speed": "as fast as the rig answers (no --speed)"}
+                     "speed": "as fast as the rig answers (no --speed)", "fork_server": fork_server}
     with Hogs(hogs):  # their CPU is not counted: they are reaped after the measurement
         run, _, run_wall, run_cpu, run_code = _timed([*cli, "run", scenario, "--seed", str(seed), "--json"], timeout_s)
         up_argv = [*cli, "up", scenario, "--seed", str(seed), "--exit-when-done", "--json", "--timeout", f"{timeout_s:g}"]
-        up, up_err, up_wall, up_cpu, up_code = _timed(up_argv + ([] if dashboard else ["--no-dashboard"]), timeout_s + 60)
+        up_argv += ([] if dashboard else ["--no-dashboard"]) + ([] if fork_server else ["--no-fork-server"])
+        up, up_err, up_wall, up_cpu, up_code = _timed(up_argv, timeout_s + 60)
     out["load_after"] = [round(x, 2) for x in os.getloadavg()]
     sim_s = float(run.get("duration_s") or 0.0)
     per_service = cpu_per_service(up_err)
     out["run"] = {"exit": run_code, "wall_s": round(run_wall, 2), "cpu_s": round(run_cpu, 2), "result": {k: run.get(k) for k in SAME[:4]}}
     out["up"] = {"exit": up_code, "wall_s": round(up_wall, 2), "cpu_s": round(up_cpu, 2), "exact": up.get("exact"),
-                 "inexact": up.get("inexact"), "cpu_s_per_service": per_service, "result": {k: up.get(k) for k in SAME[:4]},
+                 "inexact": up.get("inexact"), "cpu_s_per_service": per_service,
+                 "own_cpu_s": cpu_per_service(up_err, "[up] own cpu s: "), "result": {k: up.get(k) for k in SAME[:4]},
                  "realtime_factor": (up.get("truth") or {}).get("realtime_factor")}
     if sim_s > 0:
         out["up"]["cpu_s_per_sim_s"] = {k: round(v / sim_s, 3) for k, v in per_service.items()}
@@ -136,6 +140,7 @@ def markdown(r: dict[str, Any]) -> str:
         ("the run alone / `bagit run`: wall, CPU", "" if not r.get("ratio_the_run") else f"{r['ratio_the_run']['wall']}, {r['ratio_the_run']['cpu']}"),
         ("bit for bit, exact", f"{r['bit_for_bit']}, {b['exact']}" + (f" ({'; '.join(b['inexact'])})" if b.get("inexact") else "")),
         ("CPU s per service (whole life)", ", ".join(f"{k} {v:.1f}" for k, v in b["cpu_s_per_service"].items())),
+        ("CPU s of `bagit up` itself and of its fork server (whole life)", ", ".join(f"{k} {v:.1f}" for k, v in b.get("own_cpu_s", {}).items())),
         ("CPU s per simulated s per service", ", ".join(f"{k} {v:.2f}" for k, v in b.get("cpu_s_per_sim_s", {}).items())),
         ("real-time factor of the up run", b.get("realtime_factor")),
         ("goals met", ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in r["goal"].items())),
@@ -154,13 +159,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="exp02")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-dashboard", action="store_true")
+    ap.add_argument("--no-fork-server", action="store_true", help="`bagit up --no-fork-server`: every service an interpreter of its own")
     ap.add_argument("--hogs", type=int, default=0, help="busy processes on the cores while measuring")
     ap.add_argument("--json", action="store_true", help="print the record as JSON")
     ap.add_argument("--record", action="store_true", help="write bench/results/up-lockstep-<time>.json and .md")
     ap.add_argument("--per-sim-second", action="store_true", help="also CPU per simulated second per service, lockstep and wall, at 10 frames/s")
     a = ap.parse_args(argv)
     configure_logging()
-    r = measure(a.scenario, a.seed, dashboard=not a.no_dashboard, hogs=a.hogs)
+    r = measure(a.scenario, a.seed, dashboard=not a.no_dashboard, hogs=a.hogs, fork_server=not a.no_fork_server)
     if a.per_sim_second:
         r["per_sim_second_at_10fps"] = per_sim_second(scenario=a.scenario, seed=a.seed)
     md = markdown(r)

@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bagit.commands import _args
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES
+
+if TYPE_CHECKING:
+    from bagit.up import UpOptions
 
 NAME = "up"
 HELP = "bring the whole simulated rig up: sim, perception, planner, controller, arm driver, dashboard"
@@ -45,19 +48,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-inexact", action="store_true",
                    help="with --exit-when-done: exit 0 for a successful lockstep run that could not stay exact (a service "
                         "dropped from the wait, an answer made without what it waited for); by default that exits 1")
+    p.add_argument("--no-fork-server", action="store_true",
+                   help="start every service as an interpreter of its own (default: forks of one that imported what they share)")
     p.add_argument("--workdir", type=Path, help="folder for the generated Zenoh config and rig YAML (default: a temporary one)")
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
-    import threading
-    import time
-
+def options(args: argparse.Namespace) -> UpOptions:
+    """The rig's `UpOptions` from the command line, after every check a child would only fail later."""
     from pydantic import ValidationError
 
     from bagit.common.errors import BadScenario
     from bagit.common.rig import RigConfig
-    from bagit.up import SERVICES, Up, UpOptions
+    from bagit.up import SERVICES, UpOptions
 
     # Everything a child would only refuse after the rig is up (their logs have the reason; `up` would
     # only see them missing after ready_timeout_s) is refused here, before any child starts.
@@ -82,9 +84,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     unknown = [s for s in services if s not in SERVICES + ("recorder",)]
     if unknown:
         raise BadScenario(f"--services: unknown service {unknown[0]!r}; choose from {', '.join(SERVICES)}, recorder")
-    opts = UpOptions(scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed, rig=args.rig,
+    return UpOptions(scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed, rig=args.rig,
                      services=services, record=args.record, fps=args.fps, dashboard_port=args.dashboard_port, workdir=args.workdir,
-                     status_file=args.status_file, clock=args.clock, speed=args.speed)
+                     status_file=args.status_file, clock=args.clock, speed=args.speed,
+                     fork_server=not args.no_fork_server)
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    import signal
+    import threading
+    import time
+
+    from bagit.common.errors import BadScenario
+    from bagit.up import Up
+
+    opts = options(args)  # refused here, before any process starts
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
@@ -116,6 +130,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up.say(f"the run: {time.monotonic() - run_t0:.2f} s wall, {up.rig_cpu_s() - run_cpu0:.2f} CPU s (every service and bagit up)")
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
             up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
+            up.say("own cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.own_cpu_s().items()))  # the rest of the rig's
             return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
         up.say("up; Ctrl-C to stop everything")
         stop.wait()

@@ -58,14 +58,16 @@ def test_the_up_lockstep_record_reads_as_a_table_with_its_provenance_ratios_and_
          "params": {"scenario": "exp02", "hogs": 0},
          "run": {"exit": 0, "wall_s": 10.0, "cpu_s": 9.0, "result": {}},
          "up": {"exit": 0, "wall_s": 11.0, "cpu_s": 12.0, "exact": True, "inexact": [], "cpu_s_per_service": {"sim": 6.0},
-                "cpu_s_per_sim_s": {"sim": 0.5}, "result": {}, "realtime_factor": 1.2},
+                "cpu_s_per_sim_s": {"sim": 0.5}, "result": {}, "realtime_factor": 1.2,
+                "own_cpu_s": {"bagit up": 1.5, "fork server": 0.7}},
          "bit_for_bit": True, "ratio": {"wall": 1.1, "cpu": 1.333},
          "goal": {"bit_for_bit": True, "wall_ratio": True, "cpu_ratio": False},
          "per_sim_second_at_10fps": {"fps": 10.0, "lockstep": {"cpu_s_per_sim_s": {"sim": 0.4}}, "wall": {"cpu_s_per_sim_s": {"sim": 0.6}}}}
     md = markdown(r)
     assert md.startswith("# `bagit up` in lockstep against `bagit run`")
     for text in ("| commit | abc |", "| up / run: wall, CPU | 1.1, 1.333", "bit_for_bit yes, wall_ratio yes, cpu_ratio no",
-                 "lockstep, 10 frames/s | sim 0.400", "wall, 10 frames/s | sim 0.600"):
+                 "lockstep, 10 frames/s | sim 0.400", "wall, 10 frames/s | sim 0.600",
+                 "and of its fork server (whole life) | bagit up 1.5, fork server 0.7 |"):
         assert text in md, (text, md)
 
 
@@ -77,3 +79,13 @@ def test_the_up_lockstep_goals_judge_the_whole_life_and_the_run_alone_apart():
                                     "wall_ratio_the_run": True, "cpu_ratio_the_run": False}
     assert goals({**r, "ratio_the_run": None}, exact=False)["bit_for_bit"] is False
     assert not goals({**r, "ratio_the_run": None}, exact=True)["wall_ratio_the_run"]
+
+
+def test_the_cpu_lines_of_bagit_up_are_read_per_service_and_its_own_apart():
+    from bagit.bench.deployed import cpu_per_service
+
+    err = ("[sim] cpu s: not this one\n[up] cpu s: sim 12.3, perception 4.5, arm-driver 2.0\n"
+           "[up] own cpu s: bagit up 1.2, fork server 0.6\n")
+    assert cpu_per_service(err) == {"sim": 12.3, "perception": 4.5, "arm-driver": 2.0}
+    assert cpu_per_service(err, "[up] own cpu s: ") == {"bagit up": 1.2, "fork server": 0.6}
+    assert cpu_per_service("no such line") == {}
