@@ -136,6 +136,26 @@ def flagged_camera(camera: CameraConfig, **flags: Any) -> CameraConfig:
         raise CameraError(f"bad camera settings: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
 
 
+SIGNAL_WAKE_S = 0.1  # the longest a command's main thread waits between looks at its signals
+
+
+def wait_stop(stop: threading.Event, duration: float | None = None, ended: threading.Event | None = None) -> bool:
+    """Until `stop` (the command's SIGINT/SIGTERM handler sets it), `duration` s or `ended`; True if `ended`.
+
+    Woken every SIGNAL_WAKE_S: a signal the kernel hands to another thread (a SIGTERM right after a
+    SIGCONT can land there) only flags it, and Python runs the handler once the main thread next wakes;
+    a wait with no time-out would never see it."""
+    deadline = None if duration is None else time.monotonic() + duration
+    while not stop.is_set():
+        if ended is not None and ended.is_set():
+            return True
+        left = SIGNAL_WAKE_S if deadline is None else min(SIGNAL_WAKE_S, deadline - time.monotonic())
+        if left <= 0:
+            break
+        stop.wait(left)
+    return False
+
+
 def run_service(
     name: str,
     bus: BusConfig,
@@ -160,16 +180,7 @@ def run_service(
             try:
                 token = declare_alive(session, keys, name)
                 logging.getLogger(f"bagit.{name.replace('-', '_')}").info("%s (rig %s); Ctrl-C to stop", banner(node) if banner else "running", bus.rig)
-                node_stop = getattr(node, "stopped", None)
-                deadline = None if duration is None else t0 + duration
-                while not stop.is_set():
-                    left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
-                    if left <= 0:
-                        break
-                    if node_stop is not None and node_stop.is_set():
-                        stopped_by_node = True
-                        break
-                    stop.wait(left)
+                stopped_by_node = wait_stop(stop, None if duration is None else t0 + duration - time.monotonic(), getattr(node, "stopped", None))
                 try:
                     token.undeclare()
                 except Exception:  # noqa: BLE001 - the session may already be gone

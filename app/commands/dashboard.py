@@ -55,6 +55,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadScenario(f"--{str(first['loc'][0]).replace('_', '-')}: {first['msg']}") from None
     rig = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
     bus = bus_config_from_args(args)
+    from bagit.commands._service import wait_stop
+
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
@@ -67,7 +69,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         with node:
             url = node.url
             log.info("%s (rig %s); Ctrl-C to stop", url, bus.rig)
-            stop.wait(args.duration)
+            wait_stop(stop, args.duration)
             stats = node.dashboard.stats()
             runs = [r.run_id for r in node.dashboard.history.records()]
     finally:

@@ -78,6 +78,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise BusError(f"--run-time-limit: {e.errors()[0]['msg']}") from None
         cfg = cfg.model_copy(update={"coordinator": coord})
     bus = bus_config_from_args(args, parse_bus_config(cfg.bus))
+    from bagit.commands._service import wait_stop
+
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
@@ -89,7 +91,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             node = PlannerNode(session, Keys(bus.rig), cfg, on_state=lambda s: runs.__setitem__(s.run_id, s.stage) if s.run_id else None,
                                clock=bus.clock)
             log.info("coordinating rig %s (run/control, run/state); Ctrl-C to stop", bus.rig)
-            stop.wait(args.duration)
+            wait_stop(stop, args.duration)
             last = node.state
             node.close()
         finally:

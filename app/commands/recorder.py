@@ -75,6 +75,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadRecording(f"{FLAGS.get(field, field)}: {first['msg']}{' bytes' if field in ('max_bytes', 'chunk_bytes') else ''}") from None
     bus = bus_config_from_args(args)
     keys = Keys(bus.rig)
+    from bagit.commands._service import wait_stop
+
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     t0 = time.monotonic()
@@ -84,12 +86,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         try:
             node = RecorderNode(session, keys, writer, exclude=args.exclude)
             log.info("recording %s into %s; Ctrl-C to stop", keys.all, cfg.dir)
-            deadline = None if args.duration is None else time.monotonic() + args.duration
-            while not stop.is_set() and not node.stopped.is_set():  # stopped: the writer died
-                left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
-                if left <= 0:
-                    break
-                stop.wait(left)
+            wait_stop(stop, args.duration, node.stopped)  # stopped: the writer died
             status = node.close()
         finally:
             session.close()

@@ -52,6 +52,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             data[field] = getattr(args, flag)
     cfg = parse_bus_config(data)
     listen = config_value(cfg.to_zenoh(), "listen/endpoints")
+    from bagit.commands._service import wait_stop
+
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     t0 = time.monotonic()
@@ -71,7 +73,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             listener = None
         log.info("%s listening on %s; Ctrl-C to stop", session.zid(), ", ".join(listen) if listen else "(nothing)")
         try:
-            stop.wait(args.duration)
+            wait_stop(stop, args.duration)
         finally:
             if listener is not None:
                 try:

@@ -99,6 +99,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.up import Up
 
     opts = options(args)  # refused here, before any process starts
+    from bagit.commands._service import wait_stop
+
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
@@ -133,7 +135,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up.say("own cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.own_cpu_s().items()))  # the rest of the rig's
             return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
         up.say("up; Ctrl-C to stop everything")
-        stop.wait()
+        wait_stop(stop)
         return {"success": True, "wall_s": time.monotonic() - t0, "run_id": run_id, "restarts": {n: c.restarts for n, c in up.children.items()}}
     finally:
         codes = up.stop()
