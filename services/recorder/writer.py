@@ -19,7 +19,7 @@
   at most `flush_s` of data lost. A closed file ends with the `bagit.run` metadata (the last run
   state), then the summary and footer as the mcap writer writes them, over the trailer.
 - A write error (disk full: ENOSPC, or any OSError) abandons the file (ended again at its last
-  complete chunk), is reported through `on_event("error", ...)` once, counts the messages that
+  complete chunk; removed if none of its messages reached the disk), is reported through `on_event("error", ...)` once, counts the messages that
   did not reach the disk (those of the open chunk too), and is retried with a new part every
   `retry_s`; success is reported as `on_event("info", "recording resumed...")`.
 
@@ -372,6 +372,7 @@ class RecordingWriter:
             fh.commit()
         except BaseException:
             fh.abandon()
+            _unlink(path)  # a file without its header records nothing: none is left behind
             raise
         self.cur = _Open(path=path, kind=kind, run_id=rid, part=part, fh=fh, writer=w, started_ns=log_time_ns)
         self.files.append(str(path))
@@ -453,8 +454,13 @@ class RecordingWriter:
         if f is self.cur:
             self.cur = None
         if f is not None:
+            on_disk = f.messages - f.chunk_messages
             self._drop(f)
             self.failed = (f.kind, f.run_id, f.part)
+            if on_disk == 0:  # nothing of it reached the disk: no empty file piles up at each retry
+                _unlink(f.path)
+                if str(f.path) in self.files:
+                    self.files.remove(str(f.path))
         self.errors += 1
         self.retry_at = now + self.cfg.retry_s
         self.last_error = describe_os_error(e, f.path if f is not None else None)
@@ -560,6 +566,13 @@ def _mtime(p: Path) -> float:
         return p.stat().st_mtime
     except OSError:
         return 0.0
+
+
+def _unlink(path: Path) -> None:
+    try:
+        path.unlink()
+    except OSError:
+        pass
 
 
 def _quiet_close(fh: Any) -> None:
