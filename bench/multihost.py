@@ -74,6 +74,7 @@ CR5_ADDRESSES = {"left": f"{ROBOT_LAN}.11", "right": f"{ROBOT_LAN}.12"}
 SKEWS_S = (0.3, -0.3)
 WATCHDOG_GOAL_MS = 250.0  # the issue's bar: arms still within this of the last command that reached them
 STILL_MM_S = 1.0  # "still": both controllers' TCP speed below this
+MOVING_MPS = 0.01  # the cable is pulled right after a command asking at least this speed of a mount
 FAKETIME_LIB = Path("/usr/lib/x86_64-linux-gnu/faketime/libfaketimeMT.so.1")  # Debian's `faketime`
 TMPFS_KB = 3072  # the recorder's disk in the full-disk scenario (the issue's 3 MB)
 READY_S = 240.0  # services up (imports on a loaded machine)
@@ -609,6 +610,12 @@ def arms_still_after(lab: Lab, last_cmd: float, recs: dict[str, Any], horizon_s:
     return round(1e3 * float(max(out)), 1)
 
 
+def tcp_speed_mm_s(rec: Any, t: float) -> float:
+    """An arm's TCP speed (mm/s, its feedback) at monotonic time `t` (the packet nearest before it; 0 without one)."""
+    tf, speed = rec.series("TCPSpeedActual", t - 0.1, t)
+    return round(float(np.linalg.norm(speed[-1, :3])), 1) if tf.size else 0.0
+
+
 def cut_cable(lab: Lab, con: Console, scenario: str, seed: int, quick: bool) -> dict[str, Any]:
     """The arms' cable pulled in the run's servoing, right after a command passed the router; plugged
     back after the run failed; then the next run (to its end, or with `quick` to its servoing)."""
@@ -621,8 +628,8 @@ def cut_cable(lab: Lab, con: Console, scenario: str, seed: int, quick: bool) -> 
     cut: dict[str, float] = {}
     servoing, trigger = threading.Event(), threading.Event()
 
-    def on_cmd(t: float, c: Any) -> None:  # some way into the servoing, right after a command went by
-        if servoing.is_set() and c.mode == "servo" and c.seq > 30:
+    def on_cmd(t: float, c: Any) -> None:  # some way into the servoing, right after a command that moves the arms went by
+        if servoing.is_set() and c.mode == "servo" and c.seq > 30 and float(np.linalg.norm(c.u[:3])) / c.dt > MOVING_MPS:
             trigger.set()
 
     def pull() -> None:  # on its own thread: the commands' arrival times stay true meanwhile
@@ -648,7 +655,9 @@ def cut_cable(lab: Lab, con: Console, scenario: str, seed: int, quick: bool) -> 
     # The last command that reached the arms: at the latest the last one past the router before the pull
     # began (one that passed while `ip` ran may have reached them too: then the arms stopped sooner than said).
     cut["last_cmd"] = max(t for t, _ in con.cmds if t <= cut["start"])
+    stages = list(con.stages)
     still_ms = arms_still_after(lab, cut["last_cmd"], recs)
+    speed = max(tcp_speed_mm_s(r, cut["last_cmd"]) for r in recs.values())
     for r in recs.values():
         r.close()
     after_cut = [c.seq for t, c in con.cmds if t > cut["t"]]
@@ -657,8 +666,8 @@ def cut_cable(lab: Lab, con: Console, scenario: str, seed: int, quick: bool) -> 
     back = con.watcher.wait_for("arm-driver", True, 60.0)
     running = {k: p.popen.poll() is None for k, p in lab.procs.items() if p.popen is not None}
     nxt = next_run(con, scenario, seed, quick)
-    return {"arms_stopped_ms": still_ms, "goal_ms": WATCHDOG_GOAL_MS, "pull_ms": pull_ms, "reason": res.reason, "run_success": res.success,
-            "stages": list(con.stages), "arm_driver_back": back, "all_processes_running": all(running.values()),
+    return {"arms_stopped_ms": still_ms, "goal_ms": WATCHDOG_GOAL_MS, "moving_mm_s": speed, "pull_ms": pull_ms, "reason": res.reason,
+            "run_success": res.success, "stages": stages, "arm_driver_back": back, "all_processes_running": all(running.values()),
             "commands_seen_after_cut": len(after_cut), **nxt}
 
 

@@ -370,9 +370,11 @@ class RecordingWriter:
                 "encoding": "json records: arrays as {dtype, shape, data: base64 of the wire bytes}",
             })
             fh.commit()
-        except BaseException:
+        except BaseException as e:
             fh.abandon()
             _unlink(path)  # a file without its header records nothing: none is left behind
+            if isinstance(e, OSError) and not e.filename:
+                raise OSError(e.errno, e.strerror, str(path)) from None  # the report names the file
             raise
         self.cur = _Open(path=path, kind=kind, run_id=rid, part=part, fh=fh, writer=w, started_ns=log_time_ns)
         self.files.append(str(path))
@@ -463,14 +465,15 @@ class RecordingWriter:
                     self.files.remove(str(f.path))
         self.errors += 1
         self.retry_at = now + self.cfg.retry_s
-        self.last_error = describe_os_error(e, f.path if f is not None else None)
+        where = f.path if f is not None else Path(e.filename) if e.filename else self.cfg.dir
+        self.last_error = describe_os_error(e, where)
         if self.error is None:
             self.error = self.last_error
             self.reported_at = now
             self.on_event("error", f"recording stopped: {self.error}; retrying every {self.cfg.retry_s:g} s")
         elif now - self.reported_at >= 60.0:
             self.reported_at = now
-            self.on_event("error", f"recording still failing: {describe_os_error(e, f.path if f else None)}; {self.lost} messages lost")
+            self.on_event("error", f"recording still failing: {self.last_error}; {self.lost} messages lost")
 
     def _prune_idle(self) -> None:
         idle = sorted(self.cfg.dir.glob(f"{self.rig}_*_idle*.mcap"), key=_mtime)
