@@ -29,6 +29,7 @@ servoing, then starts the next run. Not root: one line, exit status 2.
 
 from __future__ import annotations
 
+import argparse
 import functools
 import json
 import logging
@@ -45,7 +46,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -468,7 +468,7 @@ class Console:
         self.final_truths: dict[str, SimTruth] = {}
         self.cmds: list[tuple[float, Command]] = []
         self.on_cmd: Any = None
-        self._subs = [Subscriber(self.session, self.keys.sim_truth, SimTruth, self._on_truth),
+        self._subs: list[Subscriber[Any]] = [Subscriber(self.session, self.keys.sim_truth, SimTruth, self._on_truth),
                       Subscriber(self.session, self.keys.controller_cmd, Command, self._on_cmd)]
 
     def _on_truth(self, t: Any) -> None:
@@ -525,16 +525,21 @@ class Console:
                     state = s
                     break
             time.sleep(0.02)
-        args = SimpleNamespace(scenario=scenario, controller=None, planner=None, seed=seed, timeout=timeout,
-                               clock="lockstep" if self.lab.clock == "lockstep" else "wall")
+        args = argparse.Namespace(scenario=scenario, controller=None, planner=None, seed=seed, timeout=timeout,
+                                  clock="lockstep" if self.lab.clock == "lockstep" else "wall")
         recording = recording_of_run(self.recorder, before, time.time(), stop)
-        res = run_result(self, rep.run_id, state, stop, args, time.monotonic() - t0, recording)  # type: ignore[arg-type]
+        res = run_result(self, rep.run_id, state, stop, args, time.monotonic() - t0, recording)
         self.stages = stages
         return res
 
     def close(self) -> None:
-        for x in (*self._subs, self.run_state, self.truth, self.arm_states, self.recorder, self.watcher):
-            x.close()
+        for sub in self._subs:
+            sub.close()
+        self.run_state.close()
+        self.truth.close()
+        self.arm_states.close()
+        self.recorder.close()
+        self.watcher.close()
         self.session.close()
 
     def __enter__(self) -> Console:
