@@ -600,19 +600,28 @@ def soi_judgement(cmds: list[tuple[float, Any]], offset_s: float, max_age_s: flo
     return {"commands": judged, "fresh_taken_as_stale": fresh_as_stale, "stale_taken_as_fresh": stale_as_fresh}
 
 
-def arms_still_after(lab: Lab, last_cmd: float, recs: dict[str, Any], horizon_s: float = 3.0) -> float | None:
-    """Milliseconds from `last_cmd` (monotonic) until both arms' feedback stays below STILL_MM_S; None if never."""
-    out = []
+def arms_still_after(last_cmd: float, recs: dict[str, Any], horizon_s: float = 3.0) -> dict[str, float] | None:
+    """From `last_cmd` (monotonic) until both arms' feedback stays below STILL_MM_S (the later arm): `ms` on
+    the controllers' own clock (RunTime: the simulated CR5s step with the world, which a loaded machine
+    slows below the wall clock; a real CR5's is the wall clock), `wall_ms` on this one's, and the
+    controllers' real-time factor meanwhile. None if they still move at the end of the window."""
+    ctl, wall, rtf = [], [], []
     for rec in recs.values():
-        tf, speed = rec.series("TCPSpeedActual", last_cmd, last_cmd + horizon_s)
-        if tf.size == 0:
+        tf, speed = rec.series("TCPSpeedActual", last_cmd - 0.2, last_cmd + horizon_s)
+        _, run_ms = rec.series("RunTime", last_cmd - 0.2, last_cmd + horizon_s)
+        after = np.flatnonzero(tf >= last_cmd)
+        if after.size == 0 or after[0] == 0:
             return None
+        k = after[0] - 1  # the controller's last packet before the command: its clock then
         v = np.linalg.norm(speed[:, :3], axis=1)
-        moving = np.flatnonzero(v >= STILL_MM_S)
-        if moving.size == len(v):
+        moving = np.flatnonzero(v[k:] >= STILL_MM_S) + k
+        i = moving[-1] + 1 if moving.size else k
+        if i >= len(v):
             return None
-        out.append((tf[moving[-1] + 1] if moving.size else tf[0]) - last_cmd)
-    return round(1e3 * float(max(out)), 1)
+        ctl.append(float(run_ms[i] - run_ms[k]))
+        wall.append(1e3 * float(tf[i] - last_cmd))
+        rtf.append(float(run_ms[-1] - run_ms[k]) / 1e3 / max(float(tf[-1] - tf[k]), 1e-9))
+    return {"ms": round(max(ctl), 1), "wall_ms": round(max(wall), 1), "controllers_rtf": round(float(np.mean(rtf)), 3)}
 
 
 def tcp_speed_mm_s(rec: Any, t: float) -> float:
@@ -661,7 +670,7 @@ def cut_cable(lab: Lab, con: Console, scenario: str, seed: int, quick: bool) -> 
     # began (one that passed while `ip` ran may have reached them too: then the arms stopped sooner than said).
     cut["last_cmd"] = max(t for t, _ in con.cmds if t <= cut["start"])
     stages = list(con.stages)
-    still_ms = arms_still_after(lab, cut["last_cmd"], recs)
+    still = arms_still_after(cut["last_cmd"], recs)
     speed = max(tcp_speed_mm_s(r, cut["last_cmd"]) for r in recs.values())
     for r in recs.values():
         r.close()
@@ -671,7 +680,9 @@ def cut_cable(lab: Lab, con: Console, scenario: str, seed: int, quick: bool) -> 
     back = con.watcher.wait_for("arm-driver", True, 60.0)
     running = {k: p.popen.poll() is None for k, p in lab.procs.items() if p.popen is not None}
     nxt = next_run(con, scenario, seed, quick)
-    return {"arms_stopped_ms": still_ms, "goal_ms": WATCHDOG_GOAL_MS, "moving_mm_s": speed, "pull_ms": pull_ms, "reason": res.reason,
+    return {"arms_stopped_ms": still["ms"] if still else None, "arms_stopped_wall_ms": still["wall_ms"] if still else None,
+            "controllers_rtf": still["controllers_rtf"] if still else None, "goal_ms": WATCHDOG_GOAL_MS, "moving_mm_s": speed,
+            "pull_ms": pull_ms, "reason": res.reason,
             "run_success": res.success, "stages": stages, "arm_driver_back": back, "all_processes_running": all(running.values()),
             "commands_seen_after_cut": len(after_cut), **nxt}
 
@@ -833,7 +844,9 @@ def markdown(r: dict[str, Any]) -> str:
         for k, s in r["skew"].items():
             rows.append((f"cam's clock {k} s: success, SOI ages misjudged", f"{s.get('success')} ({s.get('reason')}), {s.get('soi')}"))
     c = r["cut"]
-    rows += [("cable pulled: arms still after the last command (ms; goal 250)", c.get("arms_stopped_ms")),
+    rows += [("cable pulled: arms still after the last command, ms on the controllers' clock (goal 250) / wall ms / their real-time factor",
+              f"{c.get('arms_stopped_ms')} / {c.get('arms_stopped_wall_ms')} / {c.get('controllers_rtf')}"),
+             ("cable pulled: the arms' speed at the last command (mm/s)", c.get("moving_mm_s")),
              ("cable pulled: the run's reason", c.get("reason")),
              ("cable back: next run", c.get("next_run_success", c.get("next_run_servoing")))]
     if not r["quick"]:
