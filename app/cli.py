@@ -125,6 +125,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.json:
             print(f"bagit {args.command}: failed: {result.get('reason', 'unknown reason')}", file=sys.stderr)
         return 1
+    recording = result.get("recording")
+    if isinstance(recording, dict) and recording.get("ok") is False:  # a run whose recording failed is no silent success
+        print(f"bagit {args.command}: the run's recording failed: {recording.get('lost')} messages lost ({recording.get('error')})", file=sys.stderr)
+        return 1
     if result.get("exact") is False and not getattr(args, "allow_inexact", False):  # never a silent success
         why = "; ".join(result.get("inexact") or []) or "unknown reason"
         print(f"bagit {args.command}: the run is not exact (it may differ from `bagit run`'s): {why}", file=sys.stderr)

@@ -417,8 +417,23 @@ class ObjectDetection(Message):
         return self
 
 
+class RecorderStatus(Message):
+    """The recorder's counters since it started (`started`: when, its clock), about once a second and at
+    each write error: a run's result tells from two of them whether its recording failed and what was lost."""
+
+    KIND: ClassVar[str] = "recorder_status"
+    started: float = 0.0
+    messages: int = 0  # on disk
+    lost: int = 0  # received and not on disk: write errors, a dead writer
+    overflow: int = 0  # dropped with the writer behind
+    errors: int = 0  # write errors so far
+    error: str | None = Field(None, max_length=1000, description="the write error in progress; None while it records")
+    last_error: str | None = Field(None, max_length=1000)
+    file: str | None = Field(None, max_length=1000)
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     m.KIND: m
     for m in (RgbdFrame, PointCloud, SoiState, Goal, Path, Command, ControllerStatus, ArmState, RunState, RunControl, RunControlReply, EStop, SimTruth,
-              ObjectDetection, ClockTick, StepAck)
+              ObjectDetection, ClockTick, StepAck, RecorderStatus)
 }

@@ -38,6 +38,33 @@ def axis_error_cm(rim: np.ndarray, vertices: np.ndarray, up: np.ndarray) -> floa
     return float(np.linalg.norm(rel - (rel @ up) * up)) * 100.0
 
 
+class RecordingReport(BaseModel):
+    """What the recorder made of a run (`recording_report`): a run whose recording failed says so, and
+    how much of it is missing, whatever became of the run itself."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    ok: bool
+    messages: int = Field(0, description="messages of the run on disk")
+    lost: int = Field(0, description="messages received during the run and not on disk (write errors, the writer behind or dead)")
+    errors: int = Field(0, description="write errors during the run")
+    error: str | None = Field(None, description="the (last) write error, e.g. disk full")
+
+
+def recording_report(before: Any, after: Any) -> RecordingReport | None:
+    """The recorder's part in a run from its status (`RecorderStatus`) at the start and at the end; None
+    without a recorder. A recorder restarted in between (another `started`) counts from its start."""
+    if after is None:
+        return None
+    if before is None or before.started != after.started:
+        before = type(after)(started=after.started)
+    lost = (after.lost - before.lost) + (after.overflow - before.overflow)
+    errors = after.errors - before.errors
+    ok = lost == 0 and errors == 0 and after.error is None
+    return RecordingReport(ok=ok, messages=after.messages - before.messages, lost=lost, errors=errors,
+                           error=None if ok else (after.error or after.last_error))
+
+
 class RunTruth(BaseModel):
     """The run judged on the simulator's ground truth (None on a real rig)."""
 
@@ -105,6 +132,7 @@ class RunResult(BaseModel):
     exact: bool | None = Field(None, description="bagit up in lockstep: every step was answered in full, so the run is "
                                "`bagit run`'s computation; False: see `inexact`; None: not a lockstep run")
     inexact: list[str] = Field(default_factory=list, description="why a lockstep run is not exact (a service dropped, a late answer)")
+    recording: RecordingReport | None = Field(None, description="with a recorder on the rig: whether the run's recording failed, what it lost")
     provenance: Provenance | None = None
 
     def headline(self) -> str:

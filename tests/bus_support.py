@@ -51,6 +51,8 @@ def example_message(kind: str, rng: np.random.Generator | None = None) -> Messag
         "sim_truth": dict(run_id="r1", scenario="exp01", sim_time=3.5, realtime_factor=0.8, frames=35, rim=rim, clearance_m=0.02),
         "clock": dict(t=1073741825.5, servo_tick=3, run_id="r1"),
         "ack": dict(service="arm-driver", tick=3, servo_sent={"left": 1, "right": 1}),
+        "recorder_status": dict(started=1795765055.5, messages=1200, lost=30, overflow=2, errors=3, error="disk full (ENOSPC) on x.mcap",
+                                last_error="disk full (ENOSPC) on x.mcap", file=None),
     }
     if kind not in ex:
         raise KeyError(f"no bus test example for message kind {kind!r}; add one to tests/bus_support.py")

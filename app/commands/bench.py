@@ -1,7 +1,7 @@
 """`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
 (`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings
 (`probes`), re-run a sample of a record file and test it against the record (`verify`), compare runs (`compare`), run
-bags of other fabrics, sizes, colours and light (`zoo`)."""
+bags of other fabrics, sizes, colours and light (`zoo`), split the rig over network namespaces as over lab machines (`multihost`)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ log = logging.getLogger("bagit.bench")
 NAME = "bench"
 HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), "
         "`probes` (issue 25's findings re-run), `verify RECORDS` (re-run a sample of a record file: bit for bit? the same distribution?), "
-        "`zoo` (bags of other fabrics, sizes, colours, light), or `compare OLD NEW`")
+        "`zoo` (bags of other fabrics, sizes, colours, light), `multihost` (the rig split over network namespaces, as root), "
+        "or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency", "up_wall", "up_lockstep",
@@ -31,12 +32,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.bench.closed_loop import add_sweep_arguments
     from bagit.bench.verify import add_verify_arguments
 
-    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare", "zoo"], help="which benchmark")
+    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare", "zoo", "multihost"], help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json; for `verify`: the record files (.jsonl)")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None,
                    help="stage(s) to run, e.g. --only planner; for `sweep`: scenarios whose names start so, e.g. exp01,exp02; "
-                   "for `probes`: group(s), v4 cli recorder arm")
+                   "for `probes`: group(s), v4 cli recorder arm; for `multihost`: the scenario (default exp02)")
     p.add_argument("--no-doc", action="store_true", help="for `probes`: leave the probe section of docs/testing.md as it is")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
     p.add_argument("--seeds", type=_args.positive_int, default=None, help="for `paper`: seeds per experiment and planner (default 10; --quick 3); "
@@ -88,6 +89,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from bagit.bench import zoo
 
         return zoo.run_from_args(args)
+    if args.what == "multihost":
+        from bagit.bench import multihost
+
+        return multihost.run_from_args(args)
     if args.what == "verify":
         from bagit.bench import verify
 

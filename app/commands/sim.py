@@ -40,6 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=_args.seed, default=0)
     p.add_argument("--ephemeral-ports", action="store_true", help="listen on free ports instead of the rig config's")
     p.add_argument("--no-bus", action="store_true", help="no Zenoh: frames are rendered but not published, no resets")
+    p.add_argument("--cr5-netns", metavar="NAME",
+                   help="listen for the simulated CR5s inside Linux network namespace NAME (`ip netns`; needs root): the robot LAN "
+                        "of a rig split across namespaces (`bagit bench multihost`), while camera and Zenoh stay on this one")
     p.add_argument("--truth-hz", type=_args.positive_number, default=2.0, help="ground truth on sim/truth this often (default 2 Hz)")
     add_bus_arguments(p)
 
@@ -77,7 +80,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     try:
         with SimRig(scenario, rig_cfg, args.seed, camera=not args.no_camera) as rig:
-            ports = rig.start_servers(ephemeral_ports=args.ephemeral_ports)
+            if args.cr5_netns:
+                from bagit.common.netns import entered_netns
+
+                with entered_netns(args.cr5_netns):
+                    ports = rig.start_servers(ephemeral_ports=args.ephemeral_ports)
+            else:
+                ports = rig.start_servers(ephemeral_ports=args.ephemeral_ports)
             for name, (dash, fb) in ports.items():
                 say(f"{name} CR5: dashboard {rig_cfg.arms[name].host}:{dash}, feedback {rig_cfg.arms[name].host}:{fb}")
             speed = f"x{args.speed:g}" if args.speed else "default"

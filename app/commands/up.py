@@ -95,12 +95,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import threading
     import time
 
+    from bagit.commands._service import wait_stop
     from bagit.common.errors import BadScenario
     from bagit.up import Up
 
     opts = options(args)  # refused here, before any process starts
-    from bagit.commands._service import wait_stop
-
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
@@ -117,6 +116,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise BadScenario(f"services not up after {opts.ready_timeout_s:g} s: {', '.join(missing)}")
         up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
         run_id = None
+        recorder = None
+        if opts.record is not None:  # the recorder's counters, so the run's result says what its recording lost
+            from bagit.common.bus import LatestCache
+            from bagit.common.messages import RecorderStatus
+
+            recorder = LatestCache(up.session, up.keys.recorder_status, RecorderStatus)
+            deadline = time.monotonic() + 3.0
+            while recorder.get() is None and time.monotonic() < deadline and not stop.wait(0.05):
+                pass
+        recording_before = recorder.get() if recorder is not None else None
         run_t0, run_cpu0 = time.monotonic(), up.rig_cpu_s()
         if args.scenario:
             rep = up.start_run(args.scenario)
@@ -133,7 +142,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
             up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
             up.say("own cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.own_cpu_s().items()))  # the rest of the rig's
-            return run_result(up, run_id, state, stop, args, time.monotonic() - t0).model_dump(mode="json")
+            recording = recording_of_run(recorder, recording_before, time.time(), stop) if recorder is not None else None
+            if recording is not None and not recording.ok:
+                up.say(f"the run's recording failed: {recording.lost} messages lost ({recording.error})")
+            return run_result(up, run_id, state, stop, args, time.monotonic() - t0, recording).model_dump(mode="json")
         up.say("up; Ctrl-C to stop everything")
         wait_stop(stop)
         return {"success": True, "wall_s": time.monotonic() - t0, "run_id": run_id, "restarts": {n: c.restarts for n, c in up.children.items()}}
@@ -144,15 +156,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             signal.signal(s, h)
 
 
-def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argparse.Namespace, wall_s: float) -> Any:
+def recording_of_run(recorder: Any, before: Any, ended: float, stop: Any, timeout_s: float = 3.0) -> Any:
+    """The recorder's part in a run (`RecordingReport`) from its status cache (`LatestCache` of
+    recorder/status) and its status when the run began: waits (at most `timeout_s`) for a status sent
+    after the run `ended` (time.time()), else takes the newest; None without a recorder."""
+    import time
+
+    from bagit.common.results import recording_report
+
+    deadline = time.monotonic() + timeout_s
+    while (st := recorder.get()) is None or st.stamp < ended:
+        if time.monotonic() > deadline or stop.wait(0.05):
+            break
+    return recording_report(before, recorder.get())
+
+
+def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argparse.Namespace, wall_s: float, recording: Any = None) -> Any:
     """The run's RunResult, as `bagit run --json` gives it: the coordinator's result, with the simulator's
-    ground truth (the true rim judged as `bagit run` judges it) and the arm side's event counts."""
+    ground truth (the true rim judged as `bagit run` judges it), the arm side's event counts and, with a
+    recorder, what became of the run's recording (`recording`, a RecordingReport)."""
     from bagit.common.results import ARM_EVENT_KINDS, RunResult, points_list, provenance
 
     if state is None:
         reason: str | None = "interrupted" if stop.is_set() else f"no end of run {run_id} within {args.timeout:g} s"
         return RunResult(run_id=run_id, scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed,
-                         arms="cr5", reason=reason, wall_s=round(wall_s, 3), provenance=provenance())
+                         arms="cr5", reason=reason, wall_s=round(wall_s, 3), recording=recording, provenance=provenance())
     res = RunResult.model_validate(state.result) if state.result else RunResult(
         run_id=run_id, scenario=state.scenario, seed=args.seed, stage_reached=state.stage, reason=state.reason)
     truth, final_rim, sim_truth = _truth(up, state, stop)
@@ -170,7 +198,8 @@ def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argpars
     return res.model_copy(update=dict(
         arms="cr5", success=ok, reason=reason, truth=truth, error_cm=truth.error_cm if truth is not None else res.error_cm,
         final_rim=points_list(final_rim) if final_rim is not None else res.final_rim, wall_s=round(wall_s, 3), arm_events=events,
-        exact=_exact(sim_truth, args), inexact=list(sim_truth.inexact) if sim_truth is not None else [], provenance=provenance(params)))
+        exact=_exact(sim_truth, args), inexact=list(sim_truth.inexact) if sim_truth is not None else [], recording=recording,
+        provenance=provenance(params)))
 
 
 def _exact(sim_truth: Any, args: argparse.Namespace) -> bool | None:

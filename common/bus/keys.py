@@ -19,6 +19,7 @@ from bagit.common.messages import (
     Message,
     ObjectDetection,
     PointCloud,
+    RecorderStatus,
     RgbdFrame,
     RunControl,
     RunState,
@@ -115,6 +116,8 @@ KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("arm/*/state", ArmState, STATE_HIGH, "pub", "joint and tool state of the left or right arm; newest wins", lockstep=True),
     KeySpec("run/state", RunState, STATE, "pub", "run id, stage, progress, reason; republished periodically", lockstep=True),
     KeySpec("run/control", RunControl, CONTROL, "query", "queryable: start, stop or reset; answered by a RunControlReply"),
+    KeySpec("recorder/status", RecorderStatus, STATE, "pub",
+            "the recorder's counters (on disk, lost, write errors) ~1 Hz and at each error: a run's result says what its recording lost"),
     KeySpec("estop", EStop, ESTOP, "pub", "emergency stop: highest priority, express, reliable; released only by `source` dashboard or cli"),
     KeySpec("alive/*", None, None, "liveliness", "liveliness token per service; gone within ~1 s of its death"),
     KeySpec("sim/clock", ClockTick, CONTROL, "pub",
@@ -148,6 +151,7 @@ class Keys:
         self.run_state = f"{p}/run/state"
         self.run_control = f"{p}/run/control"
         self.estop = f"{p}/estop"
+        self.recorder_status = f"{p}/recorder/status"
         self.alive_any = f"{p}/alive/*"
         self.sim_clock = f"{p}/sim/clock"
         self.sim_ack = f"{p}/sim/ack"

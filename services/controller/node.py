@@ -15,8 +15,8 @@ pure controller, and publishes a `Command` on `controller/cmd` and a `Controller
 increment while servoing, a keep-alive: the driver keeps streaming the last targets instead of
 its watchdog braking the arms between two slow SOIs (see `session.py`).
 
-It never extrapolates: no SOI, a stale one (older than `soi_max_age_s`, by its camera stamp when
-that is on this machine's clock, else by arrival), an implausible one (the guard), or missing or
+It never extrapolates: no SOI, a stale one (older than `soi_max_age_s`: its age when sent, on the
+camera host's clock, plus its time since arrival on this one's, so the hosts' clocks need not agree), an implausible one (the guard), or missing or
 stale arm states -> a hold command (u = 0) with the reason, every tick while it lasts. A run that
 stops, is aborted, fails or is done, a new run, or an e-stop -> one hold, and servoing stops. Any
 exception in the controller (e.g. numpy's LinAlgError) -> hold with the reason in the status;
@@ -57,7 +57,7 @@ from bagit.services.controller.session import ARM_MAX_AGE_S, SOI_MAX_AGE_S, Outb
 
 log = logging.getLogger("bagit.controller")
 
-CLOCK_SKEW_S = 3600.0  # a source stamp further than this from our clock is on another clock (a simulator's)
+CLOCK_SKEW_S = 3600.0  # a SOI made longer than this after its frame has stamps on two clocks (a simulator's): not used
 SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at least this share of a period after the last one
 KEEPALIVE_TICK = "sim-keepalive"  # lockstep: a keep-alive tick from sim/clock, queued with the frames to tick on
 
@@ -343,11 +343,15 @@ class ControllerNode:
 
     def soi_age(self, soi: SoiState, received: float, now: float) -> float:
         """Seconds since the SOI's camera frame was taken at `now`: on the simulator's clock in lockstep (the
-        frame's time); on the wall clock by its stamp when that is on this machine's clock (else by arrival),
-        and never less than its time since arrival."""
-        by_clock = self.clock.age(soi.source_stamp, received, now)
-        by_stamp = now - soi.source_stamp
-        return max(by_stamp, by_clock) if abs(by_stamp) < CLOCK_SKEW_S else by_clock
+        frame's time); on the wall clock its age when perception sent it (its stamp less its frame's, both
+        on the camera host's clock) plus its time since it arrived here (this host's monotonic clock). So the
+        camera host's clock may be off this one's (no NTP, a drift): only the network's transit, a LAN's
+        fraction of a millisecond, goes uncounted. A SOI without a usable stamp: its time since arrival."""
+        since_arrival = self.clock.age(soi.source_stamp, received, now)
+        if self.clock.simulated:
+            return since_arrival
+        at_send = soi.stamp - soi.source_stamp
+        return since_arrival + at_send if 0.0 <= at_send < CLOCK_SKEW_S else since_arrival
 
     def _send(self, out: Outbox) -> None:
         """Publish what the session asks for (command, status) and log its line."""

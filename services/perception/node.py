@@ -397,7 +397,11 @@ class PerceptionNode:
         self.counters["processed"] += 1
         cold = tracker.cold
         try:
-            soi, _cloud = frame_soi(tracker, frame, hint, self.clock.step_time(frame.stamp), self.cfg.inlier_m)
+            soi, _cloud = frame_soi(tracker, frame, hint, frame.stamp, self.cfg.inlier_m)
+            # stamped once made: on the wall clock its age when sent (stamp - source_stamp, both this host's)
+            # counts the extraction, which the controller adds to its time since arrival; in lockstep the
+            # frame's time, as before (processing takes no simulated time)
+            soi = soi.model_copy(update={"stamp": self.clock.step_time(frame.stamp)})
         except BagItError as e:
             self.counters["cold"] += tracker.cold - cold
             self._bad(frame, f"no SOI: {e}")

@@ -37,7 +37,7 @@ import zenoh
 from bagit.common import wire
 from bagit.common.bus import DROPS, KEY_TABLE, STATE, BusError, Keys, Publisher, declare_alive
 from bagit.common.errors import BadMessage, BadRecording
-from bagit.common.messages import Message, RunState
+from bagit.common.messages import Message, RecorderStatus, RunState
 from bagit.common.names import FINAL_STAGES
 from bagit.services.recorder.reading import Recording
 from bagit.services.recorder.writer import RecordingWriter, record_bytes
@@ -49,6 +49,7 @@ COMMAND_KEYS = ("controller/cmd", "estop")
 # At start, messages wait this long at most for the first run/state (the coordinator republishes
 # it at 2 Hz), so a recorder restarted in the middle of a run files them under that run.
 START_HOLD_S = 1.0
+STATUS_S = 1.0  # the recorder's counters on recorder/status this often (and at each write error)
 _STOP = object()
 
 
@@ -69,7 +70,8 @@ class RecorderNode:
         self.writer = writer
         self.tick_s = tick_s
         self.max_queue_bytes = max_queue_bytes
-        self.exclude = [zenoh.KeyExpr(f"{keys.prefix}/{e.strip('/')}") for e in exclude]
+        # its own status is about this recorder, not the rig: never in its files
+        self.exclude = [zenoh.KeyExpr(f"{keys.prefix}/{e.strip('/')}") for e in exclude] + [zenoh.KeyExpr(keys.recorder_status)]
         self.received = 0
         self.overflow = 0
         self.bad = 0
@@ -86,7 +88,9 @@ class RecorderNode:
         self._lock = threading.Lock()
         self._q: queue.Queue = queue.Queue()
         writer.on_event = self._on_event
+        self.started = time.time()
         self._state_pub = Publisher(session, keys.run_state, RunState)
+        self._status_pub = Publisher(session, keys.recorder_status, RecorderStatus)
         self._thread = threading.Thread(target=self._run, name="recorder-writer", daemon=True)
         self._thread.start()
         self._sub = session.declare_subscriber(keys.all, self._on_sample)
@@ -126,7 +130,7 @@ class RecorderNode:
             self._die(f"{type(e).__name__}: {_first_line(e)}")
 
     def _loop(self) -> None:
-        next_tick = time.monotonic()
+        next_tick = next_status = time.monotonic()
         while True:
             try:
                 item = self._q.get(timeout=self.tick_s)
@@ -144,6 +148,9 @@ class RecorderNode:
             if time.monotonic() >= next_tick:
                 self.writer.tick()
                 next_tick = time.monotonic() + self.tick_s
+            if time.monotonic() >= next_status:
+                self.publish_status()
+                next_status = time.monotonic() + STATUS_S
         if self._held is not None:
             self._release(None)
 
@@ -225,9 +232,22 @@ class RecorderNode:
     def _say(self, level: str, text: str) -> None:
         log.log(LEVELS.get(level, logging.WARNING), "%s", text)
 
+    def publish_status(self) -> None:
+        """The counters on recorder/status (`RecorderStatus`), for the run's result."""
+        st = self.status()
+        error, last = st["dead"] or st["error"], st["last_error"]
+        try:
+            self._status_pub.put(RecorderStatus(
+                started=self.started, messages=st["messages"], lost=st["lost"], overflow=st["overflow"], errors=st["errors"],
+                error=str(error)[:1000] if error else None, last_error=str(last)[:1000] if last else None,
+                file=str(st["file"])[:1000] if st["file"] else None))
+        except Exception as e:  # noqa: BLE001 - reporting must not take the recorder down
+            self._say("info", f"could not publish the recorder's status: {e}")
+
     def _on_event(self, level: str, text: str) -> None:
         self._say(level, text)
         if level == "error":
+            self.publish_status()
             base = self.writer.last_run_state or RunState()
             try:
                 self._state_pub.put(RunState(
@@ -258,8 +278,10 @@ class RecorderNode:
             except Exception as e:  # noqa: BLE001 - the file could not be finished: the summary says so
                 self.dead = f"could not finish the file: {type(e).__name__}: {_first_line(e)}"
                 self._say("error", self.dead)
+        self.publish_status()
         self._undeclare_token()
         self._state_pub.close()
+        self._status_pub.close()
         return self.status()
 
 

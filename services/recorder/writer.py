@@ -19,7 +19,7 @@
   at most `flush_s` of data lost. A closed file ends with the `bagit.run` metadata (the last run
   state), then the summary and footer as the mcap writer writes them, over the trailer.
 - A write error (disk full: ENOSPC, or any OSError) abandons the file (ended again at its last
-  complete chunk), is reported through `on_event("error", ...)` once, counts the messages that
+  complete chunk; removed if none of its messages reached the disk), is reported through `on_event("error", ...)` once, counts the messages that
   did not reach the disk (those of the open chunk too), and is retried with a new part every
   `retry_s`; success is reported as `on_event("info", "recording resumed...")`.
 
@@ -370,8 +370,11 @@ class RecordingWriter:
                 "encoding": "json records: arrays as {dtype, shape, data: base64 of the wire bytes}",
             })
             fh.commit()
-        except BaseException:
+        except BaseException as e:
             fh.abandon()
+            _unlink(path)  # a file without its header records nothing: none is left behind
+            if isinstance(e, OSError) and not e.filename:
+                raise OSError(e.errno, e.strerror, str(path)) from None  # the report names the file
             raise
         self.cur = _Open(path=path, kind=kind, run_id=rid, part=part, fh=fh, writer=w, started_ns=log_time_ns)
         self.files.append(str(path))
@@ -453,18 +456,24 @@ class RecordingWriter:
         if f is self.cur:
             self.cur = None
         if f is not None:
+            on_disk = f.messages - f.chunk_messages
             self._drop(f)
             self.failed = (f.kind, f.run_id, f.part)
+            if on_disk == 0:  # nothing of it reached the disk: no empty file piles up at each retry
+                _unlink(f.path)
+                if str(f.path) in self.files:
+                    self.files.remove(str(f.path))
         self.errors += 1
         self.retry_at = now + self.cfg.retry_s
-        self.last_error = describe_os_error(e, f.path if f is not None else None)
+        where = f.path if f is not None else Path(e.filename) if e.filename else self.cfg.dir
+        self.last_error = describe_os_error(e, where)
         if self.error is None:
             self.error = self.last_error
             self.reported_at = now
             self.on_event("error", f"recording stopped: {self.error}; retrying every {self.cfg.retry_s:g} s")
         elif now - self.reported_at >= 60.0:
             self.reported_at = now
-            self.on_event("error", f"recording still failing: {describe_os_error(e, f.path if f else None)}; {self.lost} messages lost")
+            self.on_event("error", f"recording still failing: {self.last_error}; {self.lost} messages lost")
 
     def _prune_idle(self) -> None:
         idle = sorted(self.cfg.dir.glob(f"{self.rig}_*_idle*.mcap"), key=_mtime)
@@ -560,6 +569,13 @@ def _mtime(p: Path) -> float:
         return p.stat().st_mtime
     except OSError:
         return 0.0
+
+
+def _unlink(path: Path) -> None:
+    try:
+        path.unlink()
+    except OSError:
+        pass
 
 
 def _quiet_close(fh: Any) -> None:

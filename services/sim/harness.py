@@ -282,8 +282,8 @@ def servo_parameter(text: str, name: str) -> float | None:
 class FeedbackRecorder:
     """Listens to a controller's feedback port on its own connection and keeps every packet: (monotonic t, record)."""
 
-    def __init__(self, port: int):
-        self.sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+    def __init__(self, port: int, host: str = "127.0.0.1"):
+        self.sock = socket.create_connection((host, port), timeout=2.0)
         self.sock.settimeout(0.2)
         self.packets: list[tuple[float, np.ndarray]] = []
         self._lock = threading.Lock()

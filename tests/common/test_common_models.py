@@ -146,6 +146,7 @@ def _example(kind):
         "sim_truth": dict(rim=arr, sim_time=1.0),
         "clock": dict(t=1073741825.5, servo_tick=3, run_id="r1"),
         "ack": dict(service="controller", run_id="r1", frame=1073741825.5, cmd_seq=7, status_seq=7),
+        "recorder_status": dict(messages=10, lost=2, errors=1, error="disk full"),
     }
     return MESSAGE_TYPES[kind](**ex[kind])
 

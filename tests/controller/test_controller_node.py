@@ -273,3 +273,22 @@ def test_a_camera_slower_than_the_watchdog_gives_slower_motion_not_gaps_in_the_c
     assert keep and all(not np.any(c.u) and c.mode == "servo" for c in keep)  # ... moving nothing
     assert len({c.source_stamp for c in real}) == len(real)  # one real tick per SOI: Broyden learns from each once
     assert node.status()["counters"]["keepalive"] == len(keep)
+
+
+@pytest.mark.parametrize("offset_s", [0.0, 0.3, -0.3, 5.0])
+def test_a_sois_age_does_not_depend_on_the_camera_hosts_clock(offset_s):
+    """Issue 36: the camera host's clock `offset_s` off this one's. The age is the SOI's age when sent (its
+    stamp less its frame's, both on the camera host's clock) plus its time here since it arrived."""
+    from types import SimpleNamespace
+
+    from bagit.common.clock import SimClock, WallClock
+
+    now = time.time()
+    made = now + offset_s - 0.04  # perception sent it 40 ms ago, on its clock
+    soi = SoiState(seq=1, stamp=made, source_stamp=made - 0.1, rim=np.zeros((4, 3)))  # its frame 100 ms before that
+    received = time.monotonic() - 0.03  # it arrived 30 ms ago (10 ms on the wire: not seen)
+    age = ControllerNode.soi_age(SimpleNamespace(clock=WallClock()), soi, received, now)  # type: ignore[arg-type]
+    assert 0.13 <= age < 0.13 + 0.05  # 100 ms + 30 ms, and the time this test took
+    # on the simulator's clock (lockstep) the age is the clock's: now less the frame's time
+    sim = ControllerNode.soi_age(SimpleNamespace(clock=SimClock()), soi, received, made + 0.2)  # type: ignore[arg-type]
+    assert sim == pytest.approx(0.3)

@@ -226,6 +226,29 @@ def test_disk_full_is_reported_counted_and_retried(tmp_path):
     assert not rec.complete and all(isinstance(m, (RunState, SoiState)) for _, m in got)
 
 
+def test_a_disk_full_from_the_start_leaves_no_file_at_any_retry_and_resumes(tmp_path):
+    """Issue 36: a 3 MB tmpfs full before the run began got a header-only file at every 5 s retry. A file
+    none of whose messages reached the disk is removed; when space returns, recording resumes."""
+    events: list = []
+    clock = Clock()
+    room = {"n": 700}  # a header fits, no chunk does
+    w = RecordingWriter(RecorderConfig(dir=tmp_path, chunk_bytes=1024, retry_s=5.0), "lab",
+                        opener=lambda p: FullDisk(p, room["n"]), on_event=lambda lvl, txt: events.append((lvl, txt)), clock=clock)
+    w.write("bagit/lab/run/state", RunState(run_id="r1", stage="planning"), T0)
+    for retry in range(20):
+        for i in range(30):
+            w.write("bagit/lab/perception/soi", SoiState(seq=i, rim=np.full((32, 3), float(i))), T0 + retry * 100 + i)
+        clock.t += 5.0
+    assert w.errors >= 20 and w.lost > 0 and w.status()["error"]
+    assert list(tmp_path.glob("*.mcap")) == [] and w.files == []
+    assert sum(lvl == "error" for lvl, _ in events) <= 2  # reported once (and again after a minute), not at every retry
+    room["n"] = 1 << 30
+    clock.t += 5.0
+    assert w.write("bagit/lab/perception/soi", example_message("soi"), T0 + 10_000)
+    w.close()
+    assert [Path(f).exists() for f in w.files] == [True] and w.status()["error"] is None
+
+
 def test_replay_offsets_follow_the_recorded_gaps():
     assert replay_offsets([5_000_000_000, 5_100_000_000, 5_400_000_000], 2.0) == pytest.approx([0.0, 0.05, 0.2])
     assert replay_offsets([], 1.0) == []
