@@ -75,9 +75,12 @@ class Range:
         f = (lambda x: math.log(x)) if self.log else (lambda x: x)
         return (f(v) - f(self.lo)) / (f(self.hi) - f(self.lo))
 
-    def draw(self, rng: np.random.Generator) -> float:
-        u = float(rng.uniform())
+    def at(self, u: float) -> float:
+        """The value a share `u` in [0, 1] of the way through the range (in its own scale)."""
         return float(math.exp(math.log(self.lo) + u * math.log(self.hi / self.lo))) if self.log else self.lo + u * (self.hi - self.lo)
+
+    def draw(self, rng: np.random.Generator) -> float:
+        return self.at(float(rng.uniform()))
 
     def classes(self, v: float) -> list[str]:
         u = self._unit(v)
@@ -366,8 +369,7 @@ def envelope_map(runs: list[dict[str, Any]], set_name: str) -> dict[str, list[di
     for k, r in ranges.items():
         bins = [{"lo": r.lo, "hi": r.hi, "of": 0, "success": 0, "causes": {}} for _ in range(MAP_BINS)]
         for b in range(MAP_BINS):
-            f = (lambda u: math.exp(math.log(r.lo) + u * math.log(r.hi / r.lo))) if r.log else (lambda u: r.lo + u * (r.hi - r.lo))
-            bins[b]["lo"], bins[b]["hi"] = f(b / MAP_BINS), f((b + 1) / MAP_BINS)
+            bins[b]["lo"], bins[b]["hi"] = r.at(b / MAP_BINS), r.at((b + 1) / MAP_BINS)
         for x in runs:
             bag = x["zoo_bag"]
             val = bag.get(k) if k == "perimeter_m" else bag["values"].get(k)
