@@ -324,6 +324,10 @@ def run_from_args(a: Any) -> dict[str, Any]:
 
     if a.write_bag:
         return write_bag(a.write_bag, a.out or Path.cwd())
+    if a.perception:
+        from bagit.bench import zoo_perception
+
+        return zoo_perception.run(a.bags, a.zoo_seed, a.zoo_set, a.quick, a.record, a.out)
     quiet_engine_logs()
     return run(a.bags, a.zoo_seed, a.quick, a.record, set_name=a.zoo_set, workers=a.workers, cluster=a.cluster,
                time_limit_s=a.time_limit_s, timeout_s=a.timeout_s, out_dir=a.out, params=a.params)
