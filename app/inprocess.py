@@ -196,8 +196,8 @@ class _Run:
         if isinstance(e, SimulationFailed):
             return f"simulator: {e}"
         wall = time.perf_counter() - self.t_wall
-        return (f"simulator: too slow, {wall:.0f} s of wall time for {self.sim.time - SETTLE_S:.1f} s simulated "
-                f"(limit {self.opts.wall_limit_s:.0f} s; the contact solver crawls?)")
+        return (f"simulator: too slow, {wall:.0f} s of wall time for {self.sim.time:.2f} s simulated (the bag's settling included; "
+                f"limit {self.opts.wall_limit_s:g} s; the contact solver crawls?)")
 
     def _frame(self, now: float) -> None:
         """A camera frame: perception (the SOI, the object's marker), then a control tick."""
