@@ -371,9 +371,8 @@ def envelope_map(runs: list[dict[str, Any]], set_name: str) -> dict[str, list[di
     ranges = {**RANGE_SETS[set_name], **CALIBRATION_SETS[set_name]}
     out: dict[str, list[dict[str, Any]]] = {}
     for k, r in ranges.items():
-        bins = [{"lo": r.lo, "hi": r.hi, "of": 0, "success": 0, "causes": {}} for _ in range(MAP_BINS)]
-        for b in range(MAP_BINS):
-            bins[b]["lo"], bins[b]["hi"] = r.at(b / MAP_BINS), r.at((b + 1) / MAP_BINS)
+        bins: list[dict[str, Any]] = [{"lo": r.at(b / MAP_BINS), "hi": r.at((b + 1) / MAP_BINS), "of": 0, "success": 0, "causes": {}}
+                                      for b in range(MAP_BINS)]
         for x in runs:
             bag = x["zoo_bag"]
             val = bag.get(k) if k == "perimeter_m" else bag["values"].get(k)
