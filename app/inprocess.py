@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from bagit.common.errors import BagItError, SimulationFailed
+from bagit.common.errors import BagItError, SimulationFailed, WallLimitReached
 from bagit.common.geometry import enclosure
 from bagit.common.messages import ArmState, Goal, Path, RunControl, RunState, SoiState
 from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, PERCEIVE_STAGES, SERVO_STAGES, ArmsMode
@@ -159,11 +159,13 @@ class _Run:
                              arms=opts.arms, overrides=dict(opts.overrides), reason=rep.reason, wall_s=time.perf_counter() - self.t_wall)
         self.say(f"perceiving: the bag settles {SETTLE_S:g} s, then g0 from the camera")
         self.markers.run_started(now)
+        if opts.wall_limit_s is not None:
+            sim.world.wall_deadline = self.t_wall + opts.wall_limit_s  # checked at every physics step too
         try:
             self.arms.step(SETTLE_S)  # the bag hangs still before the first frame, as `bagit sim` does after a reset
             self.arms.start()
-        except SimulationFailed as e:
-            coord.fail(f"simulator: {e}", sim.clock_s)
+        except (SimulationFailed, WallLimitReached) as e:
+            coord.fail(self._failure(e), sim.clock_s)
         # the events `bagit sim` steps by too (keep-alive ticks between frames sparser than the controller's pace)
         keep_s = tick_period(merge_params(sc.params, opts.overrides).controller.control_rate_hz, sim.rig.safety.watchdog_s)
         sched = Schedule.starting(sim.time, self.frame_dt, self.arms.period, keep_s=keep_s)
@@ -178,17 +180,24 @@ class _Run:
             self._apply(coord.tick(now), now)
             if coord.state.stage in FINAL_STAGES:
                 break
-            wall = time.perf_counter() - self.t_wall
-            if opts.wall_limit_s is not None and wall > opts.wall_limit_s:
-                coord.fail(f"simulator: too slow, {wall:.0f} s of wall time for {now - SETTLE_S:.1f} s simulated "
-                           f"(limit {opts.wall_limit_s:.0f} s; the contact solver crawls?)", now)
+            if opts.wall_limit_s is not None and time.perf_counter() - self.t_wall > opts.wall_limit_s:
+                coord.fail(self._failure(None), now)
                 break
             step = sched.until_next(sim.time)
             try:
                 self.arms.step(step)
-            except SimulationFailed as e:
-                coord.fail(f"simulator: {e}", sim.clock_s)
+            except (SimulationFailed, WallLimitReached) as e:
+                coord.fail(self._failure(e), sim.clock_s)
         return self._result()
+
+    def _failure(self, e: SimulationFailed | WallLimitReached | None) -> str:
+        """Why the simulator stopped the run: its physics failed (`e`), or the wall-time limit passed (`e`
+        raised inside a step, or None: between steps)."""
+        if isinstance(e, SimulationFailed):
+            return f"simulator: {e}"
+        wall = time.perf_counter() - self.t_wall
+        return (f"simulator: too slow, {wall:.0f} s of wall time for {self.sim.time:.2f} s simulated (the bag's settling included; "
+                f"limit {self.opts.wall_limit_s:g} s; the contact solver crawls?)")
 
     def _frame(self, now: float) -> None:
         """A camera frame: perception (the SOI, the object's marker), then a control tick."""

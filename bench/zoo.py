@@ -30,7 +30,7 @@ import json
 import logging
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -75,9 +75,12 @@ class Range:
         f = (lambda x: math.log(x)) if self.log else (lambda x: x)
         return (f(v) - f(self.lo)) / (f(self.hi) - f(self.lo))
 
-    def draw(self, rng: np.random.Generator) -> float:
-        u = float(rng.uniform())
+    def at(self, u: float) -> float:
+        """The value a share `u` in [0, 1] of the way through the range (in its own scale)."""
         return float(math.exp(math.log(self.lo) + u * math.log(self.hi / self.lo))) if self.log else self.lo + u * (self.hi - self.lo)
+
+    def draw(self, rng: np.random.Generator) -> float:
+        return self.at(float(rng.uniform()))
 
     def classes(self, v: float) -> list[str]:
         u = self._unit(v)
@@ -101,7 +104,40 @@ CORE: dict[str, Range] = {
     "binding_saturation": Range(0.75, 0.95, False, "the binding's HSV saturation (any hue)"),
     "binding_value": Range(0.65, 0.9, False, "the binding's HSV value"),
 }
-RANGE_SETS = {"core": CORE}
+CALIBRATION_CLASS = "calibration error"
+# The camera's calibrated pose wrong by a distance and an angle, each in any direction (sim.camera.calibration_error):
+# drawn after everything else, so that adding them left every other draw of a bag as it was. The core's is a
+# lab's ordinary hand-eye calibration (a few mm, a fraction of a degree; the issue's classes name it, its
+# ranges do not: this choice is ours); the envelope's is the issue's, up to 3 cm and 2 degrees.
+CORE_CALIBRATION: dict[str, Range] = {
+    "calibration_offset_m": Range(0.0, 0.01, False, "the camera's true position this far from the calibrated one (m, any direction)",
+                                  None, CALIBRATION_CLASS),
+    "calibration_turn_deg": Range(0.0, 1.0, False, "its true orientation turned this far from the calibrated one (deg, about any axis)",
+                                  None, CALIBRATION_CLASS),
+}
+# Issue 35's envelope: past the core ranges, to find where BagIt stops (the others as the core's).
+ENVELOPE: dict[str, Range] = {
+    **CORE,
+    "stretch_n_per_m": Range(250.0, 256000.0, True, "membrane stretch stiffness E*t (N/m)", "soft", "stiff"),
+    "mass_kg": Range(0.03, 0.5, True, "the bag's mass (kg)", None, "heavy"),
+    "bending_x": Range(0.003, 300.0, True, f"x the binding's bending stiffness {RIM_BENDING_NM2:.3g} N m^2 (a loose hem to a stiff hoop)",
+                       "floppy binding", "stiff binding"),
+    "perimeter_m": Range(0.4, 1.3, False, "rim perimeter R (m), from the smallest where the object fits", "small", "large"),
+    "light_x": Range(0.25, 2.0, True, "x the scene's light intensity", "dim light", "bright light"),
+    "depth_noise_x": Range(0.5, 4.0, True, "x the D455 model's depth noise", None, "noisy depth"),
+}
+ENVELOPE_CALIBRATION: dict[str, Range] = {
+    "calibration_offset_m": replace(CORE_CALIBRATION["calibration_offset_m"], hi=0.03),
+    "calibration_turn_deg": replace(CORE_CALIBRATION["calibration_turn_deg"], hi=2.0),
+}
+RANGE_SETS = {"core": CORE, "envelope": ENVELOPE}
+CALIBRATION_SETS = {"core": CORE_CALIBRATION, "envelope": ENVELOPE_CALIBRATION}
+
+
+def _unit_vector(rng: np.random.Generator) -> np.ndarray:
+    """(3,) a direction drawn uniformly on the sphere."""
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
 
 
 def _hue_deg(rgb: tuple[float, float, float]) -> float:
@@ -153,9 +189,16 @@ def zoo_bag(name: str) -> dict[str, Any]:
         classes.append("solid")
     elif binding is not None and _hue_gap(_hue_deg(binding), _hue_deg(RIM_COLOR)) > RED_CLASS_DEG:
         classes.append("colour")
+    perimeter_draws = [v["perimeter_m"]] + [ranges["perimeter_m"].draw(rng) for _ in range(MAX_FIT_DRAWS - 1)]
+    calibration = {}
+    for k, r in CALIBRATION_SETS[set_name].items():
+        v[k] = r.draw(rng)
+        calibration[k] = np.round(v[k] * _unit_vector(rng), 6).tolist()
+        classes += [c for c in r.classes(v[k]) if c not in classes]
     return {"name": name, "set": set_name, "zoo_seed": seed, "index": index, "object": obj, "seed": index,
             "kind": "solid" if solid else "red-edged", "fabric_color": fabric, "binding_color": binding, "values": v,
-            "classes": classes, "perimeter_draws": [v["perimeter_m"]] + [ranges["perimeter_m"].draw(rng) for _ in range(MAX_FIT_DRAWS - 1)]}
+            "calibration_error": {"offset_m": calibration["calibration_offset_m"], "turn_deg": calibration["calibration_turn_deg"]},
+            "classes": classes, "perimeter_draws": perimeter_draws}
 
 
 def _apply(base: Scenario, bag: dict[str, Any], perimeter: float) -> Scenario:
@@ -183,7 +226,7 @@ def _apply(base: Scenario, bag: dict[str, Any], perimeter: float) -> Scenario:
     doc["name"] = bag["name"]
     doc["description"] = f"bag zoo: {bag['name']} with the object of {bag['object']}"
     doc["sim"] = {"light": {"intensity": v["light_x"], "direction": [-math.cos(el) * math.cos(az), -math.cos(el) * math.sin(az), -math.sin(el)]},
-                  "camera": {"depth_noise": v["depth_noise_x"]}}
+                  "camera": {"depth_noise": v["depth_noise_x"], "calibration_error": bag["calibration_error"]}}
     return Scenario.from_dict(doc, bag["name"])
 
 
@@ -224,15 +267,24 @@ def summary(records: list[dict[str, Any]], bags: dict[str, dict[str, Any]]) -> d
     return out
 
 
+def _stem(set_name: str, zoo_seed: int, params: dict[str, Any] | None) -> str:
+    """The records' name: the set and zoo seed, and the method parameters of an ablation (`-name-value`)."""
+    return f"zoo-{set_name}-{zoo_seed}" + "".join(f"-{k}-{v}" for k, v in sorted((params or {}).items()))
+
+
 def run(n: int | None = None, zoo_seed: int = 0, quick: bool = False, record: bool = False, set_name: str = "core", workers: int = 1,
-        cluster: str | None = None, time_limit_s: float = 40.0, timeout_s: float = RUN_TIMEOUT_S, out_dir: Path | None = None) -> dict[str, Any]:
-    """Draw the zoo, run each bag (resuming a recorded sweep), and report; files only with `record` or `quick`."""
+        cluster: str | None = None, time_limit_s: float = 40.0, timeout_s: float = RUN_TIMEOUT_S, out_dir: Path | None = None,
+        params: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Draw the zoo, run each bag (resuming a recorded sweep), and report; files only with `record` or `quick`.
+    `params`: method parameters for every run (an ablation, e.g. {"jacobian_update": "frozen"}), in the records' name."""
+    if set_name not in RANGE_SETS:
+        raise BagItError(f"no zoo range set {set_name!r}; choose from {', '.join(RANGE_SETS)}")
     n = n or (QUICK_BAGS if quick else DEFAULT_BAGS)
     names = [zoo_name(set_name, zoo_seed, i) for i in range(n)]
     bags = {}
     for name in names:
         bags[name] = zoo_scenario(name)[1]
-    stem = f"zoo-{set_name}-{zoo_seed}"
+    stem = _stem(set_name, zoo_seed, params)
     folder = out_dir or (RESULTS_DIR / "quick" if quick else RESULTS_DIR)
     jsonl = folder / f"{stem}.jsonl" if (record or quick) else None
     if jsonl is not None:
@@ -241,26 +293,100 @@ def run(n: int | None = None, zoo_seed: int = 0, quick: bool = False, record: bo
             jsonl.unlink(missing_ok=True)  # a smoke check runs afresh; a recorded zoo resumes where it stopped
     load_before = os.getloadavg()
     keys: list[Key] = [(name, DEFAULT_CONTROLLER, "cbirrt", int(bags[name]["seed"]), "cr5") for name in names]
-    records = sweep(keys, jsonl, workers, timeout_s, time_limit_s, None, cluster)
+    records = sweep(keys, jsonl, workers, timeout_s, time_limit_s, params, cluster)
+    runs = [{**r, "zoo_bag": bags[r["scenario"]], "cause": cause(r)} for r in records]
     result = {"kind": "zoo", "set": set_name, "zoo_seed": zoo_seed, "bags": n, "machine": machine(), "load_before": load_before,
               "load_after": os.getloadavg(), "params": {"controller": DEFAULT_CONTROLLER, "planner": "cbirrt", "arms": "cr5",
-                                                        "time_limit_s": time_limit_s, "workers": workers, "cluster": cluster},
+                                                        "time_limit_s": time_limit_s, "workers": workers, "cluster": cluster,
+                                                        "method_params": dict(params or {})},
               "ranges": {k: {"lo": r.lo, "hi": r.hi, "log": r.log, "doc": r.doc, "low": r.low, "high": r.high}
-                         for k, r in RANGE_SETS[set_name].items()},
-              "summary": summary(records, bags), "runs": [{**r, "zoo_bag": bags[r["scenario"]]} for r in records]}
+                         for k, r in {**RANGE_SETS[set_name], **CALIBRATION_SETS[set_name]}.items()},
+              "summary": summary(records, bags), "map": envelope_map(runs, set_name), "runs": runs}
     if jsonl is not None:
         jp, mp = write_results(stem, result, markdown(result), folder)
         result["files"] = {"runs": str(jsonl), "json": str(jp), "markdown": str(mp)}
     return result
 
 
+def write_bag(name: str, folder: Path) -> dict[str, Any]:
+    """The zoo bag `name` as a scenario file `folder/<name>.yaml`, which `bagit run FILE` and `bagit up FILE` run
+    (its object, fabric, binding, colours, light, depth noise and calibration error); its run seed is the bag's."""
+    sc, bag = zoo_scenario(name)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{name}.yaml"
+    path.write_text(sc.to_yaml())
+    return {"kind": "zoo-bag", "scenario": str(path), "seed": bag["seed"], "bag": {k: v for k, v in bag.items() if k != "perimeter_draws"}}
+
+
 def run_from_args(a: Any) -> dict[str, Any]:
     """`bagit bench zoo` from its parsed flags; the sweep's progress on stderr."""
     from bagit.bench.closed_loop import quiet_engine_logs
 
+    if a.write_bag:
+        return write_bag(a.write_bag, a.out or Path.cwd())
+    if a.perception:
+        from bagit.bench import zoo_perception
+
+        return zoo_perception.run(a.bags, a.zoo_seed, a.zoo_set, a.quick, a.record, a.out)
     quiet_engine_logs()
-    return run(a.bags, a.zoo_seed, a.quick, a.record, workers=a.workers, cluster=a.cluster, time_limit_s=a.time_limit_s,
-               timeout_s=a.timeout_s, out_dir=a.out)
+    return run(a.bags, a.zoo_seed, a.quick, a.record, set_name=a.zoo_set, workers=a.workers, cluster=a.cluster,
+               time_limit_s=a.time_limit_s, timeout_s=a.timeout_s, out_dir=a.out, params=a.params)
+
+
+# -- why a run failed, and the envelope's map -----------------------------------------------------------
+
+CAUSES = ("perception", "goal", "plan", "control", "physics", "outcome", "harness")
+
+
+def cause(r: dict[str, Any]) -> str | None:
+    """Which part a failed run's record blames (CAUSES), from its stage and reason; None for a success.
+    perception: the rim lost or never seen; goal, plan: their stages failed; physics: the simulator failed
+    or crawled; control: servoing ran out of time or the controller failed; outcome: the run ended but the
+    rim is not round the object (the truth's verdict); harness: the run gave no record of its own."""
+    if r.get("success"):
+        return None
+    reason, stage = str(r.get("reason") or ""), r.get("stage_reached")
+    if reason.startswith(("timed out", "crashed", "error:")):
+        return "harness"
+    if reason.startswith("simulator:"):
+        return "physics"
+    if "perception lost the rim" in reason or "no fresh SOI" in reason:
+        return "perception"
+    if stage == "goal":
+        return "goal"
+    if stage == "planning":
+        return "plan"
+    if stage == "done":
+        return "outcome"
+    return "control"
+
+
+MAP_BINS = 5
+FALLOFF_RATE = 0.9  # a bin below this success rate is where BagIt falls off along that parameter
+
+
+def envelope_map(runs: list[dict[str, Any]], set_name: str) -> dict[str, list[dict[str, Any]]]:
+    """Success against each parameter: its range cut into MAP_BINS equal bins (in its own scale), each with
+    its runs, successes and the causes of its failures."""
+    ranges = {**RANGE_SETS[set_name], **CALIBRATION_SETS[set_name]}
+    out: dict[str, list[dict[str, Any]]] = {}
+    for k, r in ranges.items():
+        bins: list[dict[str, Any]] = [{"lo": r.at(b / MAP_BINS), "hi": r.at((b + 1) / MAP_BINS), "of": 0, "success": 0, "causes": {}}
+                                      for b in range(MAP_BINS)]
+        for x in runs:
+            bag = x["zoo_bag"]
+            val = bag.get(k) if k == "perimeter_m" else bag["values"].get(k)
+            if val is None:
+                continue
+            b = min(MAP_BINS - 1, max(0, int(r._unit(float(val)) * MAP_BINS)))
+            bins[b]["of"] += 1
+            if x.get("success"):
+                bins[b]["success"] += 1
+            else:
+                c = x.get("cause") or cause(x) or "?"
+                bins[b]["causes"][c] = bins[b]["causes"].get(c, 0) + 1
+        out[k] = bins
+    return out
 
 
 def markdown(r: dict[str, Any]) -> str:
@@ -275,5 +401,25 @@ def markdown(r: dict[str, Any]) -> str:
         t = f"{s['time_s_mean']:.1f}" if s["time_s_mean"] is not None else "-"
         lines.append(f"| {c} | {s['success']}/{s['of']} | {err} | {t} |")
     fails = [f"- {x['scenario']} ({x['zoo_bag']['object']}, {', '.join(x['zoo_bag']['classes']) or 'no class'}): "
-             f"{x.get('stage_reached')}: {x.get('reason')}" for x in r["runs"] if not x.get("success")]
-    return "\n".join(lines + ([""] + ["Failures:"] + fails if fails else [])) + "\n"
+             f"{x.get('cause')}: {x.get('stage_reached')}: {x.get('reason')}" for x in r["runs"] if not x.get("success")]
+    return "\n".join(lines + _map_lines(r.get("map") or {}) + ([""] + ["Failures:"] + fails if fails else [])) + "\n"
+
+
+def _map_lines(m: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """The map as a table: per parameter, successes per bin (low to high), the bins below FALLOFF_RATE and why."""
+    if not m:
+        return []
+    lines = ["", f"Success against each parameter ({MAP_BINS} equal bins of its range, in its own scale; "
+             f"falls off: the bins below {FALLOFF_RATE:.0%}, with the causes of their failures):", "",
+             "| parameter | " + " | ".join(f"bin {b + 1}" for b in range(MAP_BINS)) + " | falls off | causes |",
+             "| --- |" + " --- |" * (MAP_BINS + 2)]
+    for k, bins in m.items():
+        cells = [f"{b['success']}/{b['of']} ({b['lo']:.3g}-{b['hi']:.3g})" for b in bins]
+        low = [b for b in bins if b["of"] and b["success"] / b["of"] < FALLOFF_RATE]
+        where = ", ".join(f"{b['lo']:.3g}-{b['hi']:.3g}" for b in low) or "-"
+        causes: dict[str, int] = {}
+        for b in low:
+            for c, n in b["causes"].items():
+                causes[c] = causes.get(c, 0) + n
+        lines.append(f"| {k} | " + " | ".join(cells) + f" | {where} | {', '.join(f'{c} {n}' for c, n in sorted(causes.items())) or '-'} |")
+    return lines

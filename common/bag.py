@@ -5,8 +5,8 @@ before these fields existed, so that older scenario files give the same runs bit
 The defaults are the simulator's constants (services/sim/scene.py builds the MuJoCo flex from
 these models); the bounds are what is physically sane for a table-top fabric bag, wide enough for
 the bag zoo's envelope (bench/zoo.py), so a negative or absurd value is a one-line `BadScenario`.
-The light and the depth noise are the simulator's alone: a lab's rig has its own lights and camera,
-and perception never reads these fields.
+The light, the depth noise and the camera's calibration error are the simulator's alone: a lab's rig
+has its own lights and camera, and perception never reads these fields.
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ BENDING_RANGE_NM2 = (1e-8, 0.1)  # a loose hem to a stiff steel-wire hoop
 LIGHT_INTENSITY_RANGE = (0.05, 4.0)  # x today's lights
 MIN_LIGHT_ELEVATION_RAD = math.radians(5.0)  # the key light shines down onto the table from above its plane
 DEPTH_NOISE_RANGE = (0.0, 10.0)  # x the D455 model's depth noise
+MAX_CALIBRATION_OFFSET_M = 0.1  # the camera's true position this far from the calibrated one, per axis, at most
+MAX_CALIBRATION_TURN_DEG = 10.0  # its true orientation turned this far from the calibrated one, at most
 
 
 def check_rgb(v: RGB, what: str) -> RGB:
@@ -99,17 +101,60 @@ class LightSpec(BaseModel):
         return d / np.linalg.norm(d)
 
 
+class CalibrationError(BaseModel):
+    """How far the camera's true pose is from the calibrated one the rig believes (its `camera:` config):
+    the simulator renders from the true pose, perception back-projects with the believed one, as on a
+    rig whose hand-eye calibration is off. The true pose is the believed one moved by `offset_m` (world
+    axes) and turned by the rotation vector `turn_deg` (world axes, degrees) about the camera's centre."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    offset_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="the true position minus the believed (m, world)")
+    turn_deg: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="the true orientation's rotation vector from the believed (deg, world)")
+
+    @field_validator("offset_m")
+    @classmethod
+    def _offset(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if max(abs(c) for c in v) > MAX_CALIBRATION_OFFSET_M:
+            raise ValueError(f"sim.camera.calibration_error.offset_m {v} is beyond {MAX_CALIBRATION_OFFSET_M:g} m on an axis")
+        return v
+
+    @field_validator("turn_deg")
+    @classmethod
+    def _turn(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if float(np.linalg.norm(v)) > MAX_CALIBRATION_TURN_DEG:
+            raise ValueError(f"sim.camera.calibration_error.turn_deg {v} turns more than {MAX_CALIBRATION_TURN_DEG:g} degrees")
+        return v
+
+    def true_pose(self, T_believed: np.ndarray) -> np.ndarray:
+        """(4, 4) world <- camera as it really is, from the believed `T_believed (4, 4)`; T_believed itself
+        (the same array) when there is no error, so that runs without one are unchanged bit for bit."""
+        if not any(self.offset_m) and not any(self.turn_deg):
+            return T_believed
+        from scipy.spatial.transform import Rotation
+
+        T = np.array(T_believed, dtype=float)
+        T[:3, :3] = Rotation.from_rotvec(np.radians(self.turn_deg)).as_matrix() @ T[:3, :3]
+        T[:3, 3] += np.asarray(self.offset_m, dtype=float)
+        return T
+
+    def size(self) -> tuple[float, float]:
+        """(offset in m, turn in degrees): the error's two magnitudes."""
+        return float(np.linalg.norm(self.offset_m)), float(np.linalg.norm(self.turn_deg))
+
+
 class SimCameraSpec(BaseModel):
-    """The simulated D455's degradation (services/sim/camera.py `DepthNoise`)."""
+    """The simulated D455's degradation (services/sim/camera.py `DepthNoise`) and its pose's error."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     depth_noise: float = Field(1.0, ge=DEPTH_NOISE_RANGE[0], le=DEPTH_NOISE_RANGE[1],
                                description="x the depth noise's standard deviation (dropouts and flying pixels unchanged)")
+    calibration_error: CalibrationError = CalibrationError()
 
 
 class SimSpec(BaseModel):
-    """What only the simulator uses: its light and its camera's noise."""
+    """What only the simulator uses: its light, its camera's noise and the error of its calibrated pose."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 

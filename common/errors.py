@@ -74,6 +74,10 @@ class SimulationFailed(BagItError, RuntimeError):
     positions or velocities (it would otherwise reset the world silently and carry on)."""
 
 
+class WallLimitReached(BagItError, RuntimeError):
+    """A run's wall-clock limit passed while the simulator stepped (its physics crawled): the run stops there."""
+
+
 def first_line(e: BaseException) -> str:
     """The first line of an exception's text (its type's name if it has none): a one-line reason."""
     s = str(e).strip()

@@ -111,6 +111,10 @@ class ControllerParams(BaseModel):
     max_angular_speed_rps: float = Field(0.3, gt=0.0, le=2.0, description="C7: gripper angular speed (rad/s)")
     subgoal_tol_m: float = Field(0.02, gt=0.0, le=0.2, description="advance along the path below this RMS error")
     goal_tol_m: float = Field(0.008, gt=0.0, le=0.2, description="the run is at g* below this RMS error")
+    # The paper's claim is that the online update adapts J to a bag it has no model of; "frozen" keeps
+    # the exploration's initial estimate for the whole run, the ablation that measures the claim.
+    jacobian_update: Literal["broyden", "frozen"] = Field(
+        "broyden", description="broyden: J updated online (the paper); frozen: J kept at its initial estimate (an ablation)")
     experimental: ControllerExperimental = ControllerExperimental()
 
 

@@ -50,6 +50,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bags", type=_args.positive_int, default=None, help="for `zoo`: bags to draw (default 100; --quick 4)")
     p.add_argument("--zoo-seed", type=_args.seed, default=0, help="for `zoo`: bag i is drawn from (zoo seed, i)")
     p.add_argument("--record", action="store_true", help="for `zoo`: write the runs and the report under bench/results (or --out)")
+    p.add_argument("--zoo-set", choices=["core", "envelope"], default="core",
+                   help="for `zoo`: the core ranges (a lab's ordinary bags) or the envelope (to find where BagIt stops)")
+    p.add_argument("--perception", action="store_true",
+                   help="for `zoo`: measure perception's SOI against the true rim on each bag's first frames (no run)")
+    p.add_argument("--write-bag", default=None, metavar="NAME",
+                   help="for `zoo`: write the zoo bag NAME (zoo-<set>-<seed>-<i>) as a scenario file NAME.yaml in --out (default .), run nothing")
     add_sweep_arguments(p)
     add_verify_arguments(p)
 
@@ -158,6 +164,12 @@ def compare(old: Path, new: Path) -> dict[str, Any]:
 
 
 def human(result: dict[str, Any]) -> str:
+    if result.get("kind") == "zoo-bag":
+        return f"written: {result['scenario']} (run it with: bagit run {result['scenario']} --seed {result['seed']})"
+    if result.get("kind") == "zoo-perception":
+        from bagit.bench.zoo_perception import markdown as perception_markdown
+
+        return perception_markdown(result) + (f"\nwritten: {result['files']['markdown']}" if "files" in result else "")
     if result.get("kind") == "zoo":
         from bagit.bench.zoo import markdown as zoo_markdown
 

@@ -376,8 +376,9 @@ class ServoBase:
 
     def _learn(self, xf: np.ndarray, moved: np.ndarray | None) -> None:
         """Broyden on windows of `broyden_window` ticks: the grippers' summed motion `moved (12,)`
-        and the SOI change it caused (None on a run's first valid tick: nothing to learn yet)."""
-        if self._x_prev is None or moved is None or self.jacobian is None:
+        and the SOI change it caused (None on a run's first valid tick: nothing to learn yet); nothing
+        with `jacobian_update: frozen` (J stays the exploration's)."""
+        if self._x_prev is None or moved is None or self.jacobian is None or self.p.controller.jacobian_update == "frozen":
             return
         self._win_u += moved
         self._win_s += xf - self._x_prev

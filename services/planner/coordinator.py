@@ -58,6 +58,9 @@ class CoordinatorConfig(BaseModel):
     )
     perception_service: str = "perception"
     perception_grace_s: float = Field(5.0, ge=0, le=120, description="perception may be gone this long before the run fails")
+    # The controller holds on a stale SOI, so a rim perception no longer finds stays lost (nothing
+    # moves the bag back into view): the run fails with that reason rather than hold to its time limit.
+    soi_lost_s: float = Field(5.0, gt=0, le=600, description="no SOI this long while servoing: the run fails (perception lost the rim)")
     controllers: list[str] = Field(default_factory=lambda: list(CONTROLLER_NAMES))
     default_controller: str = DEFAULT_CONTROLLER
     default_planner: str = DEFAULT_PLANNER
@@ -148,6 +151,7 @@ class _Run:
     t_start: float
     t_servo: float | None = None
     t_last_status: float | None = None
+    t_last_soi: float | None = None  # when the newest SOI of the run came (the coordinator's clock)
     planning_time_s: float = 0.0
     path_nodes: int = 0
     perception_gone_at: float | None = None
@@ -321,7 +325,7 @@ class Coordinator:
         if r is None or not self.active:
             return []
         if len(soi.rim) == r.scenario.bag.n_x:
-            r.last_rim = soi.rim
+            r.last_rim, r.t_last_soi = soi.rim, now
         if self.state.stage != "perceiving":
             return []
         frame_t = soi.source_stamp or soi.stamp
@@ -466,7 +470,7 @@ class Coordinator:
             self._finish(now, "failed", f"the {service} service is gone (liveliness lost during {self.state.stage})")
 
     def tick(self, now: float) -> list[Effect]:
-        """Timeouts: no fresh SOI, a silent controller, the run's time limit, perception gone too long; a g0
+        """Timeouts: no fresh SOI (perceiving), the rim lost (servoing), a silent controller, the run's time limit, perception gone too long; a g0
         whose wait for the marker is over goes on with the scenario's object (its plan job is returned)."""
         r = self.run
         if r is None or not self.active:
@@ -493,6 +497,10 @@ class Coordinator:
                 return []
             if now - t_servo > self.cfg.run_time_limit_s:
                 self._finish(now, "failed", f"time limit of {self.cfg.run_time_limit_s:g} s reached in {stage}")
+                return []
+            lost = now - max(t_servo, r.t_last_soi if r.t_last_soi is not None else t_servo)
+            if lost > self.cfg.soi_lost_s:
+                self._finish(now, "failed", f"perception lost the rim: no SOI for {lost:.1f} s in {stage} (the controller held)")
                 return []
         if r.perception_gone_at is not None and now - r.perception_gone_at > self.cfg.perception_grace_s:
             self._finish(now, "failed", f"the {self.cfg.perception_service} service is gone (for {now - r.perception_gone_at:.1f} s)")

@@ -47,6 +47,8 @@ def camera_fps(fps: float | None, lockstep: bool, rate_hz: float) -> float:
 class World(Protocol):
     """What SimRig needs of the physics world (SimWorld provides it)."""
 
+    wall_deadline: float | None  # a host's wall-clock deadline (time.perf_counter()): step() stops past it
+
     @property
     def time(self) -> float: ...
 

@@ -169,7 +169,7 @@ def build_mjcf(scenario: Scenario, rig: RigConfig, layout: BagLayout) -> str:
   <worldbody>
     {lamps}
     <geom name="table" type="plane" size="3 3 0.05" pos="0 0 {rig.table_height}" rgba="{TABLE_RGBA}"/>
-    {camera_mjcf(cam, cam.T_world_camera())}
+    {camera_mjcf(cam, scenario.sim.camera.calibration_error.true_pose(cam.T_world_camera()))}
     {obj_xml}
     {obstacles}
     {mounts}

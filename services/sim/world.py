@@ -9,13 +9,14 @@ can make the fabric explode. Same scenario, rig, seed and calls: the same run, f
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
-from bagit.common.errors import BadControlInput, BadScenario, SimulationFailed
+from bagit.common.errors import BadControlInput, BadScenario, SimulationFailed, WallLimitReached
 from bagit.common.geometry import closed_polyline_length, make_transform, resample_closed
 from bagit.common.messages import RgbdFrame
 from bagit.common.mounts import rim_frame
@@ -116,6 +117,10 @@ class SimWorld:
         self._draws = DrawsAhead()  # the next frame's noise draws, made while the world steps
         self.noise = DepthNoise().scaled(scenario.sim.camera.depth_noise)
         self.failure: str | None = None  # why the physics went unstable (then step() refuses to go on)
+        # A host's wall-clock deadline (time.perf_counter()): step() stops at the physics step that passes it.
+        # MuJoCo's contact solver can crawl for seconds a step on a bunched-up stiff bag, and a host that
+        # checks its wall limit only between its own steps would wait out the whole of a long one.
+        self.wall_deadline: float | None = None
         # live views of MuJoCo's instability warning counters (indexing data.warning anew costs ~20 us a step)
         self._warnings = [self.data.warning[w] for w in INSTABILITY_WARNINGS]
         mujoco.mj_forward(self.model, self.data)
@@ -165,6 +170,8 @@ class SimWorld:
                 self.failure = self._describe_failure(before, now)
                 raise SimulationFailed(self.failure)
             self._monitor.update(verts)
+            if self.wall_deadline is not None and time.perf_counter() > self.wall_deadline:
+                raise WallLimitReached(f"the wall-time limit passed at t = {self.time:.3f} s simulated (the contact solver crawls?)")
 
     def _warning_counts(self) -> tuple[int, ...]:
         return tuple(int(w.number) for w in self._warnings)

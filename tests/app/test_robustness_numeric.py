@@ -183,7 +183,29 @@ def test_a_run_that_takes_too_long_in_wall_time_is_stopped():
 
     s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
     r = run_inprocess(RunOptions(scenario=s, seed=0, time_limit_s=5.0, wall_limit_s=1e-6))
-    assert not r.success and r.ticks == 1 and "too slow" in r.reason and r.reason.startswith("simulator: ")
+    # the limit is checked at every physics step: it passes inside the bag's first settling step, before any tick
+    assert not r.success and r.ticks == 0 and r.stage_reached == "perceiving"
+    assert r.reason.startswith("simulator: too slow") and "for 0.00 s simulated" in r.reason and "limit 1e-06 s" in r.reason
+
+
+def test_the_wall_deadline_stops_a_long_step_at_its_first_physics_step(coffee):
+    """A host's wall limit must not wait out a whole long step (MuJoCo's contact solver can crawl for seconds
+    a physics step on a bunched-up stiff bag): past the deadline, step() stops at the physics step it is in."""
+    import time
+
+    from bagit.common.errors import WallLimitReached
+    from bagit.services.sim.scene import TIMESTEP
+    from bagit.services.sim.world import SimWorld
+
+    w = SimWorld(coffee, seed=0, camera=False)
+    w.step(2 * TIMESTEP)
+    w.wall_deadline = time.perf_counter() - 1.0
+    with pytest.raises(WallLimitReached, match="wall-time limit passed at t = 0.012 s"):
+        w.step(1.0)
+    assert w.time == pytest.approx(3 * TIMESTEP) and w.failure is None  # one physics step, and the world is not broken
+    w.wall_deadline = None
+    w.step(TIMESTEP)
+    assert w.time == pytest.approx(4 * TIMESTEP)
 
 
 def test_a_mujoco_fatal_error_is_a_simulation_failure(coffee, monkeypatch):

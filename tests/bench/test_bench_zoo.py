@@ -68,3 +68,62 @@ def test_summary_per_class_and_files_only_when_asked(tmp_path, monkeypatch):
     assert q["files"]["markdown"].startswith(str(tmp_path / "results" / "quick"))
     rec = zoo.run(3, record=True)
     assert rec["files"]["json"] == str(tmp_path / "results" / "zoo-core-0.json")
+
+
+def test_envelope_bags_lie_in_its_ranges_with_a_calibration_error_of_the_sets_size():
+    for set_name, ranges in (("core", zoo.CORE), ("envelope", zoo.ENVELOPE)):
+        cal = zoo.CALIBRATION_SETS[set_name]
+        for i in range(20):
+            b = zoo.zoo_bag(zoo.zoo_name(set_name, 3, i))
+            for k, r in {**ranges, **cal}.items():
+                assert r.lo <= b["values"][k] <= r.hi, (set_name, i, k)
+            off, turn = (math.dist(b["calibration_error"][k], (0, 0, 0)) for k in ("offset_m", "turn_deg"))
+            assert math.isclose(off, b["values"]["calibration_offset_m"], abs_tol=1e-5)
+            assert math.isclose(turn, b["values"]["calibration_turn_deg"], abs_tol=1e-5)
+            tail = any(v >= r.lo + (1 - zoo.TAIL) * (r.hi - r.lo) for v, r in ((off, cal["calibration_offset_m"]), (turn, cal["calibration_turn_deg"])))
+            assert (zoo.CALIBRATION_CLASS in b["classes"]) == tail
+    assert zoo.ENVELOPE_CALIBRATION["calibration_offset_m"].hi == 0.03 and zoo.ENVELOPE_CALIBRATION["calibration_turn_deg"].hi == 2.0
+    sc, b = zoo.zoo_scenario("zoo-envelope-0-5")
+    assert sc.sim.camera.calibration_error.offset_m == tuple(b["calibration_error"]["offset_m"])
+
+
+def test_a_failed_run_is_blamed_on_the_part_its_stage_and_reason_name():
+    def rec(stage, reason, success=False):
+        return {"success": success, "stage_reached": stage, "reason": reason}
+
+    assert zoo.cause(rec("done", None, True)) is None
+    assert zoo.cause(rec("bagging", "perception lost the rim: no SOI for 5.1 s in bagging (the controller held)")) == "perception"
+    assert zoo.cause(rec("perceiving", "no fresh SOI from perception within 30 s")) == "perception"
+    assert zoo.cause(rec("goal", "no bagging ellipse")) == "goal" and zoo.cause(rec("planning", "no path")) == "plan"
+    assert zoo.cause(rec("bagging", "simulator: too slow, 900 s of wall time")) == "physics"
+    assert zoo.cause(rec("bagging", "time limit of 40 s reached in bagging")) == "control"
+    assert zoo.cause(rec("done", "the final rim does not go round the object")) == "outcome"
+    assert zoo.cause(rec("idle", "timed out: no result within 900 s of wall time")) == "harness"
+
+
+def test_the_map_bins_each_parameter_and_names_where_success_falls_off():
+    bags = {n: zoo.zoo_scenario(n)[1] for n in (zoo.zoo_name("envelope", 0, i) for i in range(6))}
+    runs = [{"scenario": n, "success": b["values"]["stretch_n_per_m"] < 16000, "stage_reached": "done", "error_cm": 0.5, "duration_s": 12.0,
+             "reason": "the final rim does not go round the object", "zoo_bag": b} for n, b in bags.items()]
+    m = zoo.envelope_map(runs, "envelope")
+    assert set(m) == set(zoo.ENVELOPE) | set(zoo.ENVELOPE_CALIBRATION)
+    for k, bins in m.items():
+        assert sum(b["of"] for b in bins) == len(runs) and len(bins) == zoo.MAP_BINS
+        assert math.isclose(bins[0]["lo"], zoo.ENVELOPE.get(k, zoo.ENVELOPE_CALIBRATION.get(k)).lo)
+    stiff = m["stretch_n_per_m"]
+    assert 0 < sum(r["success"] for r in runs) < len(runs)  # bags on both sides of the made-up fall-off
+    assert all(b["success"] == b["of"] for b in stiff if b["hi"] <= 16000)
+    assert all(b["success"] == 0 and b["causes"] == ({"outcome": b["of"]} if b["of"] else {}) for b in stiff if b["lo"] >= 16000)
+    text = zoo.markdown({"machine": {}, "bags": 6, "set": "envelope", "zoo_seed": 0, "load_before": 0, "load_after": 0, "params": {},
+                         "summary": zoo.summary(runs, bags), "map": m, "runs": [{**r, "cause": zoo.cause(r)} for r in runs]})
+    row = next(line for line in text.splitlines() if line.startswith("| stretch_n_per_m"))
+    assert "outcome" in row
+
+
+def test_a_zoo_bag_written_as_a_scenario_file_reads_back_as_the_same_scenario(tmp_path):
+    from bagit.common.scenario import Scenario
+
+    out = zoo.write_bag("zoo-envelope-0-2", tmp_path)
+    assert out["scenario"] == str(tmp_path / "zoo-envelope-0-2.yaml") and out["seed"] == 2
+    assert Scenario.from_file(out["scenario"]) == zoo.zoo_scenario("zoo-envelope-0-2")[0]
+    assert zoo._stem("core", 0, {"jacobian_update": "frozen"}) == "zoo-core-0-jacobian_update-frozen" and zoo._stem("core", 0, None) == "zoo-core-0"

@@ -59,6 +59,9 @@ def test_the_fields_read_as_named():
     ("sim__light__direction", [0, 0, 1], "point down"),
     ("sim__light__direction", [0, 0, 0], "non-zero"),
     ("sim__camera__depth_noise", -1, "sim.camera.depth_noise"),
+    ("sim__camera__calibration_error__offset_m", [0.5, 0, 0], "calibration_error.offset_m"),
+    ("sim__camera__calibration_error__turn_deg", [0, 0, 45], "calibration_error.turn_deg"),
+    ("sim__camera__calibration_error__turn_deg", [0, "nan", 0], "sim.camera.calibration_error.turn_deg"),
 ])
 def test_absurd_values_are_one_line_errors(where, value, says):
     with pytest.raises(BadScenario) as e:
@@ -67,9 +70,12 @@ def test_absurd_values_are_one_line_errors(where, value, says):
     assert says in msg and len(msg.splitlines()) == 1 and msg.startswith("bag.yaml: ")
 
 
-def test_bagit_run_exits_2_on_an_absurd_stiffness(tmp_path, capsys):
+@pytest.mark.parametrize("where, value", [("bag__fabric__stretch_n_per_m", -1), ("bag__fabric__stretch_n_per_m", 1e9),
+                                          ("bag__fabric__mass_kg", -0.1), ("bag__fabric__mass_kg", 500), ("bag__rim__color", [2, 0, 0]),
+                                          ("bag__color", [0.2, -1, 0.5])])
+def test_bagit_run_exits_2_on_an_absurd_stiffness_mass_or_colour(tmp_path, capsys, where, value):
     f = tmp_path / "bad-bag.yaml"
-    f.write_text(yaml.safe_dump(_doc(bag__fabric__stretch_n_per_m=-1)))
+    f.write_text(yaml.safe_dump(_doc(**{where: value})))
     assert main(["run", str(f), "--json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "bag.fabric.stretch_n_per_m" in err[0]
+    assert len(err) == 1 and where.replace("__", ".") in err[0]

@@ -249,3 +249,27 @@ def test_the_motion_in_flight_enters_the_prediction_so_a_slow_arm_side_costs_onl
     told, blind = _delayed_run(12, told=True), _delayed_run(12, told=False)
     assert told <= undelayed + 2 * 12, (undelayed, told)
     assert told < 0.85 * blind, (told, blind)
+
+
+def test_a_frozen_jacobian_keeps_the_explorations_estimate_the_online_one_moves():
+    """The ablation of the paper's adaptation claim: with `jacobian_update: frozen` J stays exactly what the
+    exploration measured for the whole run (and the loop still servos on it); with Broyden's update it moves."""
+    m = SyntheticRim(32)
+    path = _path(m)
+    for update in ("frozen", "broyden"):
+        c = make_controller("mpc", MethodParams.model_validate({"jacobian_update": update}), m.n_x)
+        g = m.home()
+        c.reset(m.rim(g), Path(nodes=path, dagger_index=5), g)
+        t, J0, servo_ticks = 0.0, None, 0
+        for _ in range(300):
+            out = c.step(m.rim(g), t, g, source_stamp=t)
+            if J0 is None and c.jacobian is not None:
+                J0 = c.jacobian.J.copy()
+            servo_ticks += out.mode == "servo"
+            g = apply_increment(g, out.u)
+            t += c.dt
+        assert J0 is not None and servo_ticks > 50
+        if update == "frozen":
+            assert np.array_equal(c.jacobian.J, J0) and c.jacobian.updates == 0
+        else:
+            assert c.jacobian.updates > 0 and not np.array_equal(c.jacobian.J, J0)

@@ -69,3 +69,46 @@ def test_bagit_up_writes_the_binding_into_perceptions_config(tmp_path):
     argv = up._argv("perception", zpath, rpath)
     cfg, _ = load_service_config(PerceptionServiceConfig, Path(argv[argv.index("--config") + 1]), {}, argparse.Namespace(rig="sim"))
     assert cfg.bag_rim_color == BLUE and cfg.bag_kind is None  # the rest still from the run's scenario
+
+
+def test_the_perception_node_segments_the_binding_its_config_names():
+    """The node's `bag_rim_color` is the colour it segments: with it, frames of a green-bound bag give SOIs
+    on the true rim; with the default (red), the same frames give none."""
+    import time
+
+    from bus_support import session_pair, wait_until
+
+    from bagit.common.bus import Keys, Publisher, Subscriber
+    from bagit.common.messages import RgbdFrame, SoiState
+    from bagit.services.perception.node import PerceptionNode, PerceptionServiceConfig
+    from bagit.services.perception.sources import SourceConfig
+
+    s = _bag_scenario(GREEN, (0.75, 0.45, 0.7))
+    with SimWorld(s, seed=0) as w:
+        w.step(0.5)
+        frames = [w.render_rgbd(k) for k in range(2)]
+        true_rim = w.true_rim()
+    got: dict[str, list[SoiState]] = {}
+    for rim_color in (GREEN, None):
+        for a, b in session_pair(f"pnbind{'g' if rim_color else 'r'}"):
+            keys = Keys(f"pnbind{'g' if rim_color else 'r'}")
+            node = PerceptionNode(a, keys, PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), n_x=32, bag_rim_color=rim_color))
+            try:
+                sois: list[SoiState] = []
+                Subscriber(b, keys.perception_soi, SoiState, sois.append)
+                pub = Publisher(b, keys.camera_rgbd, RgbdFrame)
+                assert wait_until(lambda: pub.matched)
+                for k, f in enumerate(frames):  # each sent again until the node has it (a put before its subscriber is up is lost)
+                    seen = node.counters["processed"] + node.counters["dropped"]
+                    for _ in range(30):
+                        pub.put(f.model_copy(update={"stamp": time.time(), "seq": 10 + k}))
+                        if wait_until(lambda: node.counters["processed"] + node.counters["dropped"] > seen, timeout=5.0):
+                            break
+                assert wait_until(lambda: node._pending is None and not node._busy, timeout=60)
+                time.sleep(0.2)
+                assert node.counters["bad"] == (0 if rim_color else node.counters["processed"])
+            finally:
+                node.close()
+            got["green" if rim_color else "red"] = sois
+    assert got["green"] and all(points_to_polyline_distance(x.rim, true_rim).max() < 0.025 for x in got["green"])
+    assert got["red"] == []

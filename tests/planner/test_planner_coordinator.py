@@ -185,8 +185,23 @@ def test_silent_controller_and_no_first_status_fail_the_run():
     assert c.state.stage == "failed" and "silent" in c.state.reason
 
 
+def test_a_rim_lost_while_servoing_fails_the_run_with_that_reason():
+    """The controller holds on a stale SOI, so nothing brings a lost rim back: the run fails, in bounded time."""
+    c = started(CoordinatorConfig(settle_s=0.5, status_timeout_s=60, soi_lost_s=4.0))
+    servoing(c)  # path at T0 + 2.5
+    rim = c.run.last_rim
+    c.on_soi(soi(rim, T0 + 5.0), T0 + 5.0)
+    c.tick(T0 + 8.9)
+    assert c.state.stage == "pre-bagging"  # 3.9 s since the last SOI
+    c.on_soi(soi(rim, T0 + 9.0), T0 + 9.0)
+    c.tick(T0 + 12.9)
+    assert c.state.stage == "pre-bagging"
+    c.tick(T0 + 13.1)
+    assert c.state.stage == "failed" and "perception lost the rim: no SOI for 4.1 s in pre-bagging" in c.state.reason
+
+
 def test_perception_may_come_back_within_its_grace_time():
-    c = started(CoordinatorConfig(settle_s=0.5, perception_grace_s=3.0, status_timeout_s=60))
+    c = started(CoordinatorConfig(settle_s=0.5, perception_grace_s=3.0, status_timeout_s=60, soi_lost_s=60))
     servoing(c)
     c.on_liveliness("perception", False, T0 + 3)
     c.tick(T0 + 5)
