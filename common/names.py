@@ -48,3 +48,9 @@ MAX_N_X = 512
 ServiceName = Literal["sim", "perception", "planner", "controller", "arm-driver", "dashboard", "recorder"]
 SERVICE_NAMES: tuple[str, ...] = get_args(ServiceName)
 LOCKSTEP_SERVICES: tuple[ServiceName, ...] = ("perception", "planner", "controller", "arm-driver")
+
+# What bounds a search is its iterations (`params.planner.max_iterations`): the same plan or the same failure on any
+# machine. The wall clock only guards against a hang, far past what those iterations take (4000 of a
+# hard search: 16 s on a lightly loaded 2-core EPYC); a 10 s budget failed such runs only when the
+# machine was busy, so a run's plan depended on the load.
+PLAN_WALL_GUARD_S = 300.0

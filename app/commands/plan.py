@@ -6,7 +6,7 @@ import argparse
 from typing import Any
 
 from bagit.commands import _args
-from bagit.common.names import DEFAULT_PLANNER, PLANNER_NAMES
+from bagit.common.names import DEFAULT_PLANNER, PLAN_WALL_GUARD_S, PLANNER_NAMES
 
 NAME = "plan"
 HELP = "plan the SOI path g0 -> g† -> g* for a scenario"
@@ -16,7 +16,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario file, or the name of a bundled scenario")
     p.add_argument("--planner", choices=PLANNER_NAMES, default=DEFAULT_PLANNER)
     p.add_argument("--seed", type=_args.seed, default=0)
-    p.add_argument("--time-budget", type=_args.positive_seconds, default=10.0, help="seconds before the search gives up")
+    p.add_argument("--time-budget", type=_args.positive_seconds, default=PLAN_WALL_GUARD_S,
+                   help=f"seconds of wall time before the search gives up, whatever its iterations (default {PLAN_WALL_GUARD_S:g})")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

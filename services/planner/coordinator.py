@@ -32,7 +32,16 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bagit.common.errors import BadScenario, BagItError
 from bagit.common.messages import ControllerStatus, EStop, Goal, ObjectDetection, Path, RunControl, RunControlReply, RunState, SoiState
-from bagit.common.names import ACTIVE_STAGES, CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PERCEIVE_STAGES, PLANNER_NAMES, SERVO_STAGES
+from bagit.common.names import (
+    ACTIVE_STAGES,
+    CONTROLLER_NAMES,
+    DEFAULT_CONTROLLER,
+    DEFAULT_PLANNER,
+    PERCEIVE_STAGES,
+    PLAN_WALL_GUARD_S,
+    PLANNER_NAMES,
+    SERVO_STAGES,
+)
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, axis_error_cm, points_list
 from bagit.common.rig import RigConfig
@@ -48,7 +57,8 @@ class CoordinatorConfig(BaseModel):
 
     settle_s: float = Field(0.5, ge=0.0, le=30.0, description="g0 only from an SOI whose frame is this much newer than the start")
     perceive_timeout_s: float = Field(30.0, gt=0, le=600, description="no fresh SOI by then: the run fails")
-    plan_time_budget_s: float = Field(10.0, gt=0, le=600, description="the planner's time budget")
+    plan_time_budget_s: float = Field(PLAN_WALL_GUARD_S, gt=0, le=600,
+                                      description="the planner's wall-clock guard (its iterations bound the search: names.PLAN_WALL_GUARD_S)")
     status_timeout_s: float = Field(3.0, gt=0, le=60, description="controller status silent this long during servoing: failed")
     first_status_timeout_s: float = Field(15.0, gt=0, le=120, description="no controller status this long after the path: failed")
     run_time_limit_s: float = Field(180.0, gt=0, le=3600, description="servoing (pre-bagging + bagging) longer than this: failed")

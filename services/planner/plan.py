@@ -11,6 +11,7 @@ import numpy as np
 from bagit.common.errors import BadCloud, BadScenario, InfeasibleGoal, NumericalFailure
 from bagit.common.geometry import align_cyclic, as_points, closed_polyline_length
 from bagit.common.messages import Path
+from bagit.common.names import PLAN_WALL_GUARD_S
 from bagit.common.params import MethodParams
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
@@ -85,7 +86,7 @@ def plan_path(
     params: MethodParams,
     planner: str = "cbirrt",
     seed: int = 0,
-    time_budget_s: float = 10.0,
+    time_budget_s: float = PLAN_WALL_GUARD_S,
 ) -> PlanResult:
     """Plan g0 -> g† and g† -> g*, trimmed, smoothed and densified; every node aligned to g0."""
     if planner not in PLANNERS:
@@ -147,7 +148,7 @@ def plan_scenario(
     planner: str = "cbirrt",
     seed: int = 0,
     g0: np.ndarray | None = None,
-    time_budget_s: float = 10.0,
+    time_budget_s: float = PLAN_WALL_GUARD_S,
 ) -> PlanResult:
     """Goal and path for a scenario; g0 from the argument (perception) or the scenario's initial rim."""
     if g0 is None:
@@ -203,7 +204,7 @@ def plan(
     seed: int = 0,
     *,
     g0: np.ndarray | None = None,
-    time_budget_s: float = 10.0,
+    time_budget_s: float = PLAN_WALL_GUARD_S,
 ) -> PlanResult:
     """`plan_scenario` for a Scenario, a scenario file or the name of a bundled scenario."""
     if not isinstance(scenario, Scenario):
