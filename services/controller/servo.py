@@ -177,11 +177,13 @@ class ServoBase:
         gripper_poses: dict[ArmName, np.ndarray] | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
+        goal: Any = None,
     ) -> None:
         """Start a run on `path` (a Path message, or nodes `(n_nodes, n_x, 3)` with `dagger_index`).
 
         x0 `(n_x, 3)`: the first SOI (its length is the rim perimeter for C6 unless `perimeter` is
         given; without either, the path's first node's). gripper_poses: {'left','right'}: 4x4 world.
+        `goal` (the run's Goal) is not needed: the path carries g† and g*.
         """
         nodes, dagger = as_path(path, dagger_index)
         if nodes.ndim != 3 or nodes.shape[1:] != (self.n_x, 3):
