@@ -41,8 +41,7 @@ from bagit.common.errors import BadControlInput
 from bagit.common.geometry import closed_polyline_length
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS
-from bagit.services.controller.guard import SoiGuard
-from bagit.services.controller.servo import MIN_SEPARATION_M, SEPARATION_MARGIN, ControlOutput, as_path, c7_limits, pose_problem, scale_into_box
+from bagit.services.controller.servo import MIN_SEPARATION_M, SEPARATION_MARGIN, ControllerCore, ControlOutput, pose_problem, scale_into_box
 from bagit.services.controller.subgoal import rms_error, slide_to
 
 SETTLE_TICKS = 15  # ticks the mounts stand still after a primitive before the next view is taken (0.5 s at 30 Hz)
@@ -147,29 +146,21 @@ class PrimitiveRun:
     cut_short: list[str] = field(default_factory=list)  # primitives the arms had not made when their time ran out
 
 
-class PrimitiveController:
+class PrimitiveController(ControllerCore):
     """A look-act state machine over primitives (see the module docstring); subclasses decide the next
     primitive from a view (`_decide`). Satisfies `Controller`: `reset` once per run, `step` every tick."""
 
     name = "primitives"
 
     def __init__(self, params: MethodParams, n_x: int, *, settle_ticks: int = SETTLE_TICKS):
-        if n_x < 3:
-            raise BadControlInput(f"n_x must be at least 3, got {n_x}")
-        self.p = params
-        self.n_x = n_x
-        self.dt = 1.0 / params.controller.control_rate_hz
-        self.u_max = c7_limits(params)
+        super().__init__(params, n_x)
         self.settle_ticks = settle_ticks
-        self.ticks = 0
         self.obj: ObjectView | None = None
 
     def reset(self, x0: np.ndarray | None, path: Any, gripper_poses: Poses | None, dagger_index: int | None = None,
               perimeter: float | None = None, goal: Any = None) -> None:
         """Start a run: `goal` (the run's Goal) gives the object; `path` only g* for the reported error."""
-        nodes, dagger = as_path(path, dagger_index)
-        if nodes.ndim != 3 or nodes.shape[1:] != (self.n_x, 3):
-            raise BadControlInput(f"path nodes must have shape (n_nodes, {self.n_x}, 3), got {nodes.shape}")
+        nodes, dagger = self._nodes(path, dagger_index)
         if goal is None:
             raise BadControlInput(f"{self.name} needs the object's pose: the run's goal")
         self.obj = ObjectView.of_goal(goal)
@@ -180,7 +171,7 @@ class PrimitiveController:
             perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
         self.perimeter = float(perimeter)
         self.sep_limits = (MIN_SEPARATION_M, SEPARATION_MARGIN * self.perimeter / 2)
-        self.guard = SoiGuard(timeout_s=max(3 * self.dt, 0.2), max_age_s=max(5 * self.dt, 0.3), n_x=self.n_x)
+        self.guard = self._new_guard()
         self.phase: Phase = "settle"
         self.settled = self.settle_ticks  # the first view is taken at once: the bag has hung still before the run
         self.move: _Move | None = None
