@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from bagit.bench.common import stats_ms
 from bagit.common.dual_arm import apply_increment
 from bagit.common.errors import BadControlInput
-from bagit.common.names import CONTROLLER_NAMES
+from bagit.common.names import SERVO_CONTROLLER_NAMES
 from bagit.common.params import MethodParams
 from bagit.services.controller import MpcSolver, c7_limits, make_controller
 from bagit.services.controller.mpc import MpcController, separation_bounds, separation_gradient, uncondensed_qp
@@ -195,7 +195,7 @@ def run(quick: bool = False) -> dict:
     cpu_med = out["piqp_dense"]["cpu"]["median_ms"]
     for key in ("piqp_sparse", "piqp_sparse_uncondensed", "osqp_cold", "osqp_warm", "osqp_warm_eps1e-4"):
         out[key]["cpu_over_dense"] = out[key]["cpu"]["median_ms"] / cpu_med
-    for kind in CONTROLLER_NAMES:
+    for kind in SERVO_CONTROLLER_NAMES:
         out[f"synthetic_{kind}"] = closed_loop(kind, p)
         out[f"synthetic_noisy_{kind}"] = closed_loop(kind, p, noise=0.001, seed=1)
     return out
@@ -221,7 +221,7 @@ def main() -> None:
             ratio = f"  {s['cpu_over_dense']:.1f}x dense" if "cpu_over_dense" in s else ""
             print(f"  {'':28s} CPU  min {c['min_ms']:.3f}  median {c['median_ms']:.3f}  p95 {c['p95_ms']:.3f} ms{ratio}")
     print("Closed loop on the synthetic rim (exploration included):")
-    for kind in CONTROLLER_NAMES:
+    for kind in SERVO_CONTROLLER_NAMES:
         for tag in ("", "noisy_"):
             s = r[f"synthetic_{tag}{kind}"]
             print(f"  {kind:4s} {'1 mm noise' if tag else 'no noise  '}: done={s['done']} in {s['ticks']} ticks ({s['sim_time_s']:.1f} s), "

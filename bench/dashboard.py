@@ -92,7 +92,7 @@ def run(quick: bool = False, seconds: float | None = None, browser: bool = True)
         raise ValueError(f"--seconds must be more than the {WARMUP_S:g} s warm-up, got {duration}")
 
     class _Link:  # nobody presses buttons in this benchmark
-        def start(self, scenario: Any, params: Any) -> RunControlReply:
+        def start(self, scenario: Any, params: Any, controller: str | None = None) -> RunControlReply:
             return RunControlReply(accepted=False, reason="benchmark")
 
         def stop(self) -> RunControlReply:

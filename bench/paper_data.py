@@ -7,7 +7,7 @@ whole system with that planner's path; IBVS and SSVS have no planning columns.
 
 from __future__ import annotations
 
-from bagit.common.names import CONTROLLER_NAMES, PLANNER_NAMES
+from bagit.common.names import PLANNER_NAMES, SERVO_CONTROLLER_NAMES
 
 # scenario stem prefix -> the paper's name for the experiment
 EXPERIMENTS: dict[str, str] = {
@@ -27,7 +27,7 @@ EXPERIMENTS: dict[str, str] = {
 TABLE2_EXPERIMENTS = [f"exp{i:02d}" for i in range(1, 11)]  # the ten with numbers in Table II
 
 PLANNERS = list(PLANNER_NAMES)  # cbirrt is the paper's "Ours"
-CONTROLLERS = list(CONTROLLER_NAMES)  # mpc is the paper's "Ours"
+CONTROLLERS = list(SERVO_CONTROLLER_NAMES)  # Table II's; mpc is the paper's "Ours"
 
 # Table II, planning: experiment -> planner -> (successes, of, mean s, std s)
 PLANNING: dict[str, dict[str, tuple[int, int, float, float]]] = {
@@ -65,6 +65,9 @@ TABLE1: dict[str, tuple[int, int, float, float, float, float]] = {
     "BimaManip.": (7, 8, 44.21, 5.81, 3.50, 0.93),
     "Ours": (8, 8, 53.09, 2.92, 2.10, 0.77),
 }
+
+# Table I's methods -> the controller that runs each here (None: not built yet)
+TABLE1_CONTROLLERS: dict[str, str | None] = {"ShakingBot": "shakingbot", "AutoBag": "autobag", "BimaManip.": None, "Ours": "mpc"}
 
 # Section VII-A: mean c1, c2 (m), c3 over 1,000 simulations of 12 shapes
 SOI_STATS = {"placements": 1000, "shapes": 12, "c1": 0.826, "c2": 0.005, "c3": 0.9978}

@@ -25,8 +25,12 @@ ESTOP_SOURCE_DASHBOARD = "dashboard"
 ESTOP_SOURCE_CLI = "cli"
 ESTOP_RELEASE_SOURCES: tuple[str, ...] = (ESTOP_SOURCE_DASHBOARD, ESTOP_SOURCE_CLI)
 
-ControllerName = Literal["mpc", "ibvs", "ssvs"]  # mpc is the paper's; ibvs and ssvs its baselines
+# mpc is the paper's; ibvs and ssvs its shape-servoing baselines (Table II), autobag and shakingbot the
+# action-primitive methods it compares with (Table I)
+ControllerName = Literal["mpc", "ibvs", "ssvs", "autobag", "shakingbot"]
 CONTROLLER_NAMES: tuple[str, ...] = get_args(ControllerName)
+SERVO_CONTROLLER_NAMES: tuple[str, ...] = ("mpc", "ibvs", "ssvs")  # those that servo the SOI along the planned path
+PRIMITIVE_CONTROLLER_NAMES: tuple[str, ...] = ("autobag", "shakingbot")  # look-act state machines over primitives
 DEFAULT_CONTROLLER: ControllerName = "mpc"
 
 PlannerName = Literal["cbirrt", "ffg-rrt", "ts-rrt"]  # cbirrt is the paper's

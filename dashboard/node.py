@@ -54,11 +54,11 @@ class ZenohRunLink:
         self.source = source
         self._estop = Publisher(session, keys.estop, EStop)
 
-    def start(self, scenario: str | dict[str, Any], params: dict[str, Any]) -> RunControlReply:
+    def start(self, scenario: str | dict[str, Any], params: dict[str, Any], controller: str | None = None) -> RunControlReply:
         if isinstance(scenario, dict):
-            req = RunControl(action="start", scenario_doc=scenario, params=params)
+            req = RunControl(action="start", scenario_doc=scenario, params=params, controller=controller)
         else:
-            req = RunControl(action="start", scenario=scenario, params=params)
+            req = RunControl(action="start", scenario=scenario, params=params, controller=controller)
         return request_run_control(self.session, self.keys, req, timeout=self.timeout_s)
 
     def stop(self) -> RunControlReply:

@@ -23,7 +23,7 @@ import viser.uplot
 
 from bagit.common.errors import BadScenario, BagItError
 from bagit.common.messages import ArmState, ControllerStatus, EStop, RunControlReply, RunState
-from bagit.common.names import ESTOP_SOURCE_DASHBOARD, FAILED_STAGES, SERVO_STAGES
+from bagit.common.names import CONTROLLER_NAMES, ESTOP_SOURCE_DASHBOARD, FAILED_STAGES, SERVO_STAGES
 from bagit.common.params import MethodParams
 from bagit.common.scenario import Scenario
 from bagit.dashboard.health import HealthBoard, health_markdown
@@ -39,6 +39,7 @@ ARM_STOPPED_RAD_S = 1e-3  # every joint slower than this: the arm has stopped
 MAX_UPLOAD_BYTES = 1_000_000
 UPLOAD_PREFIX = "upload: "
 ESTOP_REASON = "E-STOP pressed on the dashboard"
+RIG_DEFAULT = "rig default"  # the Controller picker's choice that leaves the controller to the coordinator
 # the colours viser's notifications take
 NotificationColor = Literal["dark", "gray", "red", "pink", "grape", "violet", "indigo", "blue", "cyan", "green", "lime", "yellow", "orange",
                             "teal"]
@@ -128,6 +129,8 @@ class Panel:
         with gui.add_folder("Run"):
             self.picker = gui.add_dropdown("Scenario", tuple(self._bundled) or ("(none)",))
             self.picker.on_update(self._on_pick)
+            self.controller_pick = gui.add_dropdown("Controller", (RIG_DEFAULT, *CONTROLLER_NAMES), initial_value=RIG_DEFAULT,
+                                                    hint="the run's controller; rig default: the one `bagit up --controller` named (mpc)")
             self.upload = gui.add_upload_button("Upload scenario", icon=viser.Icon.UPLOAD, mime_type=".yaml,.yml,.json,text/yaml,application/json")
             self.upload.on_upload(self._on_upload)
             self.start_button = gui.add_button("Start", color="green", icon=viser.Icon.PLAYER_PLAY)
@@ -296,9 +299,10 @@ class Panel:
         else:
             self._say("Start refused: no scenario selected.", "error")
             return None
+        controller = None if self.controller_pick.value == RIG_DEFAULT else str(self.controller_pick.value)
         self.start_button.disabled = True
         try:
-            reply = self._request("Start", lambda: self.link.start(target, params))
+            reply = self._request("Start", lambda: self.link.start(target, params, controller))
         finally:
             self.start_button.disabled = False
         if reply is None:
@@ -306,7 +310,7 @@ class Panel:
         if reply.accepted:
             run_id = reply.run_id or f"run-{int(time.time())}"
             self.history.started(run_id, choice, params)
-            self._say(f"Started {choice} as run {run_id}" + (f" with {params}" if params else ""), "ok")
+            self._say(f"Started {choice} as run {run_id}" + (f" with {controller}" if controller else "") + (f" with {params}" if params else ""), "ok")
         else:
             self._say(f"Start refused by the rig: {reply.reason or 'no reason given'}", "error")
         return reply

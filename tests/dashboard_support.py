@@ -51,8 +51,8 @@ class FakeRunLink:
         with self.lock:
             self.calls.append((*call, time.monotonic()))
 
-    def start(self, scenario: str | dict[str, Any], params: dict[str, Any]) -> RunControlReply:
-        self._record("start", scenario, params)
+    def start(self, scenario: str | dict[str, Any], params: dict[str, Any], controller: str | None = None) -> RunControlReply:
+        self._record("start", scenario, params, controller)
         if self.delay_s:
             time.sleep(self.delay_s)
         if self.fail_with is not None:

@@ -1,13 +1,14 @@
-"""The shape-servoing controllers behind one interface, selectable by name: `mpc` (the paper's),
-`ibvs` and `ssvs` (its baselines).
+"""The controllers behind one interface, selectable by name: `mpc` (the paper's), `ibvs` and `ssvs`
+(its shape-servoing baselines), `autobag` and `shakingbot` (the action-primitive methods of Table I).
 
     c = make_controller("mpc", params, n_x)
-    c.reset(x0, path, gripper_poses)           # path: messages.Path, or nodes with dagger_index=
+    c.reset(x0, path, gripper_poses, goal=goal)  # path: messages.Path, or nodes with dagger_index=; goal: messages.Goal
     out = c.step(x_t, now, gripper_poses)      # every tick; out.u (12,) within C7
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -17,9 +18,12 @@ from bagit.common.errors import BadControlInput
 from bagit.common.params import MethodParams
 from bagit.services.controller.baselines import IbvsController, SsvsController
 from bagit.services.controller.mpc import MpcController
-from bagit.services.controller.servo import ControlOutput, ServoBase
+from bagit.services.controller.primitives import AutoBagController, ShakingBotController
+from bagit.services.controller.servo import ControlOutput
 
-CONTROLLERS: dict[str, type[ServoBase]] = {"mpc": MpcController, "ibvs": IbvsController, "ssvs": SsvsController}
+CONTROLLERS: dict[str, Callable[..., Controller]] = {
+    "mpc": MpcController, "ibvs": IbvsController, "ssvs": SsvsController, "autobag": AutoBagController, "shakingbot": ShakingBotController,
+}
 
 
 class Controller(Protocol):
@@ -38,6 +42,7 @@ class Controller(Protocol):
         gripper_poses: Poses | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
+        goal: Any = None,
     ) -> None: ...
 
     def step(
@@ -47,7 +52,7 @@ class Controller(Protocol):
 
 
 def make_controller(name: str, params: MethodParams, n_x: int, **kwargs: Any) -> Controller:
-    """A fresh controller by name ('mpc' | 'ibvs' | 'ssvs'); call `reset` before the first `step`."""
+    """A fresh controller by name (CONTROLLER_NAMES); call `reset` before the first `step`."""
     if name not in CONTROLLERS:
         raise BadControlInput(f"unknown controller {name!r}; choose from {', '.join(CONTROLLERS)}")
     return CONTROLLERS[name](params, n_x, **kwargs)

@@ -132,7 +132,34 @@ def pose_problem(grippers: Any) -> str | None:
     return None
 
 
-class ServoBase:
+class ControllerCore:
+    """What every controller holds (the shape servos and the primitive methods alike): its parameters,
+    n_x, control period and C7; and how each starts a run: the path's nodes checked, a fresh SOI guard."""
+
+    name = "base"
+
+    def __init__(self, params: MethodParams, n_x: int):
+        if n_x < 3:
+            raise BadControlInput(f"n_x must be at least 3, got {n_x}")
+        self.p = params
+        self.n_x = n_x
+        self.dt = 1.0 / params.controller.control_rate_hz
+        self.u_max = c7_limits(params)
+        self.ticks = 0
+
+    def _nodes(self, path: Any, dagger_index: int | None) -> tuple[np.ndarray, int]:
+        """The path's nodes `(n_nodes, n_x, 3)` and g†'s index (see `as_path`), BadControlInput if misshapen."""
+        nodes, dagger = as_path(path, dagger_index)
+        if nodes.ndim != 3 or nodes.shape[1:] != (self.n_x, 3):
+            raise BadControlInput(f"path nodes must have shape (n_nodes, {self.n_x}, 3), got {nodes.shape}")
+        return nodes, dagger
+
+    def _new_guard(self) -> SoiGuard:
+        """The SOI guard of a run: no SOI for 3 ticks (at least 0.2 s) or one 5 ticks old (0.3 s) holds."""
+        return SoiGuard(timeout_s=max(3 * self.dt, 0.2), max_age_s=max(5 * self.dt, 0.3), n_x=self.n_x)
+
+
+class ServoBase(ControllerCore):
     """One run's controller state; subclasses give the control law `_law`.
 
     Use: `reset(x0, path, gripper_poses)` once per run, then `step(x_t, now, gripper_poses)` every
@@ -152,14 +179,9 @@ class ServoBase:
         broyden_window: int = BROYDEN_WINDOW,
         separation_margin: float = SEPARATION_MARGIN,
     ):
-        if n_x < 3:
-            raise BadControlInput(f"n_x must be at least 3, got {n_x}")
+        super().__init__(params, n_x)
         if broyden_window < 1:
             raise BadControlInput(f"broyden_window must be >= 1, got {broyden_window}")
-        self.p = params
-        self.n_x = n_x
-        self.dt = 1.0 / params.controller.control_rate_hz
-        self.u_max = c7_limits(params)
         self.explore_push_ticks = explore_push_ticks
         self.explore_settle_ticks = explore_settle_ticks
         self.broyden_window = broyden_window
@@ -177,15 +199,15 @@ class ServoBase:
         gripper_poses: dict[ArmName, np.ndarray] | None,
         dagger_index: int | None = None,
         perimeter: float | None = None,
+        goal: Any = None,
     ) -> None:
         """Start a run on `path` (a Path message, or nodes `(n_nodes, n_x, 3)` with `dagger_index`).
 
         x0 `(n_x, 3)`: the first SOI (its length is the rim perimeter for C6 unless `perimeter` is
         given; without either, the path's first node's). gripper_poses: {'left','right'}: 4x4 world.
+        `goal` (the run's Goal) is not needed: the path carries g† and g*.
         """
-        nodes, dagger = as_path(path, dagger_index)
-        if nodes.ndim != 3 or nodes.shape[1:] != (self.n_x, 3):
-            raise BadControlInput(f"path nodes must have shape (n_nodes, {self.n_x}, 3), got {nodes.shape}")
+        nodes, dagger = self._nodes(path, dagger_index)
         if x0 is not None:
             x0 = np.asarray(x0, dtype=float)
             if x0.shape != (self.n_x, 3) or not np.all(np.isfinite(x0)):
@@ -203,7 +225,7 @@ class ServoBase:
             raise BadControlInput(f"rim perimeter {perimeter:.3f} m is too small to servo")
         self.perimeter = float(perimeter)
         self.sep_limits = (MIN_SEPARATION_M, self.separation_margin * perimeter / 2)
-        self.guard = SoiGuard(timeout_s=max(3 * self.dt, 0.2), max_age_s=max(5 * self.dt, 0.3), n_x=self.n_x)
+        self.guard = self._new_guard()
         self.exploration = Exploration(self.u_max, self.explore_push_ticks, self.explore_settle_ticks)
         self.jacobian = None
         self._x_prev: np.ndarray | None = None

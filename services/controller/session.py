@@ -227,7 +227,7 @@ class ServoSession:
         try:
             if not self.reset_done:
                 perimeter = goal.perimeter if goal is not None and goal.perimeter > 0 else None
-                c.reset(x, path, grippers, perimeter=perimeter)
+                c.reset(x, path, grippers, perimeter=perimeter, goal=goal)
                 self.reset_done = True
             ctl = c.step(x, now, grippers, pending=pending, slowed=slowed)
         except Exception as e:  # noqa: BLE001 - LinAlgError, a solver failure, a bad input: hold and say so

@@ -120,3 +120,20 @@ def test_a_whole_simulated_bagging_run_succeeds():
     assert r.error_cm < 2.0 and r.duration_s < 40.0
     # the true rim went round V with room to spare when the lift from g† began (cm)
     assert r.lift_margin_cm is not None and r.lift_margin_cm > 1.0, r.lift_margin_cm
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", ["autobag", "shakingbot"])
+def test_the_primitive_baselines_run_through_the_one_run_path_to_a_judged_end(controller, capsys):
+    """`bagit run exp01 --controller autobag|shakingbot --json`: the coordinator's stages with the CR5s,
+    the primitives' pre-bagging then bagging, and a result judged on the truth with the keys of every run."""
+    stages: list[str] = []
+    s = Scenario.from_file(find_scenario("exp01-coffee-box"))
+    r = run_inprocess(RunOptions(scenario=s, controller=controller, seed=0, on_state=lambda st: stages.append(st.stage)))
+    assert stages == ["perceiving", "goal", "planning", "pre-bagging", "bagging", "done"], (stages, r.reason)
+    assert r.controller == controller and r.arms == "cr5" and r.truth is not None and r.error_cm is not None
+    assert r.success == r.truth.success and (r.success or r.reason)  # a failure says why
+    assert r.arm_events["faults"] == 0 and r.arm_events["alarms"] == 0 and r.arm_events["watchdog_stops"] == 0
+    assert main(["run", "exp01", "--controller", controller, "--time-limit", "0.5", "--json"]) in (0, 1)
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == set(RunResult.model_fields) and out["controller"] == controller

@@ -20,7 +20,7 @@ def _cells(md: str, first: str) -> list[list[str]]:
 def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper")
     # one closed-loop record file: with the CR5s a run that succeeded and one that failed, for exp01 / mpc;
-    # with floating grippers (the ablation) one that succeeded
+    # with floating grippers (the ablation) one that succeeded; one autobag run (Table I)
     runs = out / "closed-loop-test.jsonl"
     prov = {"commit": "abc1234def", "host": "test", "params": {}}
     runs.write_text(
@@ -32,6 +32,8 @@ def quick(tmp_path_factory):
                       "provenance": prov}) + "\n"
         + json.dumps({"scenario": "exp01-coffee-box", "controller": "mpc", "planner": "cbirrt", "seed": 0, "arms": "ideal", "success": True,
                       "error_cm": 0.5, "duration_s": 12.0, "stage_reached": "done", "reason": None, "wall_s": 20.0, "provenance": prov}) + "\n"
+        + json.dumps({"scenario": "exp01-coffee-box", "controller": "autobag", "planner": "cbirrt", "seed": 0, "arms": "cr5", "success": True,
+                      "error_cm": 0.3, "duration_s": 6.0, "stage_reached": "done", "reason": None, "wall_s": 20.0, "provenance": prov}) + "\n"
     )
     rc = main(["bench", "paper", "--quick", "--out", str(out)])
     assert rc == 0
@@ -79,7 +81,13 @@ def test_quick_placements_and_closed_loop(quick):
     # each method over every experiment, cr5 against ideal, and where they differ
     assert "| mpc | cr5 | 1/2 | 0.80 | 16.0 | 30.0 | slowed 3 |" in md and "| mpc | ideal | 1/1 | 0.50 | 12.0 | 20.0 | none |" in md
     assert "- exp01-coffee-box / mpc: cr5 1/2, ideal 1/1; cr5 failures: bagging: time limit" in md
-    assert "| ours: ibvs | not run |" in md
+    # Table I: the paper's four methods beside ours from the records, Table II's other servos after them
+    assert "| Ours | `mpc` | 8/8 | 53.09 ± 2.92 | 2.10 ± 0.77 | 1/2 | 16.0 ± 0.0 | 0.80 ± 0.00 |" in md
+    assert "| AutoBag | `autobag` | 6/8 | 32.54 ± 4.11 | 5.36 ± 0.87 | 1/1 | 6.0 ± 0.0 | 0.30 ± 0.00 |" in md
+    assert "| ShakingBot | `shakingbot` | 4/8 | 39.86 ± 3.74 | 6.47 ± 1.13 | not run | — | — |" in md
+    assert "| BimaManip. | — | 7/8 | 44.21 ± 5.81 | 3.50 ± 0.93 | not built (no controller yet) | — | — |" in md
+    assert "| (ibvs, Table II) | `ibvs` | — | — | — | not run | — | — |" in md and "not reimplemented" not in md
+    assert not [c for c in _cells(md, "exp01-coffee-box") if c[1] == "autobag"]  # Table II has the shape servos only
 
 
 def test_quick_figures_exist_and_are_small(quick):

@@ -52,6 +52,10 @@ def test_start_sends_the_picked_scenario_with_only_the_changed_params(dash, link
     p._fill_params(p._base)
     p.press_start()
     assert link.named("start")[-1][2] == {}
+    assert link.named("start")[-1][3] is None  # the controller left to the rig ...
+    p.controller_pick.value = "autobag"
+    p.press_start()
+    assert link.named("start")[-1][3] == "autobag"  # ... or the one picked
 
 
 def test_invalid_params_block_start_with_the_reason(dash, link):
@@ -157,8 +161,8 @@ def test_estop_is_not_blocked_by_a_slow_render_or_a_hung_request(dash, link):
         release.wait(HANG_S)
         original(msg)
 
-    def hung_start(scenario, params):
-        link._record("start", scenario, params)
+    def hung_start(scenario, params, controller=None):
+        link._record("start", scenario, params, controller)
         release.wait(HANG_S)
         return RunControlReply(accepted=True, run_id="run-hung")
 
