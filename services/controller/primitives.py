@@ -33,7 +33,6 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from bagit.common.dual_arm import Poses, apply_increment, pose_increment
@@ -101,6 +100,8 @@ class Opening:
 
 def opening_of(x: np.ndarray, obj: ObjectView) -> Opening:
     """The opening `x (n_x, 3)` seen against `obj`."""
+    import cv2  # here, not at the top: `bagit up`'s fork server preloads this package and must never load OpenCV (its thread pool)
+
     rel = np.asarray(x, dtype=float) - obj.c
     E = obj.plane()
     rim2 = (rel @ E.T).astype(np.float32)

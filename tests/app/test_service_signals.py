@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -29,18 +30,30 @@ def _free_port() -> int:
 @pytest.mark.parametrize("attempt", range(3))
 def test_a_paused_planner_resumed_and_terminated_at_once_stops(attempt):
     argv = [sys.executable, "-m", "bagit.cli", "planner", "--rig", f"sigterm{attempt}", "-l", f"tcp/127.0.0.1:{_free_port()}"]
-    p = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, env=ENV)
-    try:
+    p = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV)
+    lines: list[str] = []
+    banner = threading.Event()
+
+    def read() -> None:  # all of its log, so that a full pipe never blocks it
         assert p.stderr is not None
-        for line in p.stderr:  # its banner: the signal handlers are in place, its threads are up
-            if "Ctrl-C to stop" in line:
-                break
+        for line in p.stderr:
+            lines.append(line)
+            if "Ctrl-C to stop" in line:  # its banner: the signal handlers are in place, its threads are up
+                banner.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    try:
+        assert banner.wait(120), "".join(lines)[-2000:]
         time.sleep(0.2)
         os.kill(p.pid, signal.SIGSTOP)
         time.sleep(0.2)
         os.kill(p.pid, signal.SIGCONT)
         os.kill(p.pid, signal.SIGTERM)
-        assert p.wait(30) == 0  # stopped as asked (a lost signal left it waiting for ever)
+        try:
+            code = p.wait(30)
+        except subprocess.TimeoutExpired:
+            code = None
+        assert code == 0, "".join(lines)[-3000:]  # stopped as asked (a lost signal left it waiting for ever)
     finally:
         if p.poll() is None:
             p.kill()
