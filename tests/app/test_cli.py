@@ -208,3 +208,8 @@ def test_demo_runs_a_whole_bagging_through_bagit_run(capsys):
     r = RunResult.model_validate(json.loads(capsys.readouterr().out))
     assert (r.scenario, r.controller, r.planner, r.seed, r.arms) == ("exp02-canned-pineapple", "mpc", "cbirrt", 0, "cr5")
     assert code == 0 and r.success, r.reason
+    # the canned pineapple, end to end from camera frames, judged on the simulator's ground truth
+    assert r.stage_reached == "done" and r.truth is not None and not r.truth.passed_through
+    assert r.error_cm is not None and r.error_cm < 2.0 and r.duration_s < 40.0
+    # the true rim went round V with room to spare when the lift from g† began (cm)
+    assert r.lift_margin_cm is not None and r.lift_margin_cm > 1.0, r.lift_margin_cm

@@ -111,18 +111,6 @@ def test_run_cli_refuses_bad_numbers_with_one_line(bad, capsys):
 
 
 @pytest.mark.slow
-def test_a_whole_simulated_bagging_run_succeeds():
-    """The canned pineapple, end to end from camera frames: judged on the simulator's ground truth."""
-    s = Scenario.from_file(find_scenario("exp02-canned-pineapple"))
-    r = run_inprocess(RunOptions(scenario=s, seed=0, time_limit_s=40.0))
-    assert r.success, (r.stage_reached, r.reason)
-    assert r.stage_reached == "done" and not r.truth.passed_through
-    assert r.error_cm < 2.0 and r.duration_s < 40.0
-    # the true rim went round V with room to spare when the lift from g† began (cm)
-    assert r.lift_margin_cm is not None and r.lift_margin_cm > 1.0, r.lift_margin_cm
-
-
-@pytest.mark.slow
 @pytest.mark.parametrize("controller", ["autobag", "shakingbot"])
 def test_the_primitive_baselines_run_through_the_one_run_path_to_a_judged_end(controller, capsys):
     """`bagit run exp01 --controller autobag|shakingbot --json`: the coordinator's stages with the CR5s,
