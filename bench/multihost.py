@@ -527,7 +527,7 @@ class Console:
             time.sleep(0.02)
         args = argparse.Namespace(scenario=scenario, controller=None, planner=None, seed=seed, timeout=timeout,
                                   clock="lockstep" if self.lab.clock == "lockstep" else "wall")
-        recording = recording_of_run(self.recorder, before, time.time(), stop)
+        recording = recording_of_run(self.recorder, before)
         res = run_result(self, rep.run_id, state, stop, args, time.monotonic() - t0, recording)
         self.stages = stages
         return res

@@ -20,6 +20,7 @@ from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLA
 if TYPE_CHECKING:
     from bagit.up import UpOptions
 
+RECORDER_STATUS_WAIT_S = 3.0  # the recorder's status before a run and after it: at most this long to come
 NAME = "up"
 HELP = "bring the whole simulated rig up: sim, perception, planner, controller, arm driver, dashboard"
 
@@ -122,9 +123,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             from bagit.common.messages import RecorderStatus
 
             recorder = LatestCache(up.session, up.keys.recorder_status, RecorderStatus)
-            deadline = time.monotonic() + 3.0
-            while recorder.get() is None and time.monotonic() < deadline and not stop.wait(0.05):
-                pass
+            recorder.wait(RECORDER_STATUS_WAIT_S)
         recording_before = recorder.get() if recorder is not None else None
         run_t0, run_cpu0 = time.monotonic(), up.rig_cpu_s()
         if args.scenario:
@@ -142,7 +141,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             up.say("restarts: " + (", ".join(f"{n} {c.restarts}" for n, c in up.children.items() if c.restarts) or "none"))
             up.say("cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.cpu_s().items()))  # per service, this run and start-up
             up.say("own cpu s: " + ", ".join(f"{n} {v:.1f}" for n, v in up.own_cpu_s().items()))  # the rest of the rig's
-            recording = recording_of_run(recorder, recording_before, time.time(), stop) if recorder is not None else None
+            recording = recording_of_run(recorder, recording_before) if recorder is not None else None
             if recording is not None and not recording.ok:
                 up.say(f"the run's recording failed: {recording.lost} messages lost ({recording.error})")
             return run_result(up, run_id, state, stop, args, time.monotonic() - t0, recording).model_dump(mode="json")
@@ -156,18 +155,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             signal.signal(s, h)
 
 
-def recording_of_run(recorder: Any, before: Any, ended: float, stop: Any, timeout_s: float = 3.0) -> Any:
+def recording_of_run(recorder: Any, before: Any, timeout_s: float = RECORDER_STATUS_WAIT_S) -> Any:
     """The recorder's part in a run (`RecordingReport`) from its status cache (`LatestCache` of
-    recorder/status) and its status when the run began: waits (at most `timeout_s`) for a status sent
-    after the run `ended` (time.time()), else takes the newest; None without a recorder."""
+    recorder/status) and its status when the run began: the first status received from now on (the
+    run has ended), at most `timeout_s` away, else the newest; None without a recorder."""
     import time
 
     from bagit.common.results import recording_report
 
-    deadline = time.monotonic() + timeout_s
-    while (st := recorder.get()) is None or st.stamp < ended:
-        if time.monotonic() > deadline or stop.wait(0.05):
-            break
+    recorder.wait(timeout_s, newer_than=time.monotonic())
     return recording_report(before, recorder.get())
 
 
