@@ -71,12 +71,14 @@ def test_quick_placements_and_closed_loop(quick):
     m = r["manipulation"]["exp01-coffee-box"]["mpc"]
     assert (m["success"], m["of"], m["error_cm_mean"]) == (1, 2, 0.8)
     assert r["manipulation"]["exp01-coffee-box"]["mpc/ideal"]["success"] == 1
-    # cr5 and ideal side by side, the wall-time ratio between them and the arm side's events
-    # (and the deployed stack's column: no `bagit bench deployed` records in this folder)
-    row = [c for c in _cells(md, "exp01-coffee-box") if c[1] == "mpc" and len(c) == 12]
-    assert [(c[3], c[4], c[6], c[7], c[9], c[10], c[11]) for c in row] == [
-        ("1/2", "0.80 ± 0.00", "1/1", "0.50 ± 0.00", "1.50", "slowed 3", "not run")]
-    assert [c[3] for c in _cells(md, "exp06-work-bin-tilted") if c[1] == "mpc" and len(c) == 12] == ["not run"]
+    # Table II: with the CR5s, the arm side's events (and the deployed stack's column: no `bagit bench deployed`
+    # records in this folder); the ablation's table: cr5 and ideal side by side, the wall-time ratio between them
+    row = [c for c in _cells(md, "exp01-coffee-box") if c[1] == "mpc" and len(c) == 8]
+    assert [(c[3], c[4], c[6], c[7]) for c in row] == [("1/2", "0.80 ± 0.00", "slowed 3", "not run")]
+    assert [c[3] for c in _cells(md, "exp06-work-bin-tilted") if c[1] == "mpc" and len(c) == 8] == ["not run"]
+    ablation = [c for c in _cells(md, "exp01-coffee-box") if c[1] == "mpc" and len(c) == 9]
+    assert [(c[2], c[3], c[5], c[6], c[8]) for c in ablation] == [("1/2", "0.80 ± 0.00", "1/1", "0.50 ± 0.00", "1.50")]
+    assert not [c for c in _cells(md, "exp06-work-bin-tilted") if len(c) == 9]  # no ablation run there
     assert "commit abc1234def" in md
     # each method over every experiment, cr5 against ideal, and where they differ
     assert "| mpc | cr5 | 1/2 | 0.80 | 16.0 | 30.0 | slowed 3 |" in md and "| mpc | ideal | 1/1 | 0.50 | 12.0 | 20.0 | none |" in md
