@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from bus_support import wait_until
 from suite_support import HANG_S
 from up_support import ENV, rig_up
@@ -28,6 +29,8 @@ from up_support import up_log as _log
 from up_support import wait_status as _status
 
 from bagit.common.results import RunResult
+from bagit.common.scenario import Scenario
+from bagit.scenarios import find_scenario
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # whole runs: the simulator slows down under load
 
@@ -165,13 +168,20 @@ def test_a_full_simulated_run_through_bagit_up_with_a_service_paused_is_bagit_ru
     assert res.arm_events == alone.arm_events and res.arms == alone.arms == "cr5"
 
 
-def test_a_camera_slower_than_the_keep_alive_pace_in_lockstep_gives_keep_alives_not_watchdog_stops(tmp_path):
-    # At 10 frames/s a tick per frame leaves 100 ms between commands, past the watchdog's 90 ms gap:
-    # the simulator schedules keep-alive ticks between frames (as `bagit run` steps), the controller
-    # answers each with a zero increment on its last SOI, and the run is `bagit run --fps 10`'s, bit for bit.
-    with _reference_run("exp02", "--fps", "10") as reference:  # beside it: a busy machine makes the rig slower, never different
+def test_a_scenario_file_of_its_own_bag_with_a_camera_slower_than_the_keep_alive_pace_is_bagit_runs_run(tmp_path):
+    # A scenario file of a lab's own (exp02's object in a stiffer, heavier, yellow bag with a green binding)
+    # runs through `bagit up FILE` as through `bagit run FILE`: the simulated bag and perception's binding
+    # colour come from the file. At 10 frames/s a tick per frame leaves 100 ms between commands, past the
+    # watchdog's 90 ms gap: the simulator schedules keep-alive ticks between frames (as `bagit run` steps),
+    # the controller answers each with a zero increment on its last SOI, and the run is `bagit run`'s, bit for bit.
+    doc = Scenario.from_file(find_scenario("exp02")).model_dump(mode="json", exclude_none=True)
+    doc["bag"]["rim"]["color"], doc["bag"]["color"] = [0.1, 0.65, 0.2], [0.8, 0.72, 0.25]
+    doc["bag"]["fabric"].update(stretch_n_per_m=16000.0, mass_kg=0.12)
+    path = tmp_path / "green-hem.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    with _reference_run(str(path), "--fps", "10") as reference:  # beside it: a busy machine makes the rig slower, never different
         r = subprocess.run(
-            [sys.executable, "-m", "bagit.cli", "up", "exp02", "--exit-when-done", "--json", "--no-dashboard", "--speed", "50", "--fps", "10",
+            [sys.executable, "-m", "bagit.cli", "up", str(path), "--exit-when-done", "--json", "--no-dashboard", "--speed", "50", "--fps", "10",
              "--timeout", "380"],
             capture_output=True, text=True, env=ENV, timeout=420,
         )
