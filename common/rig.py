@@ -123,12 +123,14 @@ class SafetyLimits(BaseModel):
       keep a bag's rim smooth, so that the arms are still within the watchdog's budget of the last
       command that reached them (`bagit.bench.stop_timeline`). Speed stays the path's: a stop only slows.
 
-    The stop's limits are the CR5's, with margin: 5 m/s^2 at the mount asks a shoulder joint at most
-    `cr5.JOINT_ACCEL_LIMIT` (12 rad/s^2) while the mount is 0.42 m or more from its axis (about 0.5 m on
-    this rig); 8 rad/s^2 for turning the tool, which the wrist joints do nearly one to one; the jerk
-    such that each reaches its full value in 50 ms. Validated: a stop never brakes more gently than
-    the path follows, and never asks for more than the CR5's joints can give (angular at most the joint
-    bound, linear at most the joint bound at full reach).
+    The stop's limits are within the CR5's, with margin: 4 m/s^2 at the mount asks a joint at most
+    `cr5.JOINT_ACCEL_LIMIT` (12 rad/s^2) while the mount is 0.33 m or more from that joint's axis (at
+    home the rig's mounts are 0.4-0.6 m from the axes of the base, shoulder and elbow joints); 8 rad/s^2 for turning the tool,
+    which the wrist joints do nearly one to one; the jerks such that each reaches its full value in
+    40 ms. Braking from a motion that just started is bound by the jerk, from the path's full speed by
+    both (0.25 m/s: 100 ms). Validated: a stop never brakes more gently than the path follows, and never
+    asks for more than the CR5's joints can give (angular at most the joint bound, linear at most the
+    joint bound at full reach).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -139,10 +141,10 @@ class SafetyLimits(BaseModel):
     max_angular_speed_rps: float = Field(1.0, gt=0, le=5.0)
     max_angular_accel_rps2: float = Field(4.0, gt=0, le=50.0)
     max_angular_jerk_rps3: float = Field(40.0, gt=0, le=1000.0)
-    stop_tcp_accel_mps2: float = Field(5.0, gt=0, description="a stop's deceleration at the mount (norm)")
+    stop_tcp_accel_mps2: float = Field(4.0, gt=0, description="a stop's deceleration at the mount (norm)")
     stop_tcp_jerk_mps3: float = Field(100.0, gt=0, le=1000.0, description="a stop's jerk at the mount (norm)")
     stop_angular_accel_rps2: float = Field(8.0, gt=0, description="a stop's angular deceleration of the tool (norm)")
-    stop_angular_jerk_rps3: float = Field(160.0, gt=0, le=2000.0, description="a stop's angular jerk of the tool (norm)")
+    stop_angular_jerk_rps3: float = Field(200.0, gt=0, le=2000.0, description="a stop's angular jerk of the tool (norm)")
     min_flange_distance_m: float = Field(0.08, ge=0.0)
     max_flange_distance_m: float = Field(0.32, gt=0.0, description="the rim cannot stretch further")
     watchdog_s: float = Field(

@@ -18,7 +18,7 @@ the direction of motion. (The controller's own increments stay far below: 5 cm/s
 Halting (a hold, the watchdog, a fault, a lost link, the run's end) is a controlled stop: Ruckig's
 velocity interface, target velocity and acceleration zero from the trajectory's current state, with
 the stop's Cartesian limits (`SafetyLimits.stop_limits`: the path's speed, the arm's stopping
-acceleration and jerk, 5 m/s^2 and 100 m/s^3 at the mount by default) split along the motion
+acceleration and jerk, 4 m/s^2 and 100 m/s^3 at the mount by default) split along the motion
 (`braking_shares`): per axis the limits are d_i times the Cartesian one with sum(d_i^2) = 1, so the
 norms stay within the limits whatever the profile (|x_i| <= d_i L for every axis gives
 |x|^2 <= L^2 sum(d_i^2) = L^2), and a straight motion brakes with the whole budget along its
