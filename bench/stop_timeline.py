@@ -16,10 +16,11 @@ CR5 never goes past `cr5.JOINT_ACCEL_LIMIT`: at it, the arm could not follow the
 each braking ServoP (a stop never speeds the arms up after its first ServoP). Each case is run at
 several phases of the servo cycle against the commands; the worst is reported.
 
-    python -m bagit.bench.stop_timeline [--record]
+    python -m bagit.bench.stop_timeline [--compare] [--record]
 
-prints one line per case with the parameters, and with --record appends them (commit, host, load,
-parameters) to bench/results/stop-timeline.jsonl. Deterministic: the machine's load changes nothing.
+prints one line per case, and with --record appends them (commit, host, load, parameters) to
+bench/results/stop-timeline.jsonl. `--compare` also runs every case with a stop at the path's limits
+(the stop before it had its own). Deterministic: the machine's load changes nothing.
 """
 
 from __future__ import annotations
@@ -139,6 +140,14 @@ def worst_phase(speed: float, direction: tuple[float, float, float], moving: int
     return {**worst, "phase_ms": round(1000.0 * PHASES_S[runs.index(worst)], 1), "still_ms_by_phase": [r["still_ms"] for r in runs]}
 
 
+def stopping_at_the_path_limits(rig: RigConfig) -> RigConfig:
+    """`rig` with its stop's acceleration and jerk the path's: how the arms stopped before the stop had its own."""
+    lim = rig.safety
+    same = {"stop_tcp_accel_mps2": lim.max_tcp_accel_mps2, "stop_tcp_jerk_mps3": lim.max_tcp_jerk_mps3,
+            "stop_angular_accel_rps2": lim.max_angular_accel_rps2, "stop_angular_jerk_rps3": lim.max_angular_jerk_rps3}
+    return rig.model_copy(update={"safety": lim.model_copy(update=same)})
+
+
 def params(rig: RigConfig, cfg: DriverConfig) -> dict[str, Any]:
     """What the numbers depend on: the stream, the threshold, the limits and the halting servo settings."""
     lim = rig.safety
@@ -150,18 +159,21 @@ def params(rig: RigConfig, cfg: DriverConfig) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--compare", action="store_true", help="also with a stop at the path's limits")
     ap.add_argument("--record", action="store_true", help=f"append the record to {JSONL}")
     args = ap.parse_args()
     configure_logging()
     rig, cfg = RigConfig(), DriverConfig()
-    out = {name: worst_phase(*case, rig=rig, cfg=cfg) for name, case in CASES.items()}
+    stops = {"stop limits": rig} | ({"path limits": stopping_at_the_path_limits(rig)} if args.compare else {})
+    out = {label: {name: worst_phase(*case, rig=r, cfg=cfg) for name, case in CASES.items()} for label, r in stops.items()}
     log.info("ms after the last command (worst of %d phases; goal: still within %.0f ms)", len(PHASES_S), TARGET_S * 1000)
-    for name, r in out.items():
-        log.info("%-26s watchdog %5.0f  rest %5.0f  still %5.0f  | peak %5.1f mm/s, joints %4.1f rad/s^2, braking steps %s mm",
-                 name, r["watchdog_ms"], r["rest_ms"], r["still_ms"], r["peak_mm_s"], r["joint_accel_rps2"], r["steps_mm"])
+    for label, cases in out.items():
+        for name, r in cases.items():
+            log.info("%-11s %-26s watchdog %4.0f  rest %4.0f  still %4.0f | peak %5.1f mm/s, joints %4.1f rad/s^2, braking steps %s mm",
+                     label, name, r["watchdog_ms"], r["rest_ms"], r["still_ms"], r["peak_mm_s"], r["joint_accel_rps2"], r["steps_mm"])
     if args.record:
         rec = {"kind": "stop_timeline", "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-               "provenance": provenance(params(rig, cfg)).model_dump(), "cases": out}
+               "provenance": provenance(params(rig, cfg)).model_dump(), "results": out}
         with JSONL.open("a", encoding="utf-8") as f:
             f.write(json.dumps(rec) + "\n")
         log.info("record appended to %s", JSONL)
