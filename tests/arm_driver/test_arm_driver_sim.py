@@ -238,8 +238,9 @@ def test_the_watchdog_stops_both_arms_after_the_last_command(rig):
             # on the feedback: the arm itself settles after the braking began; it went only part of the way
             assert wait_until(lambda: settled(rec[a], braking[0]))
         after = mount_positions(drv)
-        for a in before:  # it followed the stream, and stopped short of the 5 cm it added up to
-            assert 0.02 < after[a][0] - before[a][0] < 0.05 - 0.01 + v0 * stall
+        for a in before:  # it followed the stream (2 cm, less the few mm the trajectory trails a moving target by:
+            # the stop no longer carries it on for 126 ms), and stopped short of the 5 cm it added up to
+            assert 0.015 < after[a][0] - before[a][0] < 0.05 - 0.01 + v0 * stall
     finally:
         for r in rec.values():
             r.close()
@@ -416,7 +417,9 @@ def test_servoj_streams_through_the_cr5_inverse_kinematics(rig):
     u = np.zeros(12)
     u[2] = 0.05 / 30
     u[8] = -0.05 / 30
-    stream(drv, lambda t: u, 0.6)
+    # 3 cm in 0.6 s, then keep-alives until the arms are on the last target (the watchdog's stop would end
+    # the motion a few mm short: it brakes at once, the trajectory trailing the moving target)
+    stream(drv, lambda t: u if t < 0.6 else np.zeros(12), 1.0)
     assert wait_until(lambda: drv.mode == "holding")
     after = mount_positions(drv)
     assert after["left"][2] - before["left"][2] == pytest.approx(0.03, abs=0.002)
