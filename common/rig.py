@@ -125,9 +125,9 @@ class SafetyLimits(BaseModel):
 
     The stop's limits are within the CR5's, with margin: 4 m/s^2 at the mount asks a joint at most
     `cr5.JOINT_ACCEL_LIMIT` (12 rad/s^2) while the mount is 0.33 m or more from that joint's axis (at
-    home the rig's mounts are 0.4-0.6 m from the axes of the base, shoulder and elbow joints); 8 rad/s^2 for turning the tool,
-    which the wrist joints do nearly one to one; the jerks such that each reaches its full value in
-    40 ms. Braking from a motion that just started is bound by the jerk, from the path's full speed by
+    home the rig's mounts are 0.4-0.6 m from the axes of the base, shoulder and elbow joints);
+    8 rad/s^2 for turning the tool, which the wrist joints do nearly one to one; the jerks such that
+    each reaches its full value in 40 ms. Braking from a motion that just started is bound by the jerk, from the path's full speed by
     both (0.25 m/s: 100 ms). Validated: a stop never brakes more gently than the path follows, and never
     asks for more than the CR5's joints can give (angular at most the joint bound, linear at most the
     joint bound at full reach).
