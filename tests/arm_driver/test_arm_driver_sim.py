@@ -103,10 +103,18 @@ def test_bring_up_and_shutdown_follow_the_real_rig(rig):
         assert not sims.robots[a].enabled
         log = srv.log
         assert log[-1][1] == "DisableRobot()" and log[-1][2].startswith("0,")
-        ts, xyz = servo_positions(srv, t0=t_close)
-        assert len(ts) >= 3
+        # the ServoPs around the close: tracking, then braking ones (halt_aheadtime) to the end, each step no
+        # longer than the one before, the last one the pose the trajectory came to rest at
+        t0 = t_close - 0.2
+        ts, xyz = servo_positions(srv, t0=t0)
+        ahead = [servo_parameter(text, "aheadtime") for t, text, reply in srv.commands("ServoP") if t >= t0 and reply.startswith("0,")]
+        halting = np.array(ahead) == drv.cfg.halt_aheadtime
+        k = int(np.argmax(halting))
+        assert len(ts) == len(halting) and k > 0 and np.all(halting[k:]), ahead
         steps = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
-        assert steps[-1] < 1e-4 and steps[0] > steps[-1]  # braking, then still
+        assert np.all(np.diff(steps[k - 1 :]) <= 1e-9), steps
+        rest = drv.frames[a].flange_in_base(drv.path.commanded()[a])[:3, 3]
+        assert np.allclose(xyz[-1], rest, atol=1e-6), (xyz[-1], rest)
     assert drv.mode == "off"
 
 
