@@ -31,6 +31,11 @@ DH_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 JOINT_OFFSET = np.array([0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0])  # theta_DH = q + JOINT_OFFSET
 JOINT_LIMITS = np.radians([[-360, 360], [-360, 360], [-160, 160], [-360, 360], [-360, 360], [-360, 360]])
 JOINT_SPEED_LIMIT = np.radians(180.0)  # rad/s per joint
+# rad/s^2 per joint: Dobot publishes no joint acceleration for the CR5; this is the project's model of it (the
+# simulated controller's servo loop never accelerates a joint faster), in line with what arms of its class
+# (5 kg, ~0.9 m, 180 deg/s joints) reach braking from full speed: the UR5's hardware manual (CB3, stop
+# category 0 at full speed, reach and payload) stops joint 0 from 183 deg/s in 244 ms, about 13 rad/s^2.
+JOINT_ACCEL_LIMIT = 12.0
 REACH_M = 0.9
 # An elbow stretched straight (J3 = 0) is the edge of the reach and a singularity: a target there,
 # rounded to the wire's 6 decimals or solved from the controller's own seed, may have no solution,

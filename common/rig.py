@@ -14,6 +14,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from bagit.common import cr5
 from bagit.common.board import BoardSpec
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import make_transform, pose_to_matrix
@@ -112,7 +113,25 @@ def _default_arms() -> dict[ArmName, ArmConfig]:
 
 
 class SafetyLimits(BaseModel):
-    """Limits the arm driver enforces on every outgoing command."""
+    """Limits the arm driver enforces on every outgoing command.
+
+    Two sets of acceleration and jerk limits, each a norm per arm (linear at the mount, angular):
+    - the path's (`max_*`): what every command keeps while the arms follow the controller;
+    - the stop's (`stop_*`): what a stop keeps, braking from wherever the path left the arms to rest
+      (the watchdog, a hold, a fault, a lost link, the run's end). A controlled stop with the drives
+      powered, as IEC 60204-1 stop category 2: at the arm's stopping limits, not the gentle ones that
+      keep a bag's rim smooth, so that the arms are still within the watchdog's budget of the last
+      command that reached them (`bagit.bench.stop_timeline`). Speed stays the path's: a stop only slows.
+
+    The stop's limits are within the CR5's, with margin: 4 m/s^2 at the mount asks a joint at most
+    `cr5.JOINT_ACCEL_LIMIT` (12 rad/s^2) while the mount is 0.33 m or more from that joint's axis (at
+    home the rig's mounts are 0.4-0.6 m from the axes of the base, shoulder and elbow joints);
+    8 rad/s^2 for turning the tool, which the wrist joints do nearly one to one; the jerks such that
+    each reaches its full value in 40 ms. Braking from a motion that just started is bound by the jerk, from the path's full speed by
+    both (0.25 m/s: 100 ms). Validated: a stop never brakes more gently than the path follows, and never
+    asks for more than the CR5's joints can give (angular at most the joint bound, linear at most the
+    joint bound at full reach).
+    """
 
     model_config = ConfigDict(extra="forbid")
 
@@ -122,6 +141,10 @@ class SafetyLimits(BaseModel):
     max_angular_speed_rps: float = Field(1.0, gt=0, le=5.0)
     max_angular_accel_rps2: float = Field(4.0, gt=0, le=50.0)
     max_angular_jerk_rps3: float = Field(40.0, gt=0, le=1000.0)
+    stop_tcp_accel_mps2: float = Field(4.0, gt=0, description="a stop's deceleration at the mount (norm)")
+    stop_tcp_jerk_mps3: float = Field(100.0, gt=0, le=1000.0, description="a stop's jerk at the mount (norm)")
+    stop_angular_accel_rps2: float = Field(8.0, gt=0, description="a stop's angular deceleration of the tool (norm)")
+    stop_angular_jerk_rps3: float = Field(200.0, gt=0, le=2000.0, description="a stop's angular jerk of the tool (norm)")
     min_flange_distance_m: float = Field(0.08, ge=0.0)
     max_flange_distance_m: float = Field(0.32, gt=0.0, description="the rim cannot stretch further")
     watchdog_s: float = Field(
@@ -140,6 +163,32 @@ class SafetyLimits(BaseModel):
         if self.watchdog_s < 4 * self.servo_period_s:
             raise ValueError(f"watchdog_s ({self.watchdog_s:g} s) must be at least 4 servo periods ({4 * self.servo_period_s:g} s)")
         return self
+
+    @model_validator(mode="after")
+    def _a_stop_brakes_at_least_as_hard_as_the_path_and_within_the_cr5(self) -> SafetyLimits:
+        """A stop gentler than the path would take longer than following the path to rest; one harder than
+        the CR5's joints can brake would only make the controller lag (or alarm) instead."""
+        pairs = (("stop_tcp_accel_mps2", "max_tcp_accel_mps2"), ("stop_tcp_jerk_mps3", "max_tcp_jerk_mps3"),
+                 ("stop_angular_accel_rps2", "max_angular_accel_rps2"), ("stop_angular_jerk_rps3", "max_angular_jerk_rps3"))
+        for stop, path in pairs:
+            if getattr(self, stop) < getattr(self, path):
+                raise ValueError(f"{stop} ({getattr(self, stop):g}) must be at least {path} ({getattr(self, path):g}): "
+                                 "a stop brakes at least as hard as the path follows")
+        ceilings = (("stop_tcp_accel_mps2", cr5.JOINT_ACCEL_LIMIT * cr5.REACH_M), ("stop_angular_accel_rps2", cr5.JOINT_ACCEL_LIMIT))
+        for stop, most in ceilings:
+            if getattr(self, stop) > most:
+                raise ValueError(f"{stop} ({getattr(self, stop):g}) is more than the CR5's joints can brake ({most:g}, cr5.JOINT_ACCEL_LIMIT)")
+        return self
+
+    def path_limits(self) -> np.ndarray:
+        """`(2, 3)` [[speed, acceleration, jerk] linear (m), [...] angular (rad)]: what following keeps."""
+        return np.array([[self.max_tcp_speed_mps, self.max_tcp_accel_mps2, self.max_tcp_jerk_mps3],
+                         [self.max_angular_speed_rps, self.max_angular_accel_rps2, self.max_angular_jerk_rps3]])
+
+    def stop_limits(self) -> np.ndarray:
+        """`(2, 3)` as `path_limits`, what a stop keeps: the path's speed, the stop's acceleration and jerk."""
+        return np.array([[self.max_tcp_speed_mps, self.stop_tcp_accel_mps2, self.stop_tcp_jerk_mps3],
+                         [self.max_angular_speed_rps, self.stop_angular_accel_rps2, self.stop_angular_jerk_rps3]])
 
     @property
     def halt_gap_s(self) -> float:

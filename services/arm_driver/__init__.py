@@ -2,7 +2,7 @@
 
 A command's path, each layer one module (all pure: no Zenoh, no sockets):
   targets     TargetIntegrator, pull_back: the increment moves the target, kept within a lead
-  smoothing   RuckigSmoother: 12-DoF jerk-limited trajectory towards the target; braking on a stop
+  smoothing   RuckigSmoother: 12-DoF jerk-limited trajectory towards the target; a stop at the stop's limits
   limits      Envelope, check_and_clip: the one gate every outgoing pose goes through
   reach       solve_within: a step the joints cannot follow (near a singularity) is shortened, not refused
   wire        ServoCommand: the flange pose in each arm's base as a ServoP (or the joints as a ServoJ)

@@ -19,8 +19,9 @@ the next one arrives; replies are checked a period later.
 What stops the arms, and how:
 - watchdog: no command for `watchdog_s`: the path brakes to rest at the last tick before the deadline,
   then the arms hold; a later command starts a new stream from where the arms are. Every halt (the
-  watchdog, a hold, a fault, a lost link) brakes along the motion with the whole Cartesian budget
-  (`smoothing.braking_shares`), its ServoPs sent with `halt_aheadtime` (`python -m bagit.bench.stop_time`).
+  watchdog, a hold, a fault, a lost link) is a controlled stop at the stop's limits (`SafetyLimits.stop_*`,
+  larger than the path's), along the motion (`smoothing.braking_shares`), its ServoPs sent with
+  `halt_aheadtime` (`python -m bagit.bench.stop_timeline`, `python -m bagit.bench.stop_time`).
 - a stale command: made (`stamp`) longer than `watchdog_s` before it is applied, or stamped that far
   ahead, is refused (`gate.stale_refusal`).
 - a pause of the loop longer than `watchdog_s` (SIGSTOP, starvation): the controllers stopped the arms

@@ -10,7 +10,7 @@
 Its layers, in the order a command goes through them:
   targets    the increment moves the target (`TargetIntegrator`), kept within a lead of the
              trajectory (`pull_back`) and clamped into the static envelope (`limits.clip_target`)
-  smoothing  12-DoF Ruckig towards the target, jerk-limited (`RuckigSmoother`; brakes on a stop)
+  smoothing  12-DoF Ruckig towards the target, jerk-limited (`RuckigSmoother`; a stop brakes at the stop's limits)
   limits     every pose that leaves goes through `check_and_clip` (workspace, separation, speed)
   reach      a step the joints cannot follow is shortened to what they can (`reach.solve_within`)
   wire       the flange pose in each arm's base as a ServoP (or the joints as a ServoJ)

@@ -15,11 +15,16 @@ Limits come from `SafetyLimits` and are applied per axis divided by sqrt(3), so 
 the velocity, acceleration and jerk vectors never exceeds the configured Cartesian limit whatever
 the direction of motion. (The controller's own increments stay far below: 5 cm/s per axis.)
 
-Halting (a hold, the watchdog, a fault, a lost link, the run's end) brakes with the same Cartesian
-limits split along the motion instead (`braking_shares`): per axis the limits are d_i times the
-Cartesian one with sum(d_i^2) = 1, so the norms stay within the limits whatever the profile
-(|x_i| <= d_i L for every axis gives |x|^2 <= L^2 sum(d_i^2) = L^2), and a straight motion brakes
-with the whole budget along its direction: from 4 cm/s in 2 sqrt(v/j) = 126 ms instead of 166 ms.
+Halting (a hold, the watchdog, a fault, a lost link, the run's end) is a controlled stop: Ruckig's
+velocity interface, target velocity and acceleration zero from the trajectory's current state, with
+the stop's Cartesian limits (`SafetyLimits.stop_limits`: the path's speed, the arm's stopping
+acceleration and jerk, 4 m/s^2 and 100 m/s^3 at the mount by default) split along the motion
+(`braking_shares`): per axis the limits are d_i times the Cartesian one with sum(d_i^2) = 1, so the
+norms stay within the limits whatever the profile (|x_i| <= d_i L for every axis gives
+|x|^2 <= L^2 sum(d_i^2) = L^2), and a straight motion brakes with the whole budget along its
+direction. A motion that just started is still accelerating when it is stopped: with the path's
+jerk (10 m/s^3) turning 1 m/s^2 round took 100 ms, in which the arms sped up further (by 5 cm/s);
+with the stop's, 10 ms (0.5 cm/s), and 4 cm/s brakes in 2 sqrt(v/j) = 40 ms instead of 126 ms.
 It is a Ruckig instance of its own, used only in mode 'stopping': tracking (commands arriving) is
 the same computation as without it, bit for bit.
 
@@ -99,9 +104,8 @@ class RuckigSmoother:
         self._inp.max_acceleration = self.max_acceleration.tolist()
         self._inp.max_jerk = self.max_jerk.tolist()
         self._inp.synchronization = Synchronization.Time
-        # braking to rest ('stopping'): its own instance, limits split along the motion each cycle
-        self.cartesian = np.array([[limits.max_tcp_speed_mps, limits.max_tcp_accel_mps2, limits.max_tcp_jerk_mps3],
-                                   [limits.max_angular_speed_rps, limits.max_angular_accel_rps2, limits.max_angular_jerk_rps3]])
+        # braking to rest ('stopping'): its own instance, the stop's limits split along the motion each cycle
+        self.stopping = limits.stop_limits()  # (2, 3) [[v, a, j] linear, [v, a, j] angular]
         self._halt_otg = Ruckig(N_DOF, self.period)
         self._halt_inp = InputParameter(N_DOF)
         self._halt_out = OutputParameter(N_DOF)
@@ -149,11 +153,11 @@ class RuckigSmoother:
 
     def halting_limits(self) -> np.ndarray:
         """`(12, 3)` per-axis [velocity, acceleration, jerk] limits for braking from the current state:
-        each arm's linear and angular Cartesian limits split along its motion (`braking_shares`)."""
+        each arm's linear and angular stop limits split along its motion (`braking_shares`)."""
         out = np.empty((N_DOF, 3))
         for i in range(2):
             for k, sl in enumerate((slice(0, 3), slice(3, 6))):
-                cart = self.cartesian[k]
+                cart = self.stopping[k]
                 d = braking_shares(self.vel[i, sl], self.acc[i, sl], cart[0], cart[1])
                 out[6 * i + 3 * k : 6 * i + 3 * k + 3] = d[:, None] * cart[None, :]
         return out

@@ -10,7 +10,7 @@ What it models, and why:
 - ServoJ/ServoP set a target to reach in `t` seconds; the reference ramps there linearly (QTarget),
   and the joints follow it through a critically damped second-order loop whose bandwidth grows
   with `gain` (40 rad/s at 500) and which feeds forward `aheadtime`/100 of the reference velocity,
-  clipped to the joint speed (180°/s) and acceleration limits. At the defaults a steady motion
+  clipped to the joint speed (180°/s) and acceleration (`cr5.JOINT_ACCEL_LIMIT`) limits. At the defaults a steady motion
   trails its reference by about 25 ms, on top of the `t` the target itself takes.
 - Targets the arm cannot take raise the alarms a real controller raises and stop the arm:
   no inverse solution (17), a solution beyond the joint limits (18, or 64..75 for a joint target),
@@ -39,7 +39,6 @@ from bagit.common.so3 import matrix_to_quat_wxyz, so3_log
 
 SUBSTEP_S = 0.002
 MOVL_IK_PERIOD_S = 0.005  # the Cartesian line is solved at this rate and joint-interpolated between
-JOINT_ACCEL_LIMIT = 12.0  # rad/s^2, the servo loop's acceleration bound
 MOVJ_ACCEL = 6.0  # rad/s^2 at 100 %
 MOVL_SPEED = 1.0  # m/s at 100 %
 MOVL_ACCEL = 2.5  # m/s^2 at 100 %
@@ -438,7 +437,7 @@ class SimulatedCR5:
             return
         # critically damped; `ff` of the reference velocity is fed forward (aheadtime's effect)
         qdd = omega**2 * (self._q_ref - self._q) + 2 * omega * (ff * self._qd_ref - self._qd)
-        qdd = np.clip(qdd, -JOINT_ACCEL_LIMIT, JOINT_ACCEL_LIMIT)
+        qdd = np.clip(qdd, -cr5.JOINT_ACCEL_LIMIT, cr5.JOINT_ACCEL_LIMIT)
         self._qd = np.clip(self._qd + h * qdd, -cr5.JOINT_SPEED_LIMIT, cr5.JOINT_SPEED_LIMIT)
         self._q = self._q + h * self._qd
 

@@ -183,6 +183,15 @@ class SimPair:
             s.stop()
 
 
+def home_robot(rig: RigConfig, arm: ArmName, pose: np.ndarray) -> SimulatedCR5:
+    """`arm`'s simulated CR5 at rest holding its mount at `pose (4, 4)` (world), solved as the simulator places it."""
+    conf = rig.arms[arm]
+    T_bf = invert_transform(conf.T_world_base()) @ pose @ invert_transform(conf.T_flange_mount())
+    q = natural_ik(T_bf)
+    assert q is not None, f"{arm}: start pose out of reach"
+    return SimulatedCR5(conf, q0=q, name=arm)
+
+
 def start_sims(rig: RigConfig | None = None, poses: dict[ArmName, np.ndarray] | None = None, proxy: bool = False) -> SimPair:
     """Start both controllers holding `poses` (default `home_poses()`); with `proxy`, the rig goes through TcpProxy."""
     rig = rig or RigConfig()
@@ -194,10 +203,7 @@ def start_sims(rig: RigConfig | None = None, poses: dict[ArmName, np.ndarray] | 
     try:
         for a in ARMS:
             conf = rig.arms[a]
-            T_bf = invert_transform(conf.T_world_base()) @ poses[a] @ invert_transform(conf.T_flange_mount())
-            q = natural_ik(T_bf)
-            assert q is not None, f"{a}: start pose out of reach"
-            robots[a] = SimulatedCR5(conf, q0=q, name=a)
+            robots[a] = home_robot(rig, a, poses[a])
             servers[a] = RecordingServer(robots[a], dashboard_port=0, feedback_port=0, step_in_background=True).start()
             ports = (servers[a].dashboard_port, servers[a].feedback_port)
             if proxy:

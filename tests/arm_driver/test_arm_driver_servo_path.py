@@ -145,11 +145,12 @@ def test_a_smooth_stop_brakes_within_the_limits_without_reversing():
     p = np.array(p)
     assert np.all(np.diff(p[:, 0]) >= -1e-12) and np.ptp(p[:, 1:], axis=0).max() < 1e-12  # along x, never backing up
     _, acc, jerk = finite_difference_limits(p)
-    assert acc <= LIM.max_tcp_accel_mps2 * (1 + 1e-6) and jerk <= LIM.max_tcp_jerk_mps3 * (1 + 1e-6)
-    # the whole Cartesian budget along x (not 1/sqrt(3) of it): braking from v with jerk j and acceleration
-    # a takes v/a + a/j; one period of slack
-    a, j = LIM.max_tcp_accel_mps2, LIM.max_tcp_jerk_mps3
-    assert n * T <= v0 / a + a / j + T
+    a, j = LIM.stop_tcp_accel_mps2, LIM.stop_tcp_jerk_mps3  # a stop's limits, not the path's
+    assert acc <= a * (1 + 1e-6) and jerk <= j * (1 + 1e-6)
+    assert acc > LIM.max_tcp_accel_mps2  # it does brake harder than the path may accelerate
+    # the whole budget along x (not 1/sqrt(3) of it): braking from v with jerk j takes 2 sqrt(v/j) while
+    # v <= a^2/j (else v/a + a/j); one period of slack
+    assert n * T <= (2 * np.sqrt(v0 / j) if v0 <= a * a / j else v0 / a + a / j) + T
     assert st_.at_rest and np.all(st_.vel == 0)
 
 
@@ -171,10 +172,10 @@ axis_state = st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))  # fractions 
 
 @settings(max_examples=80, deadline=None, derandomize=True)
 @given(state=st.lists(axis_state, min_size=12, max_size=12))
-def test_a_halt_from_any_tracking_state_stays_within_the_cartesian_limits_and_comes_to_rest(state):
+def test_a_halt_from_any_tracking_state_stays_within_the_stop_limits_and_comes_to_rest(state):
     """Whatever the trajectory was doing (each axis within its per-axis limits, as tracking leaves it),
-    braking keeps the norms of velocity, acceleration and jerk per arm, linear and angular, within the
-    Cartesian limits, and ends at rest."""
+    braking keeps the norms of velocity (the path's), acceleration and jerk (the stop's) per arm, linear
+    and angular, within the limits, and ends at rest."""
     st_ = RuckigSmoother(LIM, T)
     st_.reset(home_poses())
     fr = np.array(state)
@@ -191,7 +192,7 @@ def test_a_halt_from_any_tracking_state_stays_within_the_cartesian_limits_and_co
             break
     assert st_.mode == "idle" and st_.at_rest and st_.errors == 0
     vel, acc = np.array(vel), np.array(acc)
-    cart = st_.cartesian  # [[v, a, j] linear, [v, a, j] angular]
+    cart = LIM.stop_limits()  # [[v, a, j] linear, [v, a, j] angular]: the path's speed, the stop's acceleration and jerk
     # The orientation coordinates are re-based every period and the angular rates mapped back with the
     # left Jacobian J(r), |J(r) - I| <= |r| / 2 with |r| <= w_max T: the angular acceleration may read up
     # to a_max w_max T / 2 more, its change per period up to a_max w_max / 2 more (as when tracking)
@@ -435,6 +436,18 @@ op = st.one_of(
 )
 
 
+def within_its_limits(tick) -> bool:
+    """The trajectory behind a tick's command accelerates within the limits that apply to it: the stop's
+    while it brakes, the path's while it follows (linear exactly; angular with the re-basing's slack, see
+    the halting test). A tick the gate or Ruckig changed says so in its violations instead."""
+    if tick.violations or tick.step is None:
+        return True
+    lim = LIM.stop_limits() if tick.halting else LIM.path_limits()
+    acc = tick.step.acceleration
+    lin, ang = np.linalg.norm(acc[:, :3], axis=1).max(), np.linalg.norm(acc[:, 3:], axis=1).max()
+    return bool(lin <= lim[0, 1] + 1e-9 and ang <= lim[1, 1] * (1 + lim[1, 0] * T / 2) + 1e-9)
+
+
 @settings(max_examples=150, deadline=None, derandomize=True)
 @given(ops=st.lists(op, min_size=1, max_size=40))
 def test_no_input_sequence_gets_a_command_outside_the_limits(ops):
@@ -453,12 +466,14 @@ def test_no_input_sequence_gets_a_command_outside_the_limits(ops):
                 now += T
                 if tick.command is not None:
                     assert violations(tick.command, prev, T, ENV) == [], tick.violations
+                    assert within_its_limits(tick), (tick.halting, tick.step.acceleration)
                     prev = tick.command
     for _ in range(200):  # and it always comes to rest
         tick = pipe.tick(now)
         now += T
         if tick.command is not None:
             assert violations(tick.command, prev, T, ENV) == []
+            assert within_its_limits(tick), (tick.halting, tick.step.acceleration)
             prev = tick.command
         if not pipe.moving:
             break

@@ -1,4 +1,5 @@
-"""How soon the arms are still after the last command, against the simulated CR5s (`bagit.bench.stop_time`).
+"""How soon the arms are still after the last command, against the simulated CR5s (`bagit.bench.stop_time`,
+and on a virtual clock `bagit.bench.stop_timeline`).
 
 A controller-like stream (30 commands a second, both mounts at 4 cm/s) ends; 5 trials per case:
 
@@ -19,7 +20,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bagit.bench.stop_time import V0, driver_trials
+from bagit.bench.stop_time import TARGET_S, V0, driver_trials
+from bagit.bench.stop_timeline import CASES, PHASES_S, virtual_stop
+from bagit.common import cr5
+from bagit.common.rig import SafetyLimits
 
 TRIALS = 5
 
@@ -37,3 +41,23 @@ def test_the_arms_brake_after_the_last_command_and_come_to_rest(end):
           f"median {np.median(halt) * 1000:.0f} ms, last moving {np.median(servo) * 1000:.0f} ms; loop stall {stall * 1000:.0f} ms")
     assert len(trials) == TRIALS and np.all(np.isfinite(still)), still  # every trial came to rest
     assert np.all(halt > 0) and np.all(servo >= halt), (halt, servo)  # braking after the last command, then the last move
+
+
+@pytest.mark.parametrize("case", ["from rest, x", "from rest, diagonal"])
+def test_a_motion_the_last_command_started_from_rest_is_still_within_the_budget(case):
+    """The cut cable of `bagit bench multihost`: the last command that reached the arms set them moving from
+    rest, asking more than the path gives (its jerk and acceleration decide), and nothing came after. On a
+    virtual clock (`bagit run`'s arm side and two simulated CR5s; deterministic, so the budget is the
+    algorithm's, not the machine's), at every phase of the servo cycle: the watchdog starts the stop a servo
+    period ahead of its deadline, no braking ServoP steps further than the one before (braking never speeds
+    the arms up: with the path's jerk they sped up for 100 ms more), both arms are still within TARGET_S of
+    the last command (with the path's limits: 348 and 456 ms), and the simulated CR5s followed without
+    reaching their joints' acceleration bound."""
+    lim = SafetyLimits()
+    for phase in PHASES_S:
+        r = virtual_stop(*CASES[case], phase)
+        assert 1000 * lim.halt_gap_s < r["watchdog_ms"] <= 1000 * lim.watchdog_s, r
+        braking = r["steps_mm"][1:]
+        assert len(braking) >= 2 and all(b <= a for a, b in zip(braking, braking[1:], strict=False)), r
+        assert r["watchdog_ms"] < r["still_ms"] <= 1000 * TARGET_S, r
+        assert r["joint_accel_rps2"] < cr5.JOINT_ACCEL_LIMIT, r
