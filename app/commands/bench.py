@@ -33,7 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.bench.closed_loop import add_sweep_arguments
     from bagit.bench.verify import add_verify_arguments
 
-    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare", "zoo", "multihost", "bimamanip"], help="which benchmark")
+    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare", "zoo", "multihost", "bimamanip"],
+                   help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json; for `verify`: the record files (.jsonl)")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None,

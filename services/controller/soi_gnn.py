@@ -189,7 +189,7 @@ def save(model: SoiGnn, record: dict[str, Any], weights: Path = WEIGHTS_FILE, re
 def load(weights: Path = WEIGHTS_FILE, record_file: Path = RECORD_FILE) -> SoiGnn:
     """The model saved by `save` (its shape from the record)."""
     arch = json.loads(record_file.read_text())["architecture"]
-    skeleton = SoiGnn(jax.random.PRNGKey(0), hidden=int(arch["hidden"]), rounds=int(arch["rounds"]))
+    skeleton = eqx.filter_eval_shape(SoiGnn, jax.random.PRNGKey(0), hidden=int(arch["hidden"]), rounds=int(arch["rounds"]))  # shapes, no init
     return eqx.tree_deserialise_leaves(weights, skeleton)
 
 
@@ -208,9 +208,11 @@ class MpcWeights:
 
 def make_planner(model: SoiGnn, horizon: int, iterations: int, a_max: float, lr: float = 0.3,
                  weights: MpcWeights = MpcWeights()) -> Any:
-    """A jitted `plan(x, grippers, target, z0, sep_lo, sep_hi) -> (z, actions (H, 2, 3), cost)`: the action
-    sequence minimising the cost, by `iterations` Adam steps on z from the warm start `z0 (H, 2, 3)`, with
-    actions = a_max tanh(z) (each gripper at most a_max per axis and step: C7 over MODEL_TICKS ticks)."""
+    """A jitted `plan(x, grippers, pending, target, z0, sep_lo, sep_hi) -> (z, actions (H, 2, 3), cost)`: the
+    action sequence minimising the cost from where the SOI `x (n_x, 3)` and the grippers `(2, 3)` will be once
+    the motion `pending (2, 3)` in flight is made, by `iterations` Adam steps on z from the warm start
+    `z0 (H, 2, 3)`, with actions = a_max tanh(z) (each gripper at most a_max per axis and step: C7 over
+    MODEL_TICKS ticks)."""
     opt = optax.adam(lr)
     step_w = jnp.ones(horizon).at[-1].set(weights.terminal)
 
@@ -226,7 +228,12 @@ def make_planner(model: SoiGnn, horizon: int, iterations: int, a_max: float, lr:
     grad = jax.value_and_grad(cost)
 
     @jax.jit
-    def plan(x: jax.Array, g: jax.Array, target: jax.Array, z0: jax.Array, lo: jax.Array, hi: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def plan(x: jax.Array, g: jax.Array, pending: jax.Array, target: jax.Array, z0: jax.Array, lo: jax.Array,
+             hi: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        moving = jnp.any(pending != 0.0)
+        x = x + jnp.where(moving, model(x, g, pending), 0.0)
+        g = g + pending
+
         def body(carry: tuple[jax.Array, Any], _: None) -> tuple[tuple[jax.Array, Any], jax.Array]:
             z, st = carry
             c, gz = grad(z, x, g, target, lo, hi)
