@@ -5,8 +5,8 @@ graph-network model of the SOI's dynamics (services/controller/soi_gnn.py), trai
 The method servos the SOI towards goal shapes, with no planned path between them: here the goal
 shapes are the ones the harness gives every controller, g† (the rim open under the object) and then
 g* (the rim round it at the goal height); the planner's nodes in between are not used. Every
-MODEL_TICKS ticks the MPC plans MPC_HORIZON model steps of both grippers' translations by gradient
-descent (Adam) through the model from where the SOI will be once the motion still in flight has
+MODEL_TICKS ticks the MPC plans MPC_HORIZON model steps of both grippers' translations by projected
+gradient descent (Adam, clipped into C7) through the model from where the SOI will be once the motion still in flight has
 been made (the arms lag their commands by 4-6 ticks), then streams the plan's first step over the
 next MODEL_TICKS ticks within C7. Its cost: the predicted SOI's distance to the goal shape (slid
 along itself to match, as SOI points have no material identity), the motion, and the grippers'
@@ -70,6 +70,16 @@ def planner(weights: Path | None, horizon: int, iterations: int, a_max: float) -
     return _PLANNERS[key]
 
 
+def within_reach(goal: np.ndarray, x: np.ndarray, reach: float) -> np.ndarray:
+    """The goal shape `(n_x, 3)` moved back towards the SOI `x (n_x, 3)` until its centroid is at most `reach` (m)
+    from x's: the MPC's reference over one horizon. Aimed at a goal many horizons away, every motion that shrinks
+    the large error a little looks alike, and the model's small errors in how a sideways motion moves the rim
+    decide the plan: the grippers swing from one bound of C7 to the other on the axes that should stay still."""
+    d = goal.mean(axis=0) - x.mean(axis=0)
+    n = float(np.linalg.norm(d))
+    return goal if n <= reach else goal - (1.0 - reach / n) * d
+
+
 class BimaManipController(ControllerCore):
     """See the module docstring. Satisfies `Controller`: `reset` once per run, `step` every tick."""
 
@@ -99,7 +109,7 @@ class BimaManipController(ControllerCore):
         self.sep_limits = (MIN_SEPARATION_M, SEPARATION_MARGIN * self.perimeter / 2)
         self.guard = self._new_guard()
         self.plan = planner(self.weights, self.horizon, self.iterations, self.a_max)
-        self.z = np.zeros((self.horizon, 2, 3))  # the last plan's sequence (pre-tanh), the next plan's warm start
+        self.planned = np.zeros((self.horizon, 2, 3))  # the last plan's actions, the next plan's warm start
         self.action = np.zeros((2, 3))  # the model step being streamed: each gripper's translation (m)
         self.left = 0  # ticks of it still to stream
         self.ticks = 0
@@ -145,11 +155,11 @@ class BimaManipController(ControllerCore):
         p = np.zeros((2, 3))
         if pending is not None and np.shape(pending) == (12,) and np.all(np.isfinite(pending)):
             p = np.clip(np.stack([pending[0:3], pending[6:9]]), -self.a_max, self.a_max)
-        z0 = np.concatenate([self.z[1:], self.z[-1:]])
-        target = slide_to(goal, x)
-        z, acts, _ = self.plan(x, g, p, target, z0, *self.sep_limits)
-        self.z = np.asarray(z, dtype=float)
-        self.action = np.asarray(acts, dtype=float)[0]
+        a0 = np.concatenate([self.planned[1:], self.planned[-1:]])
+        target = within_reach(slide_to(goal, x), x, self.horizon * self.a_max)
+        acts, _ = self.plan(x, g, p, target, a0, *self.sep_limits)
+        self.planned = np.asarray(acts, dtype=float)
+        self.action = self.planned[0]
         self.left = MODEL_TICKS
 
     def _out(self, u: np.ndarray, mode: Any, reason: str | None, x: np.ndarray | None, done: bool = False) -> ControlOutput:

@@ -202,22 +202,22 @@ class MpcWeights:
     `effort` on each step's motion (cm²), and `separation` on the grippers leaving the C6 band (cm²)."""
 
     terminal: float = 3.0
-    effort: float = 0.05
+    effort: float = 0.5
     separation: float = 10.0
 
 
-def make_planner(model: SoiGnn, horizon: int, iterations: int, a_max: float, lr: float = 0.3,
+def make_planner(model: SoiGnn, horizon: int, iterations: int, a_max: float, lr: float = 0.25,
                  weights: MpcWeights = MpcWeights()) -> Any:
-    """A jitted `plan(x, grippers, pending, target, z0, sep_lo, sep_hi) -> (z, actions (H, 2, 3), cost)`: the
-    action sequence minimising the cost from where the SOI `x (n_x, 3)` and the grippers `(2, 3)` will be once
-    the motion `pending (2, 3)` in flight is made, by `iterations` Adam steps on z from the warm start
-    `z0 (H, 2, 3)`, with actions = a_max tanh(z) (each gripper at most a_max per axis and step: C7 over
-    MODEL_TICKS ticks)."""
-    opt = optax.adam(lr)
+    """A jitted `plan(x, grippers, pending, target, a0, sep_lo, sep_hi) -> (actions (H, 2, 3), cost)`: the
+    action sequence minimising the cost from where the SOI `x (n_x, 3)` and the grippers `(2, 3)` will be
+    once the motion `pending (2, 3)` in flight is made, by `iterations` steps of projected Adam (steps of
+    about `lr` a_max, then clipped into the box: each gripper at most a_max per axis and step, C7 over
+    MODEL_TICKS ticks) from the warm start `a0 (H, 2, 3)`. Projected rather than squashed (a_max tanh z):
+    a squashed action that saturates has no gradient left to come back with, and a warm start keeps it there."""
+    opt = optax.adam(lr * a_max)
     step_w = jnp.ones(horizon).at[-1].set(weights.terminal)
 
-    def cost(z: jax.Array, x: jax.Array, g: jax.Array, target: jax.Array, lo: jax.Array, hi: jax.Array) -> jax.Array:
-        acts = a_max * jnp.tanh(z)
+    def cost(acts: jax.Array, x: jax.Array, g: jax.Array, target: jax.Array, lo: jax.Array, hi: jax.Array) -> jax.Array:
         xs = rollout(model, x, g, acts)
         err = jnp.mean(jnp.sum(((xs - target) * ACT_SCALE) ** 2, axis=-1), axis=-1)  # (H,)
         gs = g + jnp.cumsum(acts, axis=0)  # (H, 2, 3)
@@ -228,19 +228,20 @@ def make_planner(model: SoiGnn, horizon: int, iterations: int, a_max: float, lr:
     grad = jax.value_and_grad(cost)
 
     @jax.jit
-    def plan(x: jax.Array, g: jax.Array, pending: jax.Array, target: jax.Array, z0: jax.Array, lo: jax.Array,
-             hi: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def plan(x: jax.Array, g: jax.Array, pending: jax.Array, target: jax.Array, a0: jax.Array, lo: jax.Array,
+             hi: jax.Array) -> tuple[jax.Array, jax.Array]:
         moving = jnp.any(pending != 0.0)
         x = x + jnp.where(moving, model(x, g, pending), 0.0)
         g = g + pending
 
         def body(carry: tuple[jax.Array, Any], _: None) -> tuple[tuple[jax.Array, Any], jax.Array]:
-            z, st = carry
-            c, gz = grad(z, x, g, target, lo, hi)
-            upd, st = opt.update(gz, st, z)
-            return (optax.apply_updates(z, upd), st), c
+            a, st = carry
+            c, ga = grad(a, x, g, target, lo, hi)
+            upd, st = opt.update(ga, st, a)
+            return (jnp.clip(optax.apply_updates(a, upd), -a_max, a_max), st), c
 
-        (z, _), costs = jax.lax.scan(body, (z0, opt.init(z0)), None, length=iterations)
-        return z, a_max * jnp.tanh(z), cost(z, x, g, target, lo, hi)
+        a0 = jnp.clip(a0, -a_max, a_max)
+        (a, _), _ = jax.lax.scan(body, (a0, opt.init(a0)), None, length=iterations)
+        return a, cost(a, x, g, target, lo, hi)
 
     return plan
