@@ -180,7 +180,7 @@ def run(train: bool = False, quick: bool = False, out_dir: Path | None = None) -
                                   lr=train_spec.lr, noise_m=train_spec.noise_m, log=log)
     t_train = time.perf_counter() - t1
     prov = provenance()
-    record = {
+    record: dict[str, Any] = {
         "kind": "bimamanip-train",
         "model": "SOI graph network (soi_gnn.SoiGnn): rim points and the two grippers as nodes, ring and gripper edges",
         "data": {**asdict(data_spec), "transitions": len(data.x), "heldout_transitions": len(heldout.x),

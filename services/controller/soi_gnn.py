@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.typing import ArrayLike
 
 MODEL_TICKS = 5  # control ticks per model step (1/6 s at 30 Hz)
 POS_SCALE = 10.0  # positions enter the network in decimetres
@@ -125,9 +126,10 @@ class Transitions:
         return Transitions(self.x[idx], self.grippers[idx], self.u[idx], self.x_next[idx])
 
 
-def batch_loss(model: SoiGnn, x: jax.Array, g: jax.Array, a: jax.Array, x_next: jax.Array) -> jax.Array:
+def batch_loss(model: SoiGnn, x: ArrayLike, g: ArrayLike, a: ArrayLike, x_next: ArrayLike) -> jax.Array:
     """Mean square error of the predicted displacement, in centimetres squared."""
-    pred = jax.vmap(model)(x, g, a)
+    x, x_next = jnp.asarray(x), jnp.asarray(x_next)
+    pred = jax.vmap(model)(x, jnp.asarray(g), jnp.asarray(a))
     return jnp.mean(jnp.sum(((pred - (x_next - x)) * ACT_SCALE) ** 2, axis=-1))
 
 
@@ -143,7 +145,7 @@ def train(data: Transitions, *, seed: int, epochs: int, batch: int = 64, lr: flo
     state = opt.init(eqx.filter(model, eqx.is_array))
 
     @eqx.filter_jit
-    def step(model: SoiGnn, state: Any, key: jax.Array, x: jax.Array, g: jax.Array, a: jax.Array, xn: jax.Array) -> tuple[SoiGnn, Any, jax.Array]:
+    def step(model: SoiGnn, state: Any, key: jax.Array, x: ArrayLike, g: ArrayLike, a: ArrayLike, xn: ArrayLike) -> tuple[SoiGnn, Any, jax.Array]:
         noise = noise_m * jax.random.normal(key, x.shape)
         loss, grads = eqx.filter_value_and_grad(batch_loss)(model, x + noise, g, a, xn + noise)
         updates, state = opt.update(grads, state, eqx.filter(model, eqx.is_array))
@@ -169,7 +171,7 @@ def train(data: Transitions, *, seed: int, epochs: int, batch: int = 64, lr: flo
 def prediction_error_mm(model: SoiGnn, data: Transitions) -> dict[str, float]:
     """One-step prediction error on `data`: the RMS point error (mm) of the model, and of two references:
     the rim standing still, and the rim moving with the grippers' mean motion."""
-    pred = np.asarray(eqx.filter_jit(jax.vmap(model))(data.x, data.grippers, data.a))
+    pred = np.asarray(eqx.filter_jit(jax.vmap(model))(jnp.asarray(data.x), jnp.asarray(data.grippers), jnp.asarray(data.a)))
     truth = data.x_next - data.x
     rms = lambda d: float(np.sqrt(np.mean(np.sum(d**2, axis=-1))) * 1e3)  # noqa: E731
     rigid = np.broadcast_to(data.a.mean(axis=1)[:, None, :], truth.shape)
