@@ -8,9 +8,9 @@ its training data made in the simulator, its training, and its error on held-out
 Data: episodes in `SimWorld` (exp01's bag and object, no camera, no arms: the mounts are moved
 directly, at most C7 per tick) from the bag's hung start. A transition is (x_t, grippers_t, u_t,
 x_{t+1}) over one model step (MODEL_TICKS ticks): x the true rim resampled to the scenario's n_x points,
-what perception's SOI estimates (its error on these bags is about a millimetre, bench/results/paper.md),
-without rendering a frame per step (rendering and perception would cost ~20x the physics); the
-training jitters x by perception's noise instead. The mounts follow a random look-alike of the task:
+what perception's SOI estimates (~5 mm from it, mostly the binding's radius: an offset that changes
+little between frames, bench/results/camera-modes.md), without rendering a frame per step (rendering
+and perception cost many times the physics); the training jitters x by 0.5 mm instead. The mounts follow a random look-alike of the task:
 beside the object at the start height, then under it, then up round it (the goal shapes BimaManip is
 asked for), at random speeds with independent noise on each arm and random changes of their
 separation within C6, so that the data covers the motions the MPC can choose. Held-out episodes come

@@ -134,12 +134,12 @@ def batch_loss(model: SoiGnn, x: ArrayLike, g: ArrayLike, a: ArrayLike, x_next: 
 
 
 def train(data: Transitions, *, seed: int, epochs: int, batch: int = 64, lr: float = 2e-3, noise_m: float = 5e-4,
-          log: Any = None) -> tuple[SoiGnn, list[float]]:
-    """A model trained on `data` (Adam, cosine-decayed rate, inputs jittered by `noise_m` as perception's
-    SOI is); the mean training loss of each epoch."""
+          hidden: int = HIDDEN, rounds: int = ROUNDS, log: Any = None) -> tuple[SoiGnn, list[float]]:
+    """A model of `hidden` width and `rounds` rounds trained on `data` (Adam, cosine-decayed rate, inputs
+    jittered by `noise_m` as perception's SOI is); the mean training loss of each epoch."""
     key = jax.random.PRNGKey(seed)
     key, init = jax.random.split(key)
-    model = SoiGnn(init)
+    model = SoiGnn(init, hidden=hidden, rounds=rounds)
     steps_per_epoch = max(len(data.x) // batch, 1)
     opt = optax.adam(optax.cosine_decay_schedule(lr, epochs * steps_per_epoch, alpha=0.05))
     state = opt.init(eqx.filter(model, eqx.is_array))
