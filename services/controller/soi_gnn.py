@@ -146,7 +146,7 @@ def train(data: Transitions, *, seed: int, epochs: int, batch: int = 64, lr: flo
 
     @eqx.filter_jit
     def step(model: SoiGnn, state: Any, key: jax.Array, x: ArrayLike, g: ArrayLike, a: ArrayLike, xn: ArrayLike) -> tuple[SoiGnn, Any, jax.Array]:
-        noise = noise_m * jax.random.normal(key, x.shape)
+        noise = noise_m * jax.random.normal(key, jnp.shape(x))
         loss, grads = eqx.filter_value_and_grad(batch_loss)(model, x + noise, g, a, xn + noise)
         updates, state = opt.update(grads, state, eqx.filter(model, eqx.is_array))
         return eqx.apply_updates(model, updates), state, loss
