@@ -43,7 +43,7 @@ $(VENV)/.installed: $(LOCK) pyproject.toml | $(BIN)/python
 # uv's resolver, at the version the lock itself pins, writes the lock from pyproject.toml's dependencies and extras.
 lock: | $(BIN)/python
 	$(BIN)/pip install -q "$$(grep -sE '^uv==' $(LOCK) || echo uv)"
-	$(BIN)/uv pip compile pyproject.toml --extra dev --extra cluster $(LOCK_TARGET) --custom-compile-command "make lock" \
+	$(BIN)/uv pip compile pyproject.toml --extra dev --extra cluster --extra learn $(LOCK_TARGET) --custom-compile-command "make lock" \
 	  $(if $(UPGRADE),--upgrade) --quiet -o $(LOCK)
 
 setup: sysdeps $(VENV)/.installed

@@ -67,7 +67,7 @@ TABLE1: dict[str, tuple[int, int, float, float, float, float]] = {
 }
 
 # Table I's methods -> the controller that runs each here (None: not built yet)
-TABLE1_CONTROLLERS: dict[str, str | None] = {"ShakingBot": "shakingbot", "AutoBag": "autobag", "BimaManip.": None, "Ours": "mpc"}
+TABLE1_CONTROLLERS: dict[str, str | None] = {"ShakingBot": "shakingbot", "AutoBag": "autobag", "BimaManip.": "bimamanip", "Ours": "mpc"}
 
 # Section VII-A: mean c1, c2 (m), c3 over 1,000 simulations of 12 shapes
 SOI_STATS = {"placements": 1000, "shapes": 12, "c1": 0.826, "c2": 0.005, "c3": 0.9978}

@@ -306,7 +306,9 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         "The paper's numbers are from its real rig; ours are `bagit run`'s own runs on exp01 with the CR5s (the records "
         "above), each method as a controller of the same harness (`--controller`): `shakingbot` and `autobag` are the "
-        "action-primitive methods without their shaking, as the paper ran them (services/controller/primitives.py). Judged "
+        "action-primitive methods without their shaking, as the paper ran them (services/controller/primitives.py); `bimamanip` is "
+        "MPC through a graph network of the SOI learned in the simulator (services/controller/bimamanip.py; the model's record "
+        "and held-out error: services/controller/data/bimamanip.json). Judged "
         "on the simulator's truth as the paper measures: success is the true rim round the object, at least λd/2 above its "
         "bottom, the fabric never through it; time is the manipulation time, simulated seconds from the path to the "
         "controller's end; error is the distance of the rim's centre from the object's centre across its axis (cm; the rim "

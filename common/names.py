@@ -26,11 +26,12 @@ ESTOP_SOURCE_CLI = "cli"
 ESTOP_RELEASE_SOURCES: tuple[str, ...] = (ESTOP_SOURCE_DASHBOARD, ESTOP_SOURCE_CLI)
 
 # mpc is the paper's; ibvs and ssvs its shape-servoing baselines (Table II), autobag and shakingbot the
-# action-primitive methods it compares with (Table I)
-ControllerName = Literal["mpc", "ibvs", "ssvs", "autobag", "shakingbot"]
+# action-primitive methods it compares with (Table I), bimamanip the learned-dynamics MPC of Table I
+ControllerName = Literal["mpc", "ibvs", "ssvs", "autobag", "shakingbot", "bimamanip"]
 CONTROLLER_NAMES: tuple[str, ...] = get_args(ControllerName)
 SERVO_CONTROLLER_NAMES: tuple[str, ...] = ("mpc", "ibvs", "ssvs")  # those that servo the SOI along the planned path
 PRIMITIVE_CONTROLLER_NAMES: tuple[str, ...] = ("autobag", "shakingbot")  # look-act state machines over primitives
+LEARNED_CONTROLLER_NAMES: tuple[str, ...] = ("bimamanip",)  # MPC through a model learned in the simulator (the `learn` extra)
 DEFAULT_CONTROLLER: ControllerName = "mpc"
 
 PlannerName = Literal["cbirrt", "ffg-rrt", "ts-rrt"]  # cbirrt is the paper's

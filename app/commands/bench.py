@@ -1,7 +1,8 @@
 """`bagit bench`: measure every stage (`stages`), reproduce the paper's tables (`paper`), run closed-loop sweeps
 (`sweep`, locally or on a Dask cluster), compare the deployed stack with `bagit run` (`deployed`), re-run issue 25's findings
 (`probes`), re-run a sample of a record file and test it against the record (`verify`), compare runs (`compare`), run
-bags of other fabrics, sizes, colours and light (`zoo`), split the rig over network namespaces as over lab machines (`multihost`)."""
+bags of other fabrics, sizes, colours and light (`zoo`), split the rig over network namespaces as over lab machines (`multihost`),
+train the BimaManip baseline's SOI dynamics or measure its held-out error (`bimamanip`)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ NAME = "bench"
 HELP = ("run the benchmarks: `stages`, `paper`, `sweep` (closed-loop runs), `deployed` (bagit up against bagit run), "
         "`probes` (issue 25's findings re-run), `verify RECORDS` (re-run a sample of a record file: bit for bit? the same distribution?), "
         "`zoo` (bags of other fabrics, sizes, colours, light), `multihost` (the rig split over network namespaces, as root), "
-        "or `compare OLD NEW`")
+        "`bimamanip` (the BimaManip baseline's learned SOI dynamics: its held-out error, or --train), or `compare OLD NEW`")
 
 # The stage benchmarks, each a module under bagit.bench with `run(quick: bool) -> dict`.
 STAGES = ["perception", "goal", "planner", "controller", "arm_driver", "stop_time", "cr5", "sim", "zenoh", "recorder", "latency", "up_wall", "up_lockstep",
@@ -32,7 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from bagit.bench.closed_loop import add_sweep_arguments
     from bagit.bench.verify import add_verify_arguments
 
-    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare", "zoo", "multihost"], help="which benchmark")
+    p.add_argument("what", choices=["stages", "paper", "sweep", "deployed", "probes", "verify", "compare", "zoo", "multihost", "bimamanip"],
+                   help="which benchmark")
     p.add_argument("files", nargs="*", help="for `compare`: OLD.json NEW.json; for `verify`: the record files (.jsonl)")
     p.add_argument("--quick", action="store_true", help="a small subset (minutes), for CI smoke tests")
     p.add_argument("--only", action="append", default=None,
@@ -56,6 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="for `zoo`: measure perception's SOI against the true rim on each bag's first frames (no run)")
     p.add_argument("--write-bag", default=None, metavar="NAME",
                    help="for `zoo`: write the zoo bag NAME (zoo-<set>-<seed>-<i>) as a scenario file NAME.yaml in --out (default .), run nothing")
+    p.add_argument("--train", action="store_true",
+                   help="for `bimamanip`: simulate the data and train the model, writing its weights and record (services/controller/data/)")
     add_sweep_arguments(p)
     add_verify_arguments(p)
 
@@ -103,6 +107,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from bagit.bench import verify
 
         return verify.run_from_args(args)
+    if args.what == "bimamanip":
+        from bagit.bench import bimamanip
+
+        return bimamanip.run(train=args.train, quick=args.quick, out_dir=args.out)
     stages = args.only or STAGES
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:

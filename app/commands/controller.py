@@ -14,7 +14,7 @@ from typing import Any
 from bagit.commands import _args
 
 NAME = "controller"
-HELP = "servo the current run: SOI and arm states in, arm increments out (mpc, ibvs, ssvs, autobag, shakingbot)"
+HELP = "servo the current run: SOI and arm states in, arm increments out (mpc, ibvs, ssvs, autobag, shakingbot, bimamanip)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,8 +1,9 @@
 """Controller: MPC shape servoing along the planned SOI path with an online Broyden Jacobian
 (paper section VI-B), the IBVS and SSVS baselines, and the action-primitive methods AutoBag and
-ShakingBot (Table I)."""
+ShakingBot, and BimaManip's MPC through a learned SOI model (Table I)."""
 
 from bagit.services.controller.baselines import IbvsController, SsvsController
+from bagit.services.controller.bimamanip import BimaManipController
 from bagit.services.controller.broyden import BroydenJacobian, Exploration
 from bagit.services.controller.controller import CONTROLLERS, Controller, ShapeServo, make_controller
 from bagit.services.controller.guard import SoiGuard
@@ -13,6 +14,7 @@ from bagit.services.controller.subgoal import SubgoalTracker, rms_error
 
 __all__ = [
     "AutoBagController",
+    "BimaManipController",
     "BroydenJacobian",
     "CONTROLLERS",
     "ControlOutput",

@@ -1,5 +1,6 @@
 """The controllers behind one interface, selectable by name: `mpc` (the paper's), `ibvs` and `ssvs`
-(its shape-servoing baselines), `autobag` and `shakingbot` (the action-primitive methods of Table I).
+(its shape-servoing baselines), `autobag` and `shakingbot` (the action-primitive methods of Table I) and
+`bimamanip` (Table I's MPC through a learned SOI model; JAX is loaded when its run starts).
 
     c = make_controller("mpc", params, n_x)
     c.reset(x0, path, gripper_poses, goal=goal)  # path: messages.Path, or nodes with dagger_index=; goal: messages.Goal
@@ -17,12 +18,14 @@ from bagit.common.dual_arm import Poses
 from bagit.common.errors import BadControlInput
 from bagit.common.params import MethodParams
 from bagit.services.controller.baselines import IbvsController, SsvsController
+from bagit.services.controller.bimamanip import BimaManipController
 from bagit.services.controller.mpc import MpcController
 from bagit.services.controller.primitives import AutoBagController, ShakingBotController
 from bagit.services.controller.servo import ControlOutput
 
 CONTROLLERS: dict[str, Callable[..., Controller]] = {
     "mpc": MpcController, "ibvs": IbvsController, "ssvs": SsvsController, "autobag": AutoBagController, "shakingbot": ShakingBotController,
+    "bimamanip": BimaManipController,
 }
 
 

@@ -96,6 +96,7 @@ def test_the_server_imports_the_shared_modules_and_its_children_die_with_it(serv
     assert "numpy" in maps and "scipy" in maps and "zenoh" in maps  # preloaded before any fork
     assert "open3d" not in maps and "mujoco" not in maps  # one service's library stays in its child
     assert "cv2" not in maps  # OpenCV starts a thread pool as it loads: never in a process that forks
+    assert "jaxlib" not in maps  # nor JAX (XLA's thread pools): bimamanip loads it when its run starts
     assert {"numpy", "bagit.common.bus"} <= set(PRELOAD)
     server.proc.kill()
     assert p.wait(HANG_S) == -signal.SIGTERM  # its parent-death signal; nobody is left to report, so -SIGTERM

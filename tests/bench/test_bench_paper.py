@@ -87,7 +87,7 @@ def test_quick_placements_and_closed_loop(quick):
     assert "| Ours | `mpc` | 8/8 | 53.09 ± 2.92 | 2.10 ± 0.77 | 1/2 | 16.0 ± 0.0 | 0.80 ± 0.00 |" in md
     assert "| AutoBag | `autobag` | 6/8 | 32.54 ± 4.11 | 5.36 ± 0.87 | 1/1 | 6.0 ± 0.0 | 0.30 ± 0.00 |" in md
     assert "| ShakingBot | `shakingbot` | 4/8 | 39.86 ± 3.74 | 6.47 ± 1.13 | not run | — | — |" in md
-    assert "| BimaManip. | — | 7/8 | 44.21 ± 5.81 | 3.50 ± 0.93 | not built (no controller yet) | — | — |" in md
+    assert "| BimaManip. | `bimamanip` | 7/8 | 44.21 ± 5.81 | 3.50 ± 0.93 | not run | — | — |" in md
     assert "| (ibvs, Table II) | `ibvs` | — | — | — | not run | — | — |" in md and "not reimplemented" not in md
     assert not [c for c in _cells(md, "exp01-coffee-box") if c[1] == "autobag"]  # Table II has the shape servos only
 
