@@ -78,6 +78,17 @@ def collision_model(scenario: Scenario, up: np.ndarray, clearance: float, g_dagg
     return RimCollision(polys, margins)
 
 
+def ends_touch(collision: RimCollision, ends: dict[str, np.ndarray]) -> str | None:
+    """Why no collision-free path can start or end at the named rims `(n_x, 3)` (the first that touches the
+    object or an obstacle by the collision model's margins), or None. The one rule for a path's ends: the
+    planner checks g0, g† and g* with it, and `check_scenario_goal` checks g† and g* before anything moves."""
+    for name, rim in ends.items():
+        hit = collision.first_hit(rim)
+        if hit is not None:
+            return f"{name} touches the {hit}: no collision-free path can start or end there"
+    return None
+
+
 def plan_path(
     g0: np.ndarray,
     goal: BaggingGoal,
@@ -100,10 +111,9 @@ def plan_path(
     def fail(reason: str, iters: int = 0) -> PlanResult:
         return PlanResult(False, planner, empty, -1, time.perf_counter() - t0, iters, reason, goal)
 
-    for name, rim in (("g0", g0), ("g†", gd), ("g*", gs)):
-        hit = collision.first_hit(rim)
-        if hit is not None:
-            return fail(f"{name} touches the {hit}: no collision-free path can start or end there")
+    touch = ends_touch(collision, {"g0": g0, "g†": gd, "g*": gs})
+    if touch is not None:
+        return fail(touch)
     centres = np.stack([g0.mean(0), gd.mean(0), gs.mean(0)])
     space = SoiSpace(
         perimeter=perimeter,
@@ -185,10 +195,21 @@ def bagging_goal(scenario: Scenario, g0: np.ndarray | None, rig: RigConfig | Non
 
 def check_scenario_goal(scenario: Scenario, rig: RigConfig | None = None) -> None:
     """InfeasibleGoal now, for a host that would learn it only after perception (`bagit run`, `bagit up`),
-    when the goal the scenario's own object and bag give cannot be made or reached (`bagging_goal`).
-    Needs R (bag.rim_perimeter, or an initial rim); without it the coordinator decides once g0 is seen."""
-    if scenario.bag.rim_perimeter is not None:
-        bagging_goal(scenario, scenario.bag.g0(), rig)
+    when the goal the scenario's own object and bag give cannot be made or reached (`bagging_goal`), or,
+    made from the scenario's start rim, ends where the planner cannot (g† or g* touching the object or an
+    obstacle by the planner's margins, `ends_touch`): the object does not fit the bag. This is what "the
+    object fits" means for the bag zoo's draws. Needs R (bag.rim_perimeter, or an initial rim); without it
+    the coordinator decides once g0 is seen."""
+    if scenario.bag.rim_perimeter is None:
+        return
+    g0 = scenario.bag.g0()
+    goal, _ = bagging_goal(scenario, g0, rig)
+    if g0 is None:
+        return
+    coll = collision_model(scenario, goal.up, scenario.params.planner.clearance_m, goal.g_dagger)
+    touch = ends_touch(coll, {"g†": align_cyclic(goal.g_dagger, g0), "g*": align_cyclic(goal.g_star, g0)})
+    if touch is not None:
+        raise InfeasibleGoal(f"the object does not fit the bag: from the start rim, {touch}")
 
 
 def path_to_goal(scenario: Scenario, g0: np.ndarray, goal: BaggingGoal, perimeter: float, planner: str, seed: int,
