@@ -13,9 +13,14 @@ Each bag belongs to classes by where its values lie: the lowest or highest quart
 its own scale: log for the stiffnesses, mass, damping and noise) names a class (soft, stiff,
 heavy, small, large, floppy or stiff binding, dim or bright light, noisy depth), as do a binding of
 another colour than red and a solid bag. The report gives success, error and simulated time per
-class and overall. A perimeter is drawn where the object fits: a draw whose goal the rig cannot
-make or reach (`check_scenario_goal`) is drawn again, up to MAX_FIT_DRAWS times. A bag's depth is
-cut to what hangs clear of the table from its start rim (DEPTH_CLEARANCE_M).
+class and overall. A perimeter is drawn where the object fits: a draw is drawn again (up to
+MAX_FIT_DRAWS times) when `check_scenario_goal` refuses it, the rule `bagit run` and `bagit up` apply
+before anything moves: the goal the object and the bag's start rim give cannot be made (no ellipse of
+perimeter R holds V under C1-C3), cannot be reached by the arms, or ends where the planner cannot
+(g† or g* within the planner's margin of the object: `ends_touch`, the planner's own check). Such a bag
+cannot be bagged by the method from its start rim at all, so it is no sample of the range; a bag that
+fits and then fails is a failure. A bag's depth is cut to what hangs clear of the table from its start
+rim (DEPTH_CLEARANCE_M).
 
     bagit bench zoo [--bags 100] [--zoo-seed 0] [--quick] [--record] [--workers 1] [--cluster tcp://HOST:PORT]
 
@@ -232,7 +237,7 @@ def _apply(base: Scenario, bag: dict[str, Any], perimeter: float) -> Scenario:
 
 def zoo_scenario(name: str) -> tuple[Scenario, dict[str, Any]]:
     """The scenario of the zoo bag `name` and the bag (with `perimeter_m`: the first draw where the object
-    fits; BagItError when none of MAX_FIT_DRAWS does)."""
+    fits, `check_scenario_goal`; BagItError when none of MAX_FIT_DRAWS does)."""
     from bagit.scenarios import find_scenario
     from bagit.services.planner.plan import check_scenario_goal
 

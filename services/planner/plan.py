@@ -12,7 +12,7 @@ from bagit.common.errors import BadCloud, BadScenario, InfeasibleGoal, Numerical
 from bagit.common.geometry import align_cyclic, as_points, closed_polyline_length
 from bagit.common.messages import Path
 from bagit.common.names import PLAN_WALL_GUARD_S
-from bagit.common.params import MethodParams
+from bagit.common.params import MethodParams, merge_params
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 from bagit.services.planner.collision import RimCollision, box_polytope, prism_polytope
@@ -78,6 +78,17 @@ def collision_model(scenario: Scenario, up: np.ndarray, clearance: float, g_dagg
     return RimCollision(polys, margins)
 
 
+def ends_touch(collision: RimCollision, ends: dict[str, np.ndarray]) -> str | None:
+    """Why no collision-free path can start or end at the named rims `(n_x, 3)` (the first that touches the
+    object or an obstacle by the collision model's margins), or None. The one rule for a path's ends: the
+    planner checks g0, g† and g* with it, and `check_scenario_goal` checks g† and g* before anything moves."""
+    for name, rim in ends.items():
+        hit = collision.first_hit(rim)
+        if hit is not None:
+            return f"{name} touches the {hit}: no collision-free path can start or end there"
+    return None
+
+
 def plan_path(
     g0: np.ndarray,
     goal: BaggingGoal,
@@ -100,10 +111,9 @@ def plan_path(
     def fail(reason: str, iters: int = 0) -> PlanResult:
         return PlanResult(False, planner, empty, -1, time.perf_counter() - t0, iters, reason, goal)
 
-    for name, rim in (("g0", g0), ("g†", gd), ("g*", gs)):
-        hit = collision.first_hit(rim)
-        if hit is not None:
-            return fail(f"{name} touches the {hit}: no collision-free path can start or end there")
+    touch = ends_touch(collision, {"g0": g0, "g†": gd, "g*": gs})
+    if touch is not None:
+        return fail(touch)
     centres = np.stack([g0.mean(0), gd.mean(0), gs.mean(0)])
     space = SoiSpace(
         perimeter=perimeter,
@@ -171,12 +181,21 @@ def bagging_goal(scenario: Scenario, g0: np.ndarray | None, rig: RigConfig | Non
 
     InfeasibleGoal when no ellipse of perimeter R holds the object, or when the two arms of `rig` (the
     default rig when None) cannot hold g† or g* (`reach.reach_problem`): known before anything moves.
+
+    The bag-shaped ellipse (`dagger_shape: bag`) keeps only `dagger_margin_share` of the tight one's
+    margin round V; when that leaves its g† or g* within the planner's margin of the object
+    (`ends_touch`: a tight bag, or an opening perceived a little askew), the goal is the tight ellipse
+    (the paper's C1-C3 ellipse scaled up to R), which has the most margin the method can give.
     """
     perimeter = scenario.bag.rim_perimeter or (closed_polyline_length(g0) if g0 is not None else None)
     if perimeter is None:
         raise BadScenario(f"scenario {scenario.name!r} gives neither bag.rim_perimeter nor bag.initial_rim")
     n_x = len(g0) if g0 is not None else scenario.bag.n_x
-    goal = bagging_soi(scenario.object.bottom_vertices(), perimeter, n_x, scenario.params, lambda_d=scenario.lambda_d(), g0=g0)
+    v = scenario.object.bottom_vertices()
+    goal = bagging_soi(v, perimeter, n_x, scenario.params, lambda_d=scenario.lambda_d(), g0=g0)
+    if goal.oriented_by == "bag" and _goal_touch(scenario, goal) is not None:
+        tight = merge_params(scenario.params, {"dagger_shape": "tight"})
+        goal = bagging_soi(v, perimeter, n_x, tight, lambda_d=scenario.lambda_d(), g0=g0)
     why = reach_problem({"g†": goal.g_dagger, "g*": goal.g_star}, rig)
     if why is not None:
         raise InfeasibleGoal(why)
@@ -185,10 +204,24 @@ def bagging_goal(scenario: Scenario, g0: np.ndarray | None, rig: RigConfig | Non
 
 def check_scenario_goal(scenario: Scenario, rig: RigConfig | None = None) -> None:
     """InfeasibleGoal now, for a host that would learn it only after perception (`bagit run`, `bagit up`),
-    when the goal the scenario's own object and bag give cannot be made or reached (`bagging_goal`).
-    Needs R (bag.rim_perimeter, or an initial rim); without it the coordinator decides once g0 is seen."""
-    if scenario.bag.rim_perimeter is not None:
-        bagging_goal(scenario, scenario.bag.g0(), rig)
+    when the goal the scenario's own object and bag give cannot be made or reached (`bagging_goal`), or,
+    made from the scenario's start rim, ends where the planner cannot (g† or g* touching the object or an
+    obstacle by the planner's margins, `ends_touch`): the object does not fit the bag. This is what "the
+    object fits" means for the bag zoo's draws. Needs R (bag.rim_perimeter, or an initial rim); without it
+    the coordinator decides once g0 is seen."""
+    if scenario.bag.rim_perimeter is None:
+        return
+    g0 = scenario.bag.g0()
+    goal, _ = bagging_goal(scenario, g0, rig)
+    touch = _goal_touch(scenario, goal) if g0 is not None else None
+    if touch is not None:
+        raise InfeasibleGoal(f"the object does not fit the bag: from the start rim, {touch}")
+
+
+def _goal_touch(scenario: Scenario, goal: BaggingGoal) -> str | None:
+    """Why a path cannot end at the goal's g† or g* (`ends_touch` under the planner's collision model), or None."""
+    coll = collision_model(scenario, goal.up, scenario.params.planner.clearance_m, goal.g_dagger)
+    return ends_touch(coll, {"g†": goal.g_dagger, "g*": goal.g_star})
 
 
 def path_to_goal(scenario: Scenario, g0: np.ndarray, goal: BaggingGoal, perimeter: float, planner: str, seed: int,

@@ -7,6 +7,8 @@ import pytest
 from bagit.bench import zoo
 from bagit.common.bag import FABRIC_DAMPING_S, RIM_BENDING_NM2
 from bagit.common.errors import BagItError
+from bagit.common.scenario import Scenario
+from bagit.scenarios import find_scenario
 
 
 def test_bag_i_is_the_same_whatever_the_zoo_size_and_differs_by_seed():
@@ -50,6 +52,18 @@ def test_a_zoo_bag_is_a_scenario_of_its_values():
     assert sc.bag.depth <= rim_z - zoo.DEPTH_CLEARANCE_M + 1e-9  # hangs clear of the table
     el = math.degrees(math.asin(-sc.sim.light.unit_direction()[2]))
     assert zoo.CORE["light_elevation_deg"].lo - 1e-6 <= el <= zoo.CORE["light_elevation_deg"].hi + 1e-6
+
+
+def test_a_perimeter_is_drawn_again_where_the_object_does_not_fit_from_the_start_rim():
+    from bagit.services.planner.plan import check_scenario_goal
+
+    b = zoo.zoo_bag("zoo-core-0-23")  # exp12's object; its first draw (0.568 m) leaves g* on the object
+    first = zoo._apply(Scenario.from_file(find_scenario("exp12")), b, b["perimeter_draws"][0])
+    with pytest.raises(BagItError, match="does not fit"):
+        check_scenario_goal(first)
+    sc, bag = zoo.zoo_scenario("zoo-core-0-23")
+    assert bag["fit_draws"] > 1 and bag["perimeter_m"] == b["perimeter_draws"][bag["fit_draws"] - 1]
+    check_scenario_goal(sc)
 
 
 def test_summary_per_class_and_files_only_when_asked(tmp_path, monkeypatch):
