@@ -27,9 +27,11 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.mark.parametrize("attempt", range(3))
-def test_a_paused_planner_resumed_and_terminated_at_once_stops(attempt):
-    argv = [sys.executable, "-m", "bagit.cli", "planner", "--rig", f"sigterm{attempt}", "-l", f"tcp/127.0.0.1:{_free_port()}"]
+def test_a_paused_planner_resumed_and_terminated_at_once_stops():
+    # Once is enough for the bug it guards (it hung 4 times in 4). A rarer hang remains, seen twice in about
+    # 140 tries across two stops (no line after the banner; not reproduced in 60 tries in a loop): an open bug,
+    # in docs/testing.md, not something to retry past.
+    argv = [sys.executable, "-m", "bagit.cli", "planner", "--rig", "sigterm", "-l", f"tcp/127.0.0.1:{_free_port()}"]
     p = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV)
     lines: list[str] = []
     banner = threading.Event()
