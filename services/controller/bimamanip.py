@@ -28,12 +28,9 @@ import numpy as np
 
 from bagit.common.dual_arm import Poses
 from bagit.common.errors import BadControlInput
-from bagit.common.geometry import closed_polyline_length
 from bagit.common.params import MethodParams
 from bagit.services.controller.servo import (
     GOAL_STALL_TICKS,
-    MIN_SEPARATION_M,
-    SEPARATION_MARGIN,
     ControllerCore,
     ControlOutput,
     pose_problem,
@@ -103,11 +100,7 @@ class BimaManipController(ControllerCore):
         goals = nodes[[0, dagger, len(nodes) - 1]]  # the start, then the two goal shapes (the tracker's first target is index 1)
         self.tracker = SubgoalTracker(goals, 1, c.subgoal_tol_m, c.goal_tol_m, GOAL_STALL_TICKS, settle)
         self.dagger_index, self.last_index = dagger, len(nodes) - 1
-        if perimeter is None:
-            perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
-        self.perimeter = float(perimeter)
-        self.sep_limits = (MIN_SEPARATION_M, SEPARATION_MARGIN * self.perimeter / 2)
-        self.guard = self._new_guard()
+        self._start_rim(x0, nodes, perimeter)
         self.plan = planner(self.weights, self.horizon, self.iterations, self.a_max)
         self.planned = np.zeros((self.horizon, 2, 3))  # the last plan's actions, the next plan's warm start
         self.action = np.zeros((2, 3))  # the model step being streamed: each gripper's translation (m)

@@ -37,10 +37,9 @@ import numpy as np
 
 from bagit.common.dual_arm import Poses, apply_increment, pose_increment
 from bagit.common.errors import BadControlInput
-from bagit.common.geometry import closed_polyline_length
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS
-from bagit.services.controller.servo import MIN_SEPARATION_M, SEPARATION_MARGIN, ControllerCore, ControlOutput, pose_problem, scale_into_box
+from bagit.services.controller.servo import ControllerCore, ControlOutput, pose_problem, scale_into_box
 from bagit.services.controller.subgoal import rms_error, slide_to
 
 SETTLE_TICKS = 15  # ticks the mounts stand still after a primitive before the next view is taken (0.5 s at 30 Hz)
@@ -168,11 +167,7 @@ class PrimitiveController(ControllerCore):
         self.g_star = nodes[-1]
         self.dagger_index = dagger
         self.last_index = len(nodes) - 1
-        if perimeter is None:
-            perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
-        self.perimeter = float(perimeter)
-        self.sep_limits = (MIN_SEPARATION_M, SEPARATION_MARGIN * self.perimeter / 2)
-        self.guard = self._new_guard()
+        self._start_rim(x0, nodes, perimeter)
         self.phase: Phase = "settle"
         self.settled = self.settle_ticks  # the first view is taken at once: the bag has hung still before the run
         self.move: _Move | None = None

@@ -154,6 +154,15 @@ class ControllerCore:
             raise BadControlInput(f"path nodes must have shape (n_nodes, {self.n_x}, 3), got {nodes.shape}")
         return nodes, dagger
 
+    def _start_rim(self, x0: np.ndarray | None, nodes: np.ndarray, perimeter: float | None, margin: float = SEPARATION_MARGIN) -> None:
+        """A run's rim: its perimeter (given, else x0's `(n_x, 3)`, else the path's first node's), C6's
+        separation bounds from it, and a fresh SOI guard."""
+        if perimeter is None:
+            perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
+        self.perimeter = float(perimeter)
+        self.sep_limits = (MIN_SEPARATION_M, margin * self.perimeter / 2)
+        self.guard = self._new_guard()
+
     def _new_guard(self) -> SoiGuard:
         """The SOI guard of a run: no SOI for 3 ticks (at least 0.2 s) or one 5 ticks old (0.3 s) holds."""
         return SoiGuard(timeout_s=max(3 * self.dt, 0.2), max_age_s=max(5 * self.dt, 0.3), n_x=self.n_x)
@@ -219,13 +228,9 @@ class ServoBase(ControllerCore):
         settle = 0 if self.aims_at_goal else int(round(c.experimental.dagger_settle_s * c.control_rate_hz))
         self.tracker = SubgoalTracker(nodes, dagger, c.subgoal_tol_m, c.goal_tol_m, GOAL_STALL_TICKS, settle)
         self.path = self.tracker.path
-        if perimeter is None:
-            perimeter = closed_polyline_length(x0 if x0 is not None else nodes[0])
-        if not (np.isfinite(perimeter) and perimeter > 2 * MIN_SEPARATION_M):
-            raise BadControlInput(f"rim perimeter {perimeter:.3f} m is too small to servo")
-        self.perimeter = float(perimeter)
-        self.sep_limits = (MIN_SEPARATION_M, self.separation_margin * perimeter / 2)
-        self.guard = self._new_guard()
+        self._start_rim(x0, nodes, perimeter, self.separation_margin)
+        if not (np.isfinite(self.perimeter) and self.perimeter > 2 * MIN_SEPARATION_M):
+            raise BadControlInput(f"rim perimeter {self.perimeter:.3f} m is too small to servo")
         self.exploration = Exploration(self.u_max, self.explore_push_ticks, self.explore_settle_ticks)
         self.jacobian = None
         self._x_prev: np.ndarray | None = None
