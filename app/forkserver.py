@@ -63,6 +63,13 @@ PRELOAD: tuple[str, ...] = (
 MAX_PACKET = 1 << 16
 
 
+def child_env() -> dict[str, str]:
+    """The services' environment: this one, headless OpenGL, unbuffered output (each line reaches its prefix at once)."""
+    from bagit.common.headless import headless_gl
+
+    return dict(headless_gl(dict(os.environ, PYTHONUNBUFFERED="1")))
+
+
 def child_setup(niceness: int = 0) -> None:  # pragma: no cover - runs in a child between fork and exec/run
     """Its own session and process group, its niceness, and SIGTERM when its parent dies (Linux)."""
     import ctypes

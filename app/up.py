@@ -40,12 +40,11 @@ from typing import Any, Literal, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
-from bagit.common.headless import headless_gl
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
 from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES
 from bagit.common.rig import RigConfig
-from bagit.forkserver import ForkedProcess, ForkServer, child_setup
+from bagit.forkserver import ForkedProcess, ForkServer, child_env, child_setup
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
 
 SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboard")
@@ -100,11 +99,6 @@ def zenoh_config(hub: str, lease_ms: int = WALL_LEASE_MS) -> dict[str, Any]:
         "scouting": {"multicast": {"enabled": False}, "delay": 0},
         "transport": {"link": {"tx": {"lease": lease_ms, "keep_alive": 4}}},
     }
-
-
-def child_env() -> dict[str, str]:
-    """The services' environment: this one, headless OpenGL, unbuffered output (each line reaches its prefix at once)."""
-    return dict(headless_gl(dict(os.environ, PYTHONUNBUFFERED="1")))
 
 
 def lab_perception_config(world: str) -> dict[str, Any]:
@@ -163,7 +157,10 @@ class Child:
 class Up:
     """The rig's processes and the hub session (see the module docstring)."""
 
-    def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None) -> None:
+    def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None,
+                 forks: ForkServer | None = None) -> None:
+        """`forks`: a fork server already started (`bagit up` starts it before its own imports, so the
+        server's run alongside them); else `start` starts one when `opts.fork_server`. Closed by `stop`."""
         self.opts = opts
         self.log = log
         self.on_line = on_line
@@ -188,7 +185,7 @@ class Up:
         self.hub = ""
         self.dashboard_url: str | None = None
         self._supervisor: threading.Thread | None = None
-        self.forks: ForkServer | None = None  # the services' fork server (`UpOptions.fork_server`), started by `start`
+        self.forks = forks  # the services' fork server (`UpOptions.fork_server`)
 
     # -- set-up ----------------------------------------------------------------------------------
 
@@ -256,9 +253,10 @@ class Up:
         missing = [n for n in names if n not in modules]
         if missing:
             raise BusError(f"no `bagit {missing[0]}` command in this build: cannot start the {missing[0]} service")
-        if self.opts.fork_server:  # first: its imports overlap the rest of the set-up
-            # a child exited: the supervisor restarts it
-            self.forks = ForkServer(child_env(), on_exit=lambda *_: self._wake.set())
+        if self.opts.fork_server and self.forks is None:  # first: its imports overlap the rest of the set-up
+            self.forks = ForkServer(child_env())
+        if self.forks is not None:
+            self.forks.on_exit = lambda *_: self._wake.set()  # a child exited: the supervisor restarts it
         zpath, rpath = self._write_configs()
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)

@@ -96,16 +96,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import threading
     import time
 
-    from bagit.commands._service import wait_stop
-    from bagit.common.errors import BadScenario
-    from bagit.up import Up
+    from bagit.forkserver import ForkServer, child_env
 
-    opts = options(args)  # refused here, before any process starts
+    t0 = time.monotonic()
+    # The fork server first: its imports (a fresh interpreter) run beside ours and the scenario's check below.
+    forks = None if args.no_fork_server else ForkServer(child_env())
+    try:
+        from bagit.commands._service import wait_stop
+        from bagit.common.errors import BadScenario
+        from bagit.up import Up
+
+        opts = options(args)  # refused here, before any service starts
+    except BaseException:
+        if forks is not None:
+            forks.close()
+        raise
     stop = threading.Event()
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
-    t0 = time.monotonic()
-    up = Up(opts)
+    up = Up(opts, forks=forks)
     try:
         up.start()
         if up.dashboard_url:

@@ -402,6 +402,8 @@ class ControllerNode:
         """Stop the loop (holding the arms if a run was being servoed) and stop listening."""
         self._stop.set()
         self._step_wait.notify()
+        with self._frames_cond:  # the lockstep loop waits here for the next frame: woken, not timed out
+            self._frames_cond.notify_all()
         self._thread.join(timeout=5.0)
         for out in self.servo.end("controller stopping", time.time()):
             self._send(out)

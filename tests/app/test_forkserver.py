@@ -16,8 +16,7 @@ from pathlib import Path
 import pytest
 from suite_support import HANG_S, wait_until
 
-from bagit.forkserver import PRELOAD, ForkServer
-from bagit.up import child_env
+from bagit.forkserver import PRELOAD, ForkServer, child_env
 
 pytestmark = [pytest.mark.processes, pytest.mark.timeout(180)]
 
