@@ -9,9 +9,11 @@ stderr, level from BAGIT_LOG_LEVEL) before a command runs; stdout carries only t
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import json
 import os
+import signal
 import sys
 from collections.abc import Sequence
 from types import ModuleType
@@ -92,6 +94,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
     return parser, modules
 
 
+def _stacks_on_sigusr1() -> None:
+    """`kill -USR1 PID` prints every thread's stack to stderr: how a stuck service (or a test waiting on
+    one) tells where it waits. Not where stderr is no file (a caller's captured stream)."""
+    try:
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    except (OSError, ValueError, AttributeError, RuntimeError):
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     headless_gl()  # before any command imports MuJoCo; the services `bagit up` starts inherit it
     parser, modules = build_parser()
@@ -103,6 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     mod = modules[args.command]
+    _stacks_on_sigusr1()
     try:
         configure_logging()
         result = mod.run(args)
