@@ -139,6 +139,20 @@ def flagged_camera(camera: CameraConfig, **flags: Any) -> CameraConfig:
 SIGNAL_WAKE_S = 0.1  # the longest a command's main thread waits between looks at its signals
 
 
+def stop_on_signals(stop: threading.Event) -> Callable[[], None]:
+    """SIGINT and SIGTERM set `stop` (in the main thread only: elsewhere Python cannot take signals);
+    returns what puts the previous handlers back. Every command's one way to be stopped."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore() -> None:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+    return restore
+
+
 def wait_stop(stop: threading.Event, duration: float | None = None, ended: threading.Event | None = None) -> bool:
     """Until `stop` (the command's SIGINT/SIGTERM handler sets it), `duration` s or `ended`; True if `ended`.
 
@@ -162,14 +176,16 @@ def run_service(
     start: Callable[[Any, Keys], ServiceNode],
     duration: float | None = None,
     banner: Callable[[Any], str] | None = None,
+    alive: bool = True,
 ) -> dict[str, Any]:
-    """Run one service until a signal, `duration` seconds or the node's `stopped` event (see the module doc)."""
+    """Run one service until a signal, `duration` seconds or the node's `stopped` event (see the module doc).
+    `alive`: declare the service's liveliness token here; False where the node declares its own (the
+    planner, alive as soon as it answers run/control; the recorder, which withdraws it when it fails)."""
     if duration is not None and not duration > 0:
         raise BusError(f"--duration must be positive, got {duration}")
     keys = Keys(bus.rig)
     stop = threading.Event()
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    restore = stop_on_signals(stop)
     t0 = time.monotonic()
     status: dict[str, Any] = {}
     stopped_by_node = False
@@ -178,11 +194,12 @@ def run_service(
         try:
             node = start(session, keys)
             try:
-                token = declare_alive(session, keys, name)
+                token = declare_alive(session, keys, name) if alive else None
                 logging.getLogger(f"bagit.{name.replace('-', '_')}").info("%s (rig %s); Ctrl-C to stop", banner(node) if banner else "running", bus.rig)
                 stopped_by_node = wait_stop(stop, None if duration is None else t0 + duration - time.monotonic(), getattr(node, "stopped", None))
                 try:
-                    token.undeclare()
+                    if token is not None:
+                        token.undeclare()
                 except Exception:  # noqa: BLE001 - the session may already be gone
                     pass
             finally:
@@ -190,8 +207,7 @@ def run_service(
         finally:
             session.close()
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     out: dict[str, Any] = {"success": True, "service": name, "rig": bus.rig, "uptime_s": time.monotonic() - t0,
                            "interrupted": stop.is_set(), **status}
     if stopped_by_node:

@@ -38,11 +38,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
     import threading
     import time
 
-    from bagit.commands._service import flagged_camera
+    from bagit.commands._service import flagged_camera, stop_on_signals
     from bagit.common.bus import Keys, Publisher, bus_config_from_args, declare_alive, open_session
     from bagit.common.messages import RgbdFrame
     from bagit.common.rig import RigConfig
@@ -57,8 +56,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     keys = Keys(bus.rig)
 
     stop = threading.Event()
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    restore = stop_on_signals(stop)
     n, size, t0 = 0, 0, time.monotonic()
     try:
         with RealSenseSource(cfg, cam) as source:  # no camera: CameraError before the bus opens
@@ -84,8 +82,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 session.close()
             serial = source.serial
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     wall = time.monotonic() - t0
     return {
         "success": True,

@@ -34,7 +34,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
     import threading
     import time
 
@@ -55,11 +54,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise BadScenario(f"--{str(first['loc'][0]).replace('_', '-')}: {first['msg']}") from None
     rig = RigConfig.from_file(args.rig_config) if args.rig_config else RigConfig()
     bus = bus_config_from_args(args)
-    from bagit.commands._service import wait_stop
+    from bagit.commands._service import stop_on_signals, wait_stop
 
     stop = threading.Event()
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    restore = stop_on_signals(stop)
     t0 = time.monotonic()
     try:
         try:
@@ -73,8 +71,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             stats = node.dashboard.stats()
             runs = [r.run_id for r in node.dashboard.history.records()]
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     return {
         "success": True,
         "url": url,

@@ -55,13 +55,11 @@ def load_config(path: Path | None, model: Any) -> Any:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
-    import threading
-    import time
 
     from pydantic import ValidationError
 
-    from bagit.common.bus import Keys, bus_config_from_args, open_session, parse_bus_config
+    from bagit.commands._service import run_service
+    from bagit.common.bus import bus_config_from_args, parse_bus_config
     from bagit.common.errors import BusError
     from bagit.services.planner.node import PlannerNode, PlannerServiceConfig
 
@@ -78,29 +76,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise BusError(f"--run-time-limit: {e.errors()[0]['msg']}") from None
         cfg = cfg.model_copy(update={"coordinator": coord})
     bus = bus_config_from_args(args, parse_bus_config(cfg.bus))
-    from bagit.commands._service import wait_stop
-
-    stop = threading.Event()
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
-    t0 = time.monotonic()
-    runs: dict[str, str] = {}
-    try:
-        session = open_session(bus)
-        try:
-            node = PlannerNode(session, Keys(bus.rig), cfg, on_state=lambda s: runs.__setitem__(s.run_id, s.stage) if s.run_id else None,
-                               clock=bus.clock)
-            log.info("coordinating rig %s (run/control, run/state); Ctrl-C to stop", bus.rig)
-            wait_stop(stop, args.duration)
-            last = node.state
-            node.close()
-        finally:
-            session.close()
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
-    return {"success": True, "rig": bus.rig, "uptime_s": time.monotonic() - t0, "runs": runs,
-            "last_state": last.model_dump(mode="json", exclude={"scenario_doc"})}
+    # The node declares its own liveliness token: alive as soon as it answers run/control.
+    return run_service("planner", bus, lambda session, keys: PlannerNode(session, keys, cfg, clock=bus.clock), duration=args.duration,
+                       banner=lambda node: "coordinating (run/control, run/state)", alive=False)
 
 
 def human(r: dict[str, Any]) -> str:

@@ -52,14 +52,12 @@ def _bytes(value: float, unit: float) -> int:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
-    import threading
-    import time
 
     from pydantic import ValidationError
 
     from bagit import __version__
-    from bagit.common.bus import Keys, bus_config_from_args, open_session
+    from bagit.commands._service import run_service
+    from bagit.common.bus import bus_config_from_args
     from bagit.common.errors import BadRecording
     from bagit.services.recorder.node import RecorderNode, outcome
     from bagit.services.recorder.writer import RecorderConfig, RecordingWriter
@@ -74,33 +72,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         field = str(first["loc"][0])
         raise BadRecording(f"{FLAGS.get(field, field)}: {first['msg']}{' bytes' if field in ('max_bytes', 'chunk_bytes') else ''}") from None
     bus = bus_config_from_args(args)
-    keys = Keys(bus.rig)
-    from bagit.commands._service import wait_stop
-
-    stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    t0 = time.monotonic()
-    try:
-        writer = RecordingWriter(cfg, bus.rig, version=__version__)
-        session = open_session(bus)
-        try:
-            node = RecorderNode(session, keys, writer, exclude=args.exclude)
-            log.info("recording %s into %s; Ctrl-C to stop", keys.all, cfg.dir)
-            wait_stop(stop, args.duration, node.stopped)  # stopped: the writer died
-            status = node.close()
-        finally:
-            session.close()
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
-    ok, reason = outcome(status)
-    return {
-        "success": ok,
-        "reason": reason,
-        "dir": str(cfg.dir),
-        "uptime_s": time.monotonic() - t0,
-        **status,
-    }
+    writer = RecordingWriter(cfg, bus.rig, version=__version__)
+    # The node declares its own liveliness token and withdraws it when its writer dies (`stopped`).
+    r = run_service("recorder", bus, lambda session, keys: RecorderNode(session, keys, writer, exclude=args.exclude), duration=args.duration,
+                    banner=lambda node: f"recording {node.keys.all} into {cfg.dir}", alive=False)
+    ok, reason = outcome(r)
+    return {**r, "success": ok, "reason": reason, "dir": str(cfg.dir)}
 
 
 def human(r: dict[str, Any]) -> str:

@@ -32,7 +32,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
     import threading
     import time
 
@@ -54,7 +53,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     args.rig = rig
     bus = bus_config_from_args(args)
     stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    from bagit.commands._service import stop_on_signals
+
+    restore = stop_on_signals(stop)
     timer = threading.Timer(args.duration, stop.set) if args.duration else None
     t0 = time.monotonic()
     passes: list[dict[str, Any]] = []
@@ -78,8 +79,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         if timer is not None:
             timer.cancel()
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     late = np.array(rep.lateness) * 1e3 if rep.lateness else np.zeros(1)
     return {
         "success": rep.sent > 0,

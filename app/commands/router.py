@@ -38,7 +38,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
     import threading
     import time
 
@@ -52,10 +51,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             data[field] = getattr(args, flag)
     cfg = parse_bus_config(data)
     listen = config_value(cfg.to_zenoh(), "listen/endpoints")
-    from bagit.commands._service import wait_stop
+    from bagit.commands._service import stop_on_signals, wait_stop
 
     stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    restore = stop_on_signals(stop)
     t0 = time.monotonic()
     try:
         session = open_session(cfg)
@@ -83,8 +82,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             zid = str(session.zid())
             session.close()
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
     return {
         "success": True,
         "zid": zid,

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import threading
 from typing import Any
 
@@ -68,8 +67,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     say = log.info
 
     stop = threading.Event()
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    from bagit.commands._service import stop_on_signals
+
+    restore = stop_on_signals(stop)
     frames = {"n": 0}
 
     def on_frame(_frame: object) -> None:
@@ -105,8 +105,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             gt = rig.ground_truth()
             modes = {name: arm.robot_mode() for name, arm in rig.arms.items()}
     finally:
-        for sig, h in previous.items():
-            signal.signal(sig, h)
+        restore()
     return {
         "success": True,
         "scenario": scenario.name,

@@ -92,7 +92,6 @@ def options(args: argparse.Namespace) -> UpOptions:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    import signal
     import threading
     import time
 
@@ -102,7 +101,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     # The fork server first: its imports (a fresh interpreter) run beside ours and the scenario's check below.
     forks = None if args.no_fork_server else ForkServer(child_env())
     try:
-        from bagit.commands._service import wait_stop
+        from bagit.commands._service import stop_on_signals, wait_stop
         from bagit.common.errors import BadScenario
         from bagit.up import Up
 
@@ -112,8 +111,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             forks.close()
         raise
     stop = threading.Event()
-    main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    restore = stop_on_signals(stop)
     up = Up(opts, forks=forks)
     try:
         up.start()
@@ -160,8 +158,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         codes = up.stop()
         up.say("stopped: " + ", ".join(f"{n} {c}" for n, c in codes.items()))
-        for s, h in previous.items():
-            signal.signal(s, h)
+        restore()
 
 
 def recording_of_run(recorder: Any, before: Any, timeout_s: float = RECORDER_STATUS_WAIT_S) -> Any:

@@ -93,6 +93,7 @@ class PlannerNode:
         self._held_statuses: dict[int, ControllerStatus] = {}  # lockstep: statuses by seq, held for the controller's answer
         self._object_handled = float("-inf")  # lockstep: the newest stamp of an ObjectDetection handled
         self.on_state = on_state
+        self.runs: dict[str, str] = {}  # run id -> its last stage: what `bagit planner` reports when it stops
         self.coord = Coordinator(self.cfg.coordinator, now=self.clock())
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -352,6 +353,8 @@ class PlannerNode:
         if key != self._last_stage:
             self._last_stage = key
             log.info("run %s: %s%s", state.run_id or "-", state.stage, f" ({state.reason})" if state.reason else "")
+        if state.run_id:
+            self.runs[state.run_id] = state.stage
         if self.on_state is not None:
             self.on_state(state)
 
@@ -360,7 +363,9 @@ class PlannerNode:
         with self._lock:
             return self.coord.state
 
-    def close(self) -> None:
+    def close(self) -> dict[str, Any]:
+        """Stop coordinating; the runs coordinated (id -> last stage) and the last run state."""
+        last = self.state
         self._stop.set()
         self._ticker.join(timeout=2.0)
         self._server.close()
@@ -376,6 +381,7 @@ class PlannerNode:
             self._token.undeclare()
         except zenoh.ZError:
             pass
+        return {"runs": dict(self.runs), "last_state": last.model_dump(mode="json", exclude={"scenario_doc"})}
 
     def __enter__(self) -> PlannerNode:
         return self
