@@ -261,7 +261,7 @@ class Up:
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
-        self.arm_states = LatestCache(self.session, self.keys.arm_state_any, ArmState)
+        self.arm_states = LatestCache(self.session, self.keys.arm_state("left"), ArmState)  # one arm's: both carry the side's counts
         if "sim" in names:
             self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth)
             self._final_truth_sub = Subscriber(self.session, self.keys.sim_truth, SimTruth, self._on_truth)
