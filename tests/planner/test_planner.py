@@ -119,6 +119,26 @@ def test_walled_in_start_gives_up_at_its_budget():
     assert res.reason and ("time budget" in res.reason or "touches" in res.reason)  # gave up, at its budget or before
 
 
+def test_a_failed_search_leaves_the_straight_motion_when_it_is_free(monkeypatch):
+    """The fallback of a search that failed (round the tightest bags, CBiRRT never tries to join its trees):
+    the straight motion between the stage's ends, checked here by the test's own geometry; never through
+    an obstacle."""
+    s = Scenario.from_file(find_scenario("exp01"))
+    monkeypatch.setitem(PLANNERS, "cbirrt", lambda space, a, b, eps, max_iter, deadline: (None, max_iter))
+    res = plan_scenario(s, "cbirrt", 0)
+    check_path(res, s)
+    assert res.iterations == 2 * s.params.planner.max_iterations  # both searches failed, both stages are straight
+    g0, gd = res.path[0], res.path[res.dagger_index]
+    for rim in res.path[1 : res.dagger_index]:  # every point on its own line from g0 to g† (up to the perimeter's scaling)
+        d, along = rim - g0, gd - g0
+        assert np.abs(np.cross(d, along)).max() <= 0.01 * np.linalg.norm(along, axis=1).max()
+    # a box in the middle of that motion (clear of g0 and g†): no straight motion, the search's failure stands
+    doc = s.model_dump(exclude_none=True)
+    doc["obstacles"] = [{"center": (0.5 * (g0[0] + gd[0])).tolist(), "size": [0.03, 0.03, 0.03]}]
+    res = plan_scenario(Scenario.from_dict(doc), "cbirrt", 0)
+    assert not res.success and res.reason == "cbirrt found no pre-bagging path within its 4000 iterations"
+
+
 def test_plan_message_round_trip():
     from bagit.common import wire
     from bagit.common.messages import Path
