@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from bagit.common import cr5, dobot
 from bagit.common.rig import ARMS, RigConfig
-from bagit.services.arm_driver.frames import ArmFrames
 from bagit.common.so3 import rotvec_between
+from bagit.services.arm_driver.frames import ArmFrames
 from bagit.services.arm_driver.limits import Envelope, violations
 from bagit.services.arm_driver.reach import ELBOW_MARGIN_RAD, arm_solver, interpolate, joint_solver, solve_within, wrist_lag
 
