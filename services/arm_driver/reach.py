@@ -1,21 +1,23 @@
-"""Joint-space reach of each servo command: a step the joints cannot follow is slowed, not refused.
+"""Joint-space reach of each servo command: a step the joints cannot follow lags or is slowed, not refused.
 
 Near a wrist singularity of the CR5 (J5 near 0) a small Cartesian step asks J4 and J6 for a large
 turn; sent as is, the controller alarms on its joint speed limit and stops that arm dead. The
 driver therefore solves every command with `bagit.common.cr5.ik` nearest the joints of the last
-one, and when some joint would move more than `max_joint_step_rad` in a period it sends, instead,
-the longest part of the step (the same fraction for both arms, so they stay in step) that every
-joint can follow. The arms then stop short of a target out of reach; only a command that cannot be
-followed at all is refused.
+one, and when some joint would move more than `max_joint_step_rad` in a period:
 
-Near the wrist singularity the step is not shortened but its orientation lags (`wrist_lag`): the
-mounts (which hold the rim) go where they are sent, and the tool turns only as far as the wrist can
-follow: a damped least-squares step from the last joints, the position exact, the rotation it cannot
-make about the singular axis left for later. The trajectory then catches the target up, jerk-limited,
-once the wrist is clear of J5 = 0. Without it, a wrist passing near J5 = 0 again and again spins J4
-and J6 (about 180 deg each pass, at the joints' speed) until J4 winds into its +-360 deg limit, where
-the arm is held (docs/experiments.md, the core zoo's control failures). It engages only where the
-full step cannot be followed, so a run that never slowed is unchanged.
+- first the tool's rotation lags (`wrist_lag`): the mounts (which hold the rim) go where they are
+  sent, and the tool turns only as far as the wrist can follow: a damped least-squares step from the
+  last joints, the position exact, the rotation it cannot make about the singular axis left for
+  later; the trajectory catches the target up, jerk-limited, once the wrist is clear of J5 = 0.
+  Without it, a wrist passing near J5 = 0 again and again spins J4 and J6 (about half a turn each
+  pass, at the joints' speed) until J4 winds into its +-360 deg limit, where the arm is held
+  (docs/experiments.md, the core zoo's control failures);
+- where that cannot be followed either (the edge of the reach, the tool against the arm), the
+  longest part of the step every joint can follow (the same fraction for both arms, so they stay
+  in step): the arms stop short of a target out of reach; only a command that cannot be followed at
+  all is refused.
+
+Both engage only where the full step cannot be followed, so a run that never slowed is unchanged.
 
     solve = joint_solver(frames, seeds, mount_offsets, max_joint_step_rad)
     lag = wrist_lag(frames, seeds, mount_offsets, arm_solver(frames, seeds, mount_offsets, max_joint_step_rad))

@@ -12,7 +12,8 @@ Its layers, in the order a command goes through them:
              trajectory (`pull_back`) and clamped into the static envelope (`limits.clip_target`)
   smoothing  12-DoF Ruckig towards the target, jerk-limited (`RuckigSmoother`; a stop brakes at the stop's limits)
   limits     every pose that leaves goes through `check_and_clip` (workspace, separation, speed)
-  reach      a step the joints cannot follow is shortened to what they can (`reach.solve_within`)
+  reach      a step the joints cannot follow: its rotation lags (near the wrist singularity), else it is
+             shortened to what they can (`reach.solve_within`)
   wire       the flange pose in each arm's base as a ServoP (or the joints as a ServoJ)
 
 Both hosts drive it: the `ArmDriver` (its servo thread and TCP links around it) on a rig, and

@@ -1,0 +1,85 @@
+"""`python -m bagit.bench.rerun FILE... [--where slowed] [--workers 2]`: re-run, on this commit, the runs of
+record files that the arm driver slowed (`arm_events.slowed > 0`), and put each new record in its old one's place.
+
+For a change that can touch only those runs (issue 35's wrist lag engages only where the driver would have
+slowed a period, so every run that never slowed is the same bit for bit: checked before such a re-run), this
+refreshes a published record without running all of it again: every other line stays as it was, and each
+new line names its own commit, host and load in its `provenance`. The runs go through the sweep
+(bench/closed_loop.py: each in a child process of its own, with the record's scenario, controller, planner,
+seed, arms and `overrides`, the time limit `--time-limit-s`). Until a file's runs are all done they are kept
+in FILE.rerun.jsonl beside it, so a stopped re-run resumes; then FILE is rewritten at once and that is removed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from bagit.bench.closed_loop import RUN_TIMEOUT_S, quiet_engine_logs, read_jsonl, record_key, sweep
+
+log = logging.getLogger("bagit.bench.rerun")
+
+WHERE: dict[str, Callable[[dict[str, Any]], bool]] = {
+    "slowed": lambda r: int((r.get("arm_events") or {}).get("slowed") or 0) > 0,
+}
+
+
+def rerun(path: Path, where: str = "slowed", workers: int = 1, time_limit_s: float = 40.0,
+          timeout_s: float = RUN_TIMEOUT_S) -> list[dict[str, Any]]:
+    """Re-run the records of `path` that `WHERE[where]` picks and replace them in place; per run, old and new."""
+    records = read_jsonl(path)
+    picked = [i for i, r in enumerate(records) if WHERE[where](r)]
+    if not picked:
+        return []
+    scratch = path.with_name(path.name + ".rerun.jsonl")
+    groups: dict[str, list[int]] = {}  # the runs of one `overrides` go in one sweep
+    for i in picked:
+        groups.setdefault(json.dumps(records[i].get("overrides") or {}, sort_keys=True), []).append(i)
+    new: dict[int, dict[str, Any]] = {}
+    for params_json, idx in groups.items():
+        keys = [record_key(records[i]) for i in idx]
+        done = sweep(keys, scratch, workers, timeout_s, time_limit_s, json.loads(params_json) or None)
+        by_key = {record_key(r): r for r in done}
+        new.update({i: by_key[record_key(records[i])] for i in idx if record_key(records[i]) in by_key})
+    if len(new) < len(picked):
+        raise RuntimeError(f"{path}: {len(picked) - len(new)} of {len(picked)} runs not recorded; the same command resumes")
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text("".join(json.dumps(new.get(i, r)) + "\n" for i, r in enumerate(records)))
+    os.replace(tmp, path)
+    scratch.unlink(missing_ok=True)
+    return [{"old": records[i], "new": new[i]} for i in picked]
+
+
+def row(pair: dict[str, Any]) -> str:
+    """One re-run as a line: the run, then success, error and slowed/lagged periods before -> after."""
+    o, n = pair["old"], pair["new"]
+    ev = lambda r, k: (r.get("arm_events") or {}).get(k, 0)  # noqa: E731
+    return (f"{o['scenario']} {o['controller']} {o['planner']} seed {o['seed']}: success {o['success']} -> {n['success']}, "
+            f"error {o.get('error_cm')} -> {n.get('error_cm')} cm, {o.get('duration_s')} -> {n.get('duration_s')} s, "
+            f"slowed {ev(o, 'slowed')} -> {ev(n, 'slowed')}, lagged {ev(n, 'lagged')}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("files", type=Path, nargs="+")
+    ap.add_argument("--where", choices=sorted(WHERE), default="slowed")
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--time-limit-s", type=float, default=40.0)
+    ap.add_argument("--timeout-s", type=float, default=RUN_TIMEOUT_S)
+    a = ap.parse_args()
+    quiet_engine_logs()
+    log.setLevel(logging.INFO)
+    for f in a.files:
+        pairs = rerun(f, a.where, a.workers, a.time_limit_s, a.timeout_s)
+        log.info("%s: %d runs re-run", f, len(pairs))
+        for p in pairs:
+            log.info("  %s", row(p))
+
+
+if __name__ == "__main__":
+    main()
