@@ -6,8 +6,9 @@ slowed a period, so every run that never slowed is the same bit for bit: checked
 refreshes a published record without running all of it again: every other line stays as it was, and each
 new line names its own commit, host and load in its `provenance`. The runs go through the sweep
 (bench/closed_loop.py: each in a child process of its own, with the record's scenario, controller, planner,
-seed, arms and `overrides`, the time limit `--time-limit-s`). Until a file's runs are all done they are kept
-in FILE.rerun.jsonl beside it, so a stopped re-run resumes; then FILE is rewritten at once and that is removed.
+seed, arms and `overrides`, the time limit `--time-limit-s`). Until every file's runs are done they are kept
+in FILE.rerun.jsonl beside each (untracked), so a stopped re-run resumes; then each FILE is rewritten at once
+and its scratch file removed.
 """
 
 from __future__ import annotations
@@ -29,30 +30,43 @@ WHERE: dict[str, Callable[[dict[str, Any]], bool]] = {
 }
 
 
-def rerun(path: Path, where: str = "slowed", workers: int = 1, time_limit_s: float = 40.0,
-          timeout_s: float = RUN_TIMEOUT_S) -> list[dict[str, Any]]:
-    """Re-run the records of `path` that `WHERE[where]` picks and replace them in place; per run, old and new."""
+def rerun_all(paths: list[Path], where: str = "slowed", workers: int = 1, time_limit_s: float = 40.0,
+              timeout_s: float = RUN_TIMEOUT_S) -> dict[Path, list[dict[str, Any]]]:
+    """Re-run the records of every file in `paths` that `WHERE[where]` picks, then replace them in place (all
+    files at the end: a record file rewritten while runs go on would mark their trees dirty); per file, per
+    run, old and new."""
+    runs = {p: _runs_of(p, where, workers, time_limit_s, timeout_s) for p in paths}
+    out = {}
+    for path, (records, new) in runs.items():
+        if new:
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text("".join(json.dumps(new.get(i, r)) + "\n" for i, r in enumerate(records)))
+            os.replace(tmp, path)
+        _scratch(path).unlink(missing_ok=True)
+        out[path] = [{"old": records[i], "new": n} for i, n in sorted(new.items())]
+    return out
+
+
+def _scratch(path: Path) -> Path:
+    return path.with_name(path.name + ".rerun.jsonl")
+
+
+def _runs_of(path: Path, where: str, workers: int, time_limit_s: float, timeout_s: float) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
+    """`path`'s records and the new record of each one picked, by index (kept in the scratch file as they come)."""
     records = read_jsonl(path)
-    picked = [i for i, r in enumerate(records) if WHERE[where](r)]
-    if not picked:
-        return []
-    scratch = path.with_name(path.name + ".rerun.jsonl")
     groups: dict[str, list[int]] = {}  # the runs of one `overrides` go in one sweep
-    for i in picked:
-        groups.setdefault(json.dumps(records[i].get("overrides") or {}, sort_keys=True), []).append(i)
+    for i, r in enumerate(records):
+        if WHERE[where](r):
+            groups.setdefault(json.dumps(r.get("overrides") or {}, sort_keys=True), []).append(i)
     new: dict[int, dict[str, Any]] = {}
     for params_json, idx in groups.items():
-        keys = [record_key(records[i]) for i in idx]
-        done = sweep(keys, scratch, workers, timeout_s, time_limit_s, json.loads(params_json) or None)
+        done = sweep([record_key(records[i]) for i in idx], _scratch(path), workers, timeout_s, time_limit_s, json.loads(params_json) or None)
         by_key = {record_key(r): r for r in done}
         new.update({i: by_key[record_key(records[i])] for i in idx if record_key(records[i]) in by_key})
-    if len(new) < len(picked):
-        raise RuntimeError(f"{path}: {len(picked) - len(new)} of {len(picked)} runs not recorded; the same command resumes")
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("".join(json.dumps(new.get(i, r)) + "\n" for i, r in enumerate(records)))
-    os.replace(tmp, path)
-    scratch.unlink(missing_ok=True)
-    return [{"old": records[i], "new": new[i]} for i in picked]
+    missing = sum(len(idx) for idx in groups.values()) - len(new)
+    if missing:
+        raise RuntimeError(f"{path}: {missing} runs not recorded; the same command resumes")
+    return records, new
 
 
 def row(pair: dict[str, Any]) -> str:
@@ -74,8 +88,7 @@ def main() -> None:
     a = ap.parse_args()
     quiet_engine_logs()
     log.setLevel(logging.INFO)
-    for f in a.files:
-        pairs = rerun(f, a.where, a.workers, a.time_limit_s, a.timeout_s)
+    for f, pairs in rerun_all(a.files, a.where, a.workers, a.time_limit_s, a.timeout_s).items():
         log.info("%s: %d runs re-run", f, len(pairs))
         for p in pairs:
             log.info("  %s", row(p))
