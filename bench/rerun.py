@@ -4,9 +4,11 @@ record files that the arm driver slowed (`arm_events.slowed > 0`), and put each 
 For a change that can touch only those runs (issue 35's wrist lag engages only where the driver would have
 slowed a period, so every run that never slowed is the same bit for bit: checked before such a re-run), this
 refreshes a published record without running all of it again: every other line stays as it was, and each
-new line names its own commit, host and load in its `provenance`. The runs go through the sweep
-(bench/closed_loop.py: each in a child process of its own, with the record's scenario, controller, planner,
-seed, arms and `overrides`, the time limit `--time-limit-s`). Until every file's runs are done they are kept
+new line names its own commit, host and load in its `provenance`. Each run is the sweep's task
+(bench/isolated.py: a child process of its own, with the record's scenario, controller, planner, seed, arms
+and `overrides`, the time limit `--time-limit-s`), `--workers` at a time from this process, as `bagit bench
+verify` runs them: no Dask scheduler, whose workers a machine paused for minutes (SIGSTOP) would have it
+declare dead and run again. Until every file's runs are done they are kept
 in FILE.rerun.jsonl beside each (untracked), so a stopped re-run resumes; then each FILE is rewritten at once
 and its scratch file removed.
 """
@@ -18,10 +20,12 @@ import json
 import logging
 import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
-from bagit.bench.closed_loop import RUN_TIMEOUT_S, quiet_engine_logs, read_jsonl, record_key, sweep
+from bagit.bench.closed_loop import RUN_TIMEOUT_S, quiet_engine_logs, read_jsonl, record_key
+from bagit.bench.isolated import run_isolated
 
 log = logging.getLogger("bagit.bench.rerun")
 
@@ -54,16 +58,21 @@ def _scratch(path: Path) -> Path:
 def _runs_of(path: Path, where: str, workers: int, time_limit_s: float, timeout_s: float) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
     """`path`'s records and the new record of each one picked, by index (kept in the scratch file as they come)."""
     records = read_jsonl(path)
-    groups: dict[str, list[int]] = {}  # the runs of one `overrides` go in one sweep
-    for i, r in enumerate(records):
-        if WHERE[where](r):
-            groups.setdefault(json.dumps(r.get("overrides") or {}, sort_keys=True), []).append(i)
-    new: dict[int, dict[str, Any]] = {}
-    for params_json, idx in groups.items():
-        done = sweep([record_key(records[i]) for i in idx], _scratch(path), workers, timeout_s, time_limit_s, json.loads(params_json) or None)
-        by_key = {record_key(r): r for r in done}
-        new.update({i: by_key[record_key(records[i])] for i in idx if record_key(records[i]) in by_key})
-    missing = sum(len(idx) for idx in groups.values()) - len(new)
+    picked = [i for i, r in enumerate(records) if WHERE[where](r)]
+    have = {record_key(r): r for r in read_jsonl(_scratch(path))}
+    todo = [i for i in picked if record_key(records[i]) not in have]
+    log.info("%s: %d runs to re-run (%d already done)", path, len(todo), len(picked) - len(todo))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(run_isolated, record_key(records[i]), time_limit_s, records[i].get("overrides") or None, timeout_s): i
+                   for i in todo}
+        for fut in as_completed(futures):
+            rec = fut.result()
+            have[record_key(rec)] = rec
+            with open(_scratch(path), "a") as f:
+                f.write(json.dumps(rec) + "\n")
+            log.info("  %s", row({"old": records[futures[fut]], "new": rec}))
+    new = {i: have[record_key(records[i])] for i in picked if record_key(records[i]) in have}
+    missing = len(picked) - len(new)
     if missing:
         raise RuntimeError(f"{path}: {missing} runs not recorded; the same command resumes")
     return records, new
