@@ -31,6 +31,7 @@ log = logging.getLogger("bagit.bench.rerun")
 
 WHERE: dict[str, Callable[[dict[str, Any]], bool]] = {
     "slowed": lambda r: int((r.get("arm_events") or {}).get("slowed") or 0) > 0,
+    "dirty": lambda r: bool((r.get("provenance") or {}).get("dirty")),  # run from a tree with changes: again from a clean one
 }
 
 
