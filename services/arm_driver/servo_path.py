@@ -288,6 +288,16 @@ class ServoPath:
         servo = servo_commands(poses, joints, tick.halting, active, self.frames, self.cfg, self.servo_t)
         return Cycle(poses, joints, fault, tick.violations, tick.halting, servo)
 
+    def _episode(self, kind: str, was: bool, now: bool, start: str, end: str) -> bool:
+        """Count a period of `kind` (`now`) and tell when a run of them starts (`start`) or ends (`end`); `now`."""
+        if now:
+            self.counters[kind] += 1
+            if not was:
+                self._event(kind, start)
+        elif was:
+            self._event(kind, f"{end} after {self.counters[kind]} {kind} periods in all")
+        return now
+
     def within_reach(self, prev: Poses, cmd: Poses, active: list[ArmName]) -> tuple[Poses | None, Joints | None, str | None]:
         """`cmd`, or the longest part of the step from `prev` the joints of the `active` arms can follow,
         with their joints; or a fault when not even the last command can be held.
@@ -308,12 +318,8 @@ class ServoPath:
             # the positions go as planned; the rotation carries on from what is sent
             self.smoother.sync_rotation(r.poses, prev, self.period)
             self.last_sent = {a: np.array(r.poses[a], dtype=float) for a in ARMS}
-            self.counters["lagged"] += 1
-            if not self.lagging:
-                self._event("lagged", f"near the wrist singularity: {r.lagged}")
-        elif self.lagging:
-            self._event("lagged", f"the rotation follows again after {self.counters['lagged']} lagged periods in all")
-        self.lagging = r.lagged is not None
+        self.lagging = self._episode("lagged", self.lagging, r.lagged is not None, f"near the wrist singularity: {r.lagged}",
+                                     "the rotation follows again")
         if r.poses is None or r.joints is None:  # (solve_within finds both or neither)
             self.stop()
             return None, None, f"cannot hold the last command either: {r.why}"
@@ -329,12 +335,8 @@ class ServoPath:
             # the trajectory carries on from what is sent, `prev` being the command before
             self.smoother.sync(poses, prev, self.period)
             self.last_sent = {a: np.array(poses[a], dtype=float) for a in ARMS}
-            self.counters["slowed"] += 1
-            if not self.slowing:
-                self._event("slowed", f"{r.why}: {r.fraction:.0%} of the step sent")
-        elif self.slowing:
-            self._event("slowed", f"full speed again after {self.counters['slowed']} slowed periods in all")
-        self.slowing = r.why is not None
+        self.slowing = self._episode("slowed", self.slowing, r.why is not None, f"{r.why}: {r.fraction:.0%} of the step sent",
+                                     "full speed again")
         for a in active:
             self.q_seed[a] = joints[a]
         return poses, joints, None
