@@ -13,7 +13,8 @@ X-Y-Z angles (R = Rz(rz) Ry(ry) Rx(rx)).
 
 Public API: `fk(q) -> (4, 4)` base <- flange; `link_frames(q) -> (7, 4, 4)`; `ik_all(T) -> (k, 6)`
 (the analytic solutions); `ik(T, q_seed) -> (6,) | None` (the valid solution nearest the seed);
-`within_limits(q)`; `self_collision(q)`; `pose6_to_matrix(pose)`, `matrix_to_pose6(T)`.
+`within_limits(q)`; `self_collision(q)`; `jacobian(q, tool_offset) -> (6, 6)`; `pose6_to_matrix(pose)`,
+`matrix_to_pose6(T)`.
 """
 
 from __future__ import annotations
@@ -72,6 +73,18 @@ def fk(q: np.ndarray) -> np.ndarray:
     for i in range(1, 6):
         T = T @ _dh(float(theta[i]), DH_D[i], DH_A[i], DH_ALPHA[i])
     return T
+
+
+def jacobian(q: np.ndarray, tool_offset: np.ndarray | None = None) -> np.ndarray:
+    """`(6, 6)` geometric Jacobian at the tool point (`tool_offset (3,)` in the flange frame; None: the
+    flange), base frame: rows linear (m/rad) then angular velocity, one column per joint."""
+    F = link_frames(q)
+    tip = F[6][:3, 3] if tool_offset is None else F[6][:3, :3] @ np.asarray(tool_offset, dtype=float) + F[6][:3, 3]
+    axes = F[:6, :3, 2]  # joint i turns about z of frame i-1
+    out = np.empty((6, 6))
+    out[:3] = np.cross(axes, tip - F[:6, :3, 3]).T
+    out[3:] = axes.T
+    return out
 
 
 def within_limits(q: np.ndarray) -> bool:

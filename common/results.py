@@ -25,9 +25,10 @@ from bagit.common.machine import Numerics, cpu_model, numerics
 from bagit.common.names import ArmsMode, Stage
 
 # Counters of the arm side every result carries (zero when nothing happened): the increments
-# clipped by the envelope or the lead limit, the periods slowed to the joints' speed, the watchdog's
+# clipped by the envelope or the lead limit, the periods slowed to the joints' speed, the periods whose
+# tool rotation lagged near the wrist singularity (the mounts' positions sent whole), the watchdog's
 # stops, the commands refused, the controllers' alarms and the driver's faults.
-ARM_EVENT_KINDS = ("clipped", "slowed", "watchdog_stops", "rejected", "alarms", "faults")
+ARM_EVENT_KINDS = ("clipped", "slowed", "lagged", "watchdog_stops", "rejected", "alarms", "faults")
 
 
 def axis_error_cm(rim: np.ndarray, vertices: np.ndarray, up: np.ndarray) -> float:

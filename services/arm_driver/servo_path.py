@@ -12,7 +12,8 @@ Its layers, in the order a command goes through them:
              trajectory (`pull_back`) and clamped into the static envelope (`limits.clip_target`)
   smoothing  12-DoF Ruckig towards the target, jerk-limited (`RuckigSmoother`; a stop brakes at the stop's limits)
   limits     every pose that leaves goes through `check_and_clip` (workspace, separation, speed)
-  reach      a step the joints cannot follow is shortened to what they can (`reach.solve_within`)
+  reach      a step the joints cannot follow: its rotation lags (near the wrist singularity), else it is
+             shortened to what they can (`reach.solve_within`)
   wire       the flange pose in each arm's base as a ServoP (or the joints as a ServoJ)
 
 Both hosts drive it: the `ArmDriver` (its servo thread and TCP links around it) on a rig, and
@@ -36,7 +37,7 @@ from bagit.common.so3 import matrix_to_rpy
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.frames import ArmFrames, Poses
 from bagit.services.arm_driver.limits import MEASURED_TOL_M, Envelope, Violation, check_and_clip, clip_target, violations
-from bagit.services.arm_driver.reach import Joints, Reach, joint_solver, solve_within
+from bagit.services.arm_driver.reach import Joints, Reach, arm_solver, joint_solver, solve_within, wrist_lag
 from bagit.services.arm_driver.smoothing import RuckigSmoother, StreamStep
 from bagit.services.arm_driver.targets import TargetIntegrator, pull_back
 from bagit.services.arm_driver.wire import ServoCommand, servo_commands
@@ -98,6 +99,7 @@ class ServoPath:
         self.q_seed: Joints = {}
         self.last_cmd_t = -np.inf
         self.slowing = False  # the last period's step was shortened to the joints' speed
+        self.lagging = False  # the last period's rotation lagged the step's (near the wrist singularity)
         self._before: tuple[Poses, Joints] | None = None  # the poses sent and joint seeds before the last cycle (`unsend`)
 
     def _event(self, kind: str, detail: str) -> None:
@@ -286,22 +288,38 @@ class ServoPath:
         servo = servo_commands(poses, joints, tick.halting, active, self.frames, self.cfg, self.servo_t)
         return Cycle(poses, joints, fault, tick.violations, tick.halting, servo)
 
+    def _episode(self, kind: str, was: bool, now: bool, start: str, end: str) -> bool:
+        """Count a period of `kind` (`now`) and tell when a run of them starts (`start`) or ends (`end`); `now`."""
+        if now:
+            self.counters[kind] += 1
+            if not was:
+                self._event(kind, start)
+        elif was:
+            self._event(kind, f"{end} after {self.counters[kind]} {kind} periods in all")
+        return now
+
     def within_reach(self, prev: Poses, cmd: Poses, active: list[ArmName]) -> tuple[Poses | None, Joints | None, str | None]:
         """`cmd`, or the longest part of the step from `prev` the joints of the `active` arms can follow,
         with their joints; or a fault when not even the last command can be held.
 
-        Each target is solved nearest the joints of the last one (see `reach`): near a singularity the
-        arms slow down to the joints' speed instead of making a controller alarm; a target out of
-        reach or with the tool against the arm's body stops them short of it.
+        Each target is solved nearest the joints of the last one (see `reach`): near the wrist singularity
+        the tools' rotation lags while the mounts go where they are sent; else the arms slow down to the
+        joints' speed instead of making a controller alarm; a target out of reach or with the tool against
+        the arm's body stops them short of it.
         """
         limit = cr5.JOINT_SPEED_LIMIT * self.period * REACH_JOINT_SPEED_FRACTION
-        solve = joint_solver(
-            {a: self.frames[a] for a in active},
-            {a: self.q_seed[a] for a in active},
-            {a: np.asarray(self.rig.arms[a].mount_offset, dtype=float) for a in active},
-            limit,
-        )
-        r = solve_within(prev, cmd, solve)
+        frames = {a: self.frames[a] for a in active}
+        seeds = {a: self.q_seed[a] for a in active}
+        tools = {a: np.asarray(self.rig.arms[a].mount_offset, dtype=float) for a in active}
+        solve = joint_solver(frames, seeds, tools, limit)
+        lag = wrist_lag(frames, seeds, tools, arm_solver(frames, seeds, tools, limit))
+        r = solve_within(prev, cmd, solve, lag=lag, accept=lambda poses: not violations(poses, prev, self.period, self.env))
+        if r.lagged is not None and r.poses is not None and r.joints is not None:
+            # the positions go as planned; the rotation carries on from what is sent
+            self.smoother.sync_rotation(r.poses, prev, self.period)
+            self.last_sent = {a: np.array(r.poses[a], dtype=float) for a in ARMS}
+        self.lagging = self._episode("lagged", self.lagging, r.lagged is not None, f"near the wrist singularity: {r.lagged}",
+                                     "the rotation follows again")
         if r.poses is None or r.joints is None:  # (solve_within finds both or neither)
             self.stop()
             return None, None, f"cannot hold the last command either: {r.why}"
@@ -317,12 +335,8 @@ class ServoPath:
             # the trajectory carries on from what is sent, `prev` being the command before
             self.smoother.sync(poses, prev, self.period)
             self.last_sent = {a: np.array(poses[a], dtype=float) for a in ARMS}
-            self.counters["slowed"] += 1
-            if not self.slowing:
-                self._event("slowed", f"{r.why}: {r.fraction:.0%} of the step sent")
-        elif self.slowing:
-            self._event("slowed", f"full speed again after {self.counters['slowed']} slowed periods in all")
-        self.slowing = r.why is not None
+        self.slowing = self._episode("slowed", self.slowing, r.why is not None, f"{r.why}: {r.fraction:.0%} of the step sent",
+                                     "full speed again")
         for a in active:
             self.q_seed[a] = joints[a]
         return poses, joints, None

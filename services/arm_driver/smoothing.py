@@ -179,6 +179,17 @@ class RuckigSmoother:
         self.vel = np.clip(v, -lim, lim)
         self.acc[:] = 0.0
 
+    def sync_rotation(self, sent: Poses, previous: Poses, dt: float) -> None:
+        """`sync` for the orientations only: the positions sent were the trajectory's own (a rotation
+        that lagged near the wrist singularity), so their state carries on untouched."""
+        _, R = poses_to_arrays(sent)
+        _, Rp = poses_to_arrays(previous)
+        lim = self.max_velocity.reshape(2, 6)[:, 3:]
+        for i in range(2):
+            self.R[i] = R[i]
+            self.vel[i, 3:] = np.clip(rotvec_between(Rp[i], R[i]) / dt, -lim[i], lim[i])
+            self.acc[i, 3:] = 0.0
+
     # -- one cycle -------------------------------------------------------------------------------
 
     def _set_current(self, inp: InputParameter) -> None:

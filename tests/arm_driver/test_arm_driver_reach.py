@@ -12,8 +12,10 @@ from scipy.spatial.transform import Rotation
 
 from bagit.common import cr5, dobot
 from bagit.common.rig import ARMS, RigConfig
+from bagit.common.so3 import rotvec_between
 from bagit.services.arm_driver.frames import ArmFrames
-from bagit.services.arm_driver.reach import ELBOW_MARGIN_RAD, interpolate, joint_solver, solve_within
+from bagit.services.arm_driver.limits import Envelope, violations
+from bagit.services.arm_driver.reach import ELBOW_MARGIN_RAD, arm_solver, interpolate, joint_solver, solve_within, wrist_lag
 
 PERIOD = 0.03
 LIMIT = cr5.JOINT_SPEED_LIMIT * PERIOD * 0.5
@@ -125,3 +127,60 @@ def test_creeping_at_the_edge_of_the_reach_every_pose_sent_is_solvable_as_the_wi
             assert cr5.ik(wire, r.joints[a]) is not None and cr5.ik(wire, seeds[a]) is not None, text
         seeds, prev = r.joints, r.poses
     assert r.fraction == 0.0 and "out of the arm's reach" in r.why  # stopped at the edge, still pushed
+
+
+def _pass_by_the_wrist_singularity(frames, miss_deg: float, periods: int = 60, step_m: float = 0.001):
+    """The left mount's poses, one per period: a straight 6 cm path at a fixed tool rotation that swings J1
+    past the wrist singularity, the wrist passing `miss_deg` from J5 = 0 (seen in the core zoo's -62)."""
+    q_close = np.radians([48.6, -16.9, -92.1, 179.4, miss_deg, -91.1])
+    F = cr5.fk(q_close)
+    way = cr5.jacobian(q_close, np.array([0.0, 0.0, 0.06]))[:3, 0]
+    way /= np.linalg.norm(way)
+    out = []
+    for k in range(periods + 1):
+        T = F.copy()
+        T[:3, 3] += (k - periods / 2) * step_m * way
+        out.append(frames["left"].mount_in_world(T))
+    return out
+
+
+def test_a_wrist_passing_near_j5_zero_lags_its_rotation_and_follows_the_path_without_winding_j4():
+    """Issue 35: a fixed tool rotation carried past J5 = 0 asks J4 and J6 for half a turn each in a few
+    periods. Shortening the step (the old reach) slows the arm to the joints' speed and winds J4 and J6
+    round; every pass winds them further, to J4's limit. With the wrist's rotation lagging, the mount
+    follows the path period by period, the joints within their speed, and the rotation catches up after."""
+    frames, offsets, _, _ = _setup(Q_EASY, Q_EASY)
+    path = _pass_by_the_wrist_singularity(frames, miss_deg=1.0)
+    env = Envelope.from_rig(RigConfig())
+    mirror = np.diag([1.0, -1.0, 1.0, 1.0])
+    right = mirror @ path[0] @ mirror  # the right mount opposite, as it holds the rim
+    seeds = {"left": cr5.ik(frames["left"].flange_in_base(path[0]), np.radians([48.6, -16.9, -92.1, 179.4, 1.0, -91.1])),
+             "right": cr5.ik(frames["right"].flange_in_base(right), Q_EASY)}
+    assert not violations({"left": path[-1], "right": right}, None, PERIOD, env)  # the path keeps the envelope
+    start = dict(seeds)
+
+    def run(lagging: bool):
+        q, prev, fractions, lagged = dict(start), {"left": path[0], "right": right}, [], 0
+        for T in path[1:] + [path[-1]] * 40:  # the path, then 40 periods at its end
+            cmd = {"left": T, "right": right}
+            solve = joint_solver(frames, q, offsets, LIMIT)
+            lag = wrist_lag(frames, q, offsets, arm_solver(frames, q, offsets, LIMIT)) if lagging else None
+            r = solve_within(prev, cmd, solve, lag=lag, accept=lambda poses, prev=prev: not violations(poses, prev, PERIOD, env))
+            assert r.poses is not None and r.joints is not None
+            for a in ARMS:
+                assert np.max(np.abs(r.joints[a] - q[a])) <= LIMIT + 1e-12 and cr5.within_limits(r.joints[a])
+                assert np.allclose(frames[a].mount_in_world(cr5.fk(r.joints[a])), r.poses[a], atol=1e-6)
+            fractions.append(r.fraction)
+            lagged += r.lagged is not None
+            q, prev = r.joints, r.poses
+        return q, prev, fractions, lagged
+
+    q_old, _, fractions_old, _ = run(lagging=False)
+    assert min(fractions_old) < 0.5  # the old reach: slowed to the joints' speed ...
+    assert np.degrees(abs(q_old["left"][3] - seeds["left"][3])) > 90  # ... and J4 wound round
+    q_new, sent, fractions_new, lagged = run(lagging=True)
+    assert fractions_new == [1.0] * len(fractions_new) and lagged > 0  # every period's position sent whole
+    assert np.degrees(abs(q_new["left"][3] - seeds["left"][3])) < 30  # J5 crossed zero instead of J4 and J6 spinning
+    assert np.allclose(sent["left"][:3, 3], path[-1][:3, 3], atol=1e-9)
+    caught_up = np.degrees(np.linalg.norm(rotvec_between(sent["left"][:3, :3], path[-1][:3, :3])))
+    assert caught_up < 0.1
