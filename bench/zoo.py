@@ -406,8 +406,16 @@ def markdown(r: dict[str, Any]) -> str:
         t = f"{s['time_s_mean']:.1f}" if s["time_s_mean"] is not None else "-"
         lines.append(f"| {c} | {s['success']}/{s['of']} | {err} | {t} |")
     fails = [f"- {x['scenario']} ({x['zoo_bag']['object']}, {', '.join(x['zoo_bag']['classes']) or 'no class'}): "
-             f"{x.get('cause')}: {x.get('stage_reached')}: {x.get('reason')}" for x in r["runs"] if not x.get("success")]
-    return "\n".join(lines + _map_lines(r.get("map") or {}) + ([""] + ["Failures:"] + fails if fails else [])) + "\n"
+             f"{x.get('cause')}: {x.get('stage_reached')}: {x.get('reason')}" + (f" (arms slowed {_slowed(x)} periods)" if _slowed(x) else "")
+             for x in r["runs"] if not x.get("success")]
+    slowed = [f"{x['scenario']} ({_slowed(x)}, {'success' if x.get('success') else 'failed'})" for x in r["runs"] if _slowed(x)]
+    return "\n".join(lines + _map_lines(r.get("map") or {}) + ([""] + ["Failures:"] + fails if fails else [])
+                     + ([""] + [f"Runs the arm driver slowed (arm_events.slowed > 0; periods): {', '.join(slowed)}."] if slowed else [])) + "\n"
+
+
+def _slowed(run: dict[str, Any]) -> int:
+    """The control periods the CR5 driver slowed in a run (its arm_events; 0 without them): the runs a driver change can alter."""
+    return int((run.get("arm_events") or {}).get("slowed") or 0)
 
 
 def _map_lines(m: dict[str, list[dict[str, Any]]]) -> list[str]:

@@ -132,6 +132,21 @@ def test_the_map_bins_each_parameter_and_names_where_success_falls_off():
                          "summary": zoo.summary(runs, bags), "map": m, "runs": [{**r, "cause": zoo.cause(r)} for r in runs]})
     row = next(line for line in text.splitlines() if line.startswith("| stretch_n_per_m"))
     assert "outcome" in row
+    assert "slowed" not in text  # no run has arm_events: none is listed as slowed
+
+
+def test_the_report_names_the_runs_the_arm_driver_slowed():
+    bags = {n: zoo.zoo_scenario(n)[1] for n in (zoo.zoo_name("core", 0, i) for i in range(3))}
+    slowed = [0, 7, 583]
+    runs = [{"scenario": n, "success": i < 2, "stage_reached": "done" if i < 2 else "bagging", "error_cm": 0.5, "duration_s": 12.0,
+             "reason": None if i < 2 else "time limit of 40 s reached in bagging", "arm_events": {"slowed": s, "clipped": 0},
+             "zoo_bag": b} for i, ((n, b), s) in enumerate(zip(bags.items(), slowed, strict=True))]
+    text = zoo.markdown({"machine": {}, "bags": 3, "set": "core", "zoo_seed": 0, "load_before": 0, "load_after": 0, "params": {},
+                         "summary": zoo.summary(runs, bags), "map": {}, "runs": [{**r, "cause": zoo.cause(r)} for r in runs]})
+    fail = next(line for line in text.splitlines() if line.startswith("- zoo-core-0-2 "))
+    assert fail.endswith("control: bagging: time limit of 40 s reached in bagging (arms slowed 583 periods)")
+    listed = next(line for line in text.splitlines() if line.startswith("Runs the arm driver slowed"))
+    assert "zoo-core-0-1 (7, success)" in listed and "zoo-core-0-2 (583, failed)" in listed and "zoo-core-0-0" not in listed
 
 
 def test_a_zoo_bag_written_as_a_scenario_file_reads_back_as_the_same_scenario(tmp_path):
