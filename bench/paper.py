@@ -322,6 +322,7 @@ def run(
         "planning_wall_s": old.get("planning_wall_s", t_plan),
         # planning times are wall-clock: the machine's load while they were taken (1, 5, 15 min averages)
         "planning_measured": old.get("planning_measured") or (old["machine"]["when"] if old else None),
+        "planning_commit": old.get("planning_commit") if old else machine().get("commit"),  # the code that planned
         "planning_load_avg": old.get("planning_load_avg") if old else [round(v, 2) for v in (*load_start, *os.getloadavg())],
         "planning": planning_summary(plan_runs),
         "placements": placement_summary(place_runs),

@@ -28,6 +28,15 @@ def _ratio_ok(ours: dict[str, Any], paper: tuple[float, ...] | None) -> str:
     return "yes" if ours["success"] * paper[1] >= paper[0] * ours["of"] else "**no**"
 
 
+def _planning_commit(r: dict[str, Any]) -> str:
+    """Which code planned: the planning runs' own commit; reused runs from before it was recorded say so."""
+    if r.get("planning_commit"):
+        return f"at commit {str(r['planning_commit'])[:10]}"
+    if r.get("reused"):
+        return f"measured {r.get('planning_measured')} (reused; that run's commit was not recorded)"
+    return f"at commit {str(r['machine'].get('commit', '?'))[:10]}"
+
+
 def _load(r: dict[str, Any]) -> str:
     la = r.get("planning_load_avg")
     return f" (load average {la[0]:.1f} at the start, {la[3]:.1f} at the end, on {r['machine']['cores']} cores)" if la else ""
@@ -257,7 +266,7 @@ def markdown(r: dict[str, Any]) -> str:
         "",
         f"Each scenario planned from its g0 with {r['seeds']} seeds per planner (`cbirrt` is the paper's *Ours*); "
         f"time is wall-clock per whole path g0 → g† → g* (mean ± std over the successful plans), "
-        f"{r['planning_wall_s']:.0f} s for the whole table{_load(r)}, at commit {str(r['machine'].get('commit', '?'))[:10]}. A search "
+        f"{r['planning_wall_s']:.0f} s for the whole table{_load(r)}, {_planning_commit(r)}. A search "
         "is bounded by its iterations; plans made before commit 6e8729a also had a 10 s wall-time budget, so on a loaded machine "
         "slow plans failed ('time budget'). exp11/12 (bound, tilted) and the obstacle layouts "
         "of Fig. 7(c) have no numbers in the paper.",
