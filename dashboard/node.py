@@ -3,11 +3,14 @@
 The subscriber callbacks go straight to the Dashboard's `on_*` methods, which only leave the
 message for the render thread, so the Zenoh threads are never held up by drawing. The e-stop
 publisher is declared up front: pressing E-STOP is one `put` on a reliable, express, real-time key.
+The display cloud (~300 kB, 10 Hz) is subscribed to only while a browser watches: perception makes it
+only for a subscriber, so a dashboard nobody looks at costs the rig no cloud.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from typing import Any
 
 from bagit.common.bus import (
@@ -86,6 +89,8 @@ class DashboardNode:
         self.keys = Keys(bus.rig)
         self.session = open_session(bus)
         self._closers: list[Any] = []
+        self._cloud_sub: Subscriber | None = None
+        self._cloud_lock = threading.Lock()
         try:
             self.link = ZenohRunLink(self.session, self.keys, query_timeout_s)
             self._closers.append(self.link)
@@ -93,7 +98,6 @@ class DashboardNode:
             k = self.keys
             d = self.dashboard
             for key, msg_type, cb in (
-                (k.perception_cloud, PointCloud, d.on_cloud),
                 (k.perception_soi, SoiState, d.on_soi),
                 (k.planner_goal, Goal, d.on_goal),
                 (k.planner_path, Path, d.on_path),
@@ -104,6 +108,9 @@ class DashboardNode:
                 (k.estop, EStop, d.on_estop),
             ):
                 self._closers.append(Subscriber(self.session, key, msg_type, cb))
+            d.server.on_client_connect(lambda _client: self._follow_viewers())
+            d.server.on_client_disconnect(lambda _client: self._follow_viewers())
+            self._follow_viewers()
             self._closers.append(LivelinessWatcher(self.session, k, d.on_service))
             self._token = declare_alive(self.session, k, SERVICE_NAME)
         except BaseException:
@@ -114,11 +121,26 @@ class DashboardNode:
     def url(self) -> str:
         return self.dashboard.url
 
+    def _follow_viewers(self) -> None:
+        """Subscribe to the display cloud while a browser is connected (or `draw_without_viewers`), not otherwise."""
+        d = self.dashboard
+        with self._cloud_lock:
+            if getattr(self, "_closed", False):
+                return
+            watched = d.config.draw_without_viewers or bool(d.server.get_clients())
+            if watched and self._cloud_sub is None:
+                self._cloud_sub = Subscriber(self.session, self.keys.perception_cloud, PointCloud, d.on_cloud)
+            elif not watched and self._cloud_sub is not None:
+                self._cloud_sub.close()
+                self._cloud_sub = None
+
     def close(self) -> None:
-        if getattr(self, "_closed", False):
-            return
-        self._closed = True
-        for c in reversed(self._closers):
+        with self._cloud_lock:
+            if getattr(self, "_closed", False):
+                return
+            self._closed = True
+            cloud, self._cloud_sub = self._cloud_sub, None
+        for c in [*reversed(self._closers), *([cloud] if cloud is not None else [])]:
             try:
                 c.close()
             except Exception:  # noqa: BLE001 - closing what is left

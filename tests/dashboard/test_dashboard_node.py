@@ -12,7 +12,7 @@ import pytest
 from dashboard_support import scene_messages, wait_until
 
 from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, declare_alive, locators, open_session, serve_run_control
-from bagit.common.messages import ArmState, ControllerStatus, EStop, RunControl, RunControlReply, RunState, SoiState
+from bagit.common.messages import ArmState, ControllerStatus, EStop, PointCloud, RunControl, RunControlReply, RunState, SoiState
 from bagit.common.names import ESTOP_RELEASE_SOURCES, ESTOP_SOURCE_DASHBOARD
 from bagit.dashboard.node import DashboardNode
 from bagit.dashboard.server import DashboardConfig
@@ -52,6 +52,7 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
             "arm": Publisher(peer, keys.arm_state("left"), ArmState),
             "status": Publisher(peer, keys.controller_status, ControllerStatus),
             "run": Publisher(peer, keys.run_state, RunState),
+            "cloud": Publisher(peer, keys.perception_cloud, PointCloud),  # drawn without viewers: watched
         }
         assert wait_until(lambda: all(p.matched for p in pubs.values()))
         pubs["soi"].put(m["soi"])
@@ -89,13 +90,20 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
         server.close()
 
 
-def test_start_without_a_coordinator_says_so(rig_peer):
+def test_start_without_a_coordinator_says_so_and_nobody_watching_takes_no_cloud(rig_peer):
     rig, peer = rig_peer
+    keys = Keys(rig)
     node = DashboardNode(BusConfig(rig=rig, connect=locators(peer)), DashboardConfig(port=0), query_timeout_s=0.5)
+    soi, cloud = Publisher(peer, keys.perception_soi, SoiState), Publisher(peer, keys.perception_cloud, PointCloud)
     try:
         assert node.dashboard.panel.press_start() is None
         assert "nobody serves it" in node.dashboard.panel.message_md.content
+        # with no browser connected the dashboard takes the SOI but not the display cloud, so perception makes none
+        assert wait_until(lambda: soi.matched)
+        assert not cloud.matched
     finally:
+        soi.close()
+        cloud.close()
         node.close()
 
 
