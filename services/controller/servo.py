@@ -298,6 +298,7 @@ class ServoBase(ControllerCore):
                 self.jacobian = BroydenJacobian(J0, self.p.controller.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
             except NUMERIC_ERRORS as e:
                 return self._hold(f"no Jacobian estimate from the exploration: {e}", x)
+            self._pin_rigid(x, gripper_poses)  # J's initial estimate has the rigid model in it
         idx = tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
@@ -307,7 +308,8 @@ class ServoBase(ControllerCore):
         pending = self._valid_pending(pending)
         self._note_reach(pending, slowed)
         try:
-            self._pin_rigid(x, gripper_poses)
+            if self.p.controller.jacobian_update != "frozen":  # frozen: J stays its initial estimate
+                self._pin_rigid(x, gripper_poses)
             xp, grippers = self._predicted(xf, gripper_poses, None if slowed else pending)
             target = slide_to(goal, xp.reshape(-1, 3)).ravel()
             u, solve_ms, why = self._law(self.jacobian.J, xp, target, grippers)
