@@ -95,6 +95,10 @@ class ControllerExperimental(BaseModel):
     # The cloth lags the grippers, most of all its leading edge, on the far side of the object from
     # the camera; the grippers keep still at g† for a moment so it catches up before the lift.
     dagger_settle_s: float = Field(1.0, ge=0.0, le=10.0, description="grippers still at g† this long before the lift (s)")
+    # J's response to the two grippers moving as one rigid body (translating together, turning about
+    # their midpoint) is the rim moving as that body, from the grippers' and the SOI's positions each
+    # tick, not measured: the exploration measures those directions mostly as the bag's own motion.
+    rigid_pair: bool = Field(True, description="J's rigid motions of the gripper pair from the rigid model (False: measured, the paper)")
 
 
 class ControllerParams(BaseModel):

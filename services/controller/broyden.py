@@ -76,6 +76,70 @@ class BroydenJacobian:
         self.updates += 1
         return True
 
+    def pin(self, basis: np.ndarray, response: np.ndarray) -> None:
+        """Make J map each input direction of `basis (12, k)` to its known SOI change `response (3 n_x, k)`,
+        changing J least (in the input units of the rank-one update): J's action on directions
+        orthogonal to the basis in that inner product is kept. Not counted as an update; J's norm
+        bound is left to the next update (the pinned part is a model, not a measurement)."""
+        B = np.asarray(basis, dtype=float)
+        Rsp = np.asarray(response, dtype=float)
+        if B.shape[0] != self.J.shape[1] or Rsp.shape != (self.J.shape[0], B.shape[1]):
+            raise ValueError(f"basis {B.shape} and response {Rsp.shape} do not fit J {self.J.shape}")
+        self.J = pinned(self.J, B, Rsp, self.input_scale)
+
+
+def pinned(J: np.ndarray, basis: np.ndarray, response: np.ndarray, input_scale: np.ndarray | None = None) -> np.ndarray:
+    """`J (m, n)` changed least so that J @ basis = response (`basis (n, k)`, `response (m, k)`): the
+    least change in the inner product uᵀ diag(1/scale²) v of `input_scale (n,)` (Euclidean without),
+    J' = J + (response - J B)(Bᵀ W B)⁻¹ Bᵀ W. Directions W-orthogonal to the basis keep J's action."""
+    B = np.asarray(basis, dtype=float)
+    W = np.ones(B.shape[0]) if input_scale is None else 1.0 / np.asarray(input_scale, dtype=float) ** 2
+    BW = B.T * W  # (k, n) = Bᵀ W
+    try:
+        K = np.linalg.solve(BW @ B, BW)
+    except np.linalg.LinAlgError as e:
+        raise NumericalFailure(f"the pinned directions are degenerate: {e}") from None
+    return J + (np.asarray(response, dtype=float) - J @ B) @ K
+
+
+def rigid_pair_motions(p_left: np.ndarray, p_right: np.ndarray) -> np.ndarray:
+    """The six inputs `(12, 6)` that move both grippers as one rigid body: a unit translation along x, y,
+    z, then a unit turn (rad) about x, y, z through their midpoint (each gripper turns and is carried
+    round it). u's layout is `dual_arm`'s: [left dp drot, right dp drot], world frame, each gripper
+    turned about its own origin."""
+    pl, pr = np.asarray(p_left, dtype=float), np.asarray(p_right, dtype=float)
+    m = 0.5 * (pl + pr)
+    B = np.zeros((12, 6))
+    for k in range(3):
+        e = np.eye(3)[k]
+        B[[k, 6 + k], k] = 1.0
+        B[3:6, 3 + k] = B[9:12, 3 + k] = e
+        B[0:3, 3 + k] = np.cross(e, pl - m)
+        B[6:9, 3 + k] = np.cross(e, pr - m)
+    return B
+
+
+def rigid_pair_response(x: np.ndarray, p_left: np.ndarray, p_right: np.ndarray) -> np.ndarray:
+    """The SOI change `(3 n_x, 6)` of each of `rigid_pair_motions`' inputs if the rim `x (n_x, 3)` moves
+    with the grippers as one body: a translation moves every point by it, a turn ω about the midpoint
+    m moves y by ω × (y - m).
+
+    Why a model here and not a measurement: each gripper clamps a stretch of the rim, so when the
+    two move as one body the rim goes with them whatever the fabric, while the exploration's pushes
+    measure these directions mostly as the bag's own motion (a hanging bag moves a few mm a point
+    between frames, as much as a push moves it). Traced: a turn of both grippers about their line
+    turned the rim nearly one to one (docs/experiments.md, "a free arc hangs low"), while the
+    measured J had it 3-5x too large and nearly orthogonal."""
+    y = np.asarray(x, dtype=float).reshape(-1, 3)
+    m = 0.5 * (np.asarray(p_left, dtype=float) + np.asarray(p_right, dtype=float))
+    n = y.shape[0]
+    out = np.zeros((3 * n, 6))
+    for k in range(3):
+        e = np.eye(3)[k]
+        out[k::3, k] = 1.0
+        out[:, 3 + k] = np.cross(e, y - m).ravel()
+    return out
+
 
 def exploration_inputs(step_m: float = 0.004, step_rad: float = 0.04) -> np.ndarray:
     """The exploratory motions `(24, 12)`: each input direction forward then back, bounded in size."""

@@ -22,7 +22,7 @@ from bagit.common.messages import Command
 from bagit.common.names import ServoMode
 from bagit.common.params import MethodParams
 from bagit.common.rig import ArmName
-from bagit.services.controller.broyden import BroydenJacobian, Exploration
+from bagit.services.controller.broyden import BroydenJacobian, Exploration, rigid_pair_motions, rigid_pair_response
 from bagit.services.controller.guard import SoiGuard
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
 
@@ -298,6 +298,7 @@ class ServoBase(ControllerCore):
                 self.jacobian = BroydenJacobian(J0, self.p.controller.epsilon, min_step=MIN_SCALED_STEP, input_scale=self.u_max)
             except NUMERIC_ERRORS as e:
                 return self._hold(f"no Jacobian estimate from the exploration: {e}", x)
+            self._pin_rigid(x, gripper_poses)  # J's initial estimate has the rigid model in it
         idx = tracker.update(x)
         if self._finished(x):
             return self._out(np.zeros(12), "done", None, x, done=True)
@@ -307,6 +308,8 @@ class ServoBase(ControllerCore):
         pending = self._valid_pending(pending)
         self._note_reach(pending, slowed)
         try:
+            if self.p.controller.jacobian_update != "frozen":  # frozen: J stays its initial estimate
+                self._pin_rigid(x, gripper_poses)
             xp, grippers = self._predicted(xf, gripper_poses, None if slowed else pending)
             target = slide_to(goal, xp.reshape(-1, 3)).ravel()
             u, solve_ms, why = self._law(self.jacobian.J, xp, target, grippers)
@@ -324,6 +327,14 @@ class ServoBase(ControllerCore):
         out = self._out(u, "servo", None, x)
         out.solve_ms = solve_ms
         return out
+
+    def _pin_rigid(self, x: np.ndarray, grippers: dict[ArmName, np.ndarray]) -> None:
+        """J's rigid motions of the gripper pair set from the rigid model at this SOI `x (n_x, 3)` and these
+        grippers (`rigid_pair_response`); the rest of J stays the exploration's and Broyden's."""
+        if self.jacobian is None or not self.p.controller.experimental.rigid_pair:
+            return
+        pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
+        self.jacobian.pin(rigid_pair_motions(pl, pr), rigid_pair_response(x, pl, pr))
 
     def _predicted(
         self, xf: np.ndarray, grippers: dict[ArmName, np.ndarray], pending: np.ndarray | None

@@ -6,7 +6,7 @@ import pytest
 from bagit.common.dual_arm import apply_increment
 from bagit.common.params import MethodParams
 from bagit.services.controller import BroydenJacobian, Exploration, c7_limits
-from bagit.services.controller.broyden import exploration_inputs, jacobian_from_exploration
+from bagit.services.controller.broyden import exploration_inputs, jacobian_from_exploration, rigid_pair_motions, rigid_pair_response
 from bagit.services.controller.synthetic import SyntheticRim
 
 
@@ -157,3 +157,36 @@ def test_scaled_update_keeps_the_secant_condition_and_converges():
     assert np.linalg.norm((est.J - J_true) * scale) / np.linalg.norm(J_true * scale) < 1e-3
     with pytest.raises(ValueError):
         BroydenJacobian(np.zeros((30, 12)), input_scale=np.zeros(12))
+
+
+def test_rigid_pair_response_is_the_rim_carried_by_both_grippers():
+    """Moving both grippers as one body (a few mm, a few hundredths of a radian about their midpoint,
+    turned off the rest pose) moves the synthetic rim, which follows its clamps, as predicted."""
+    m = SyntheticRim(32)
+    g = apply_increment(m.home(), np.array([0.01, -0.02, 0.03, 0.1, -0.2, 0.15, -0.01, 0.02, -0.01, 0.1, -0.2, 0.15]))
+    pl, pr = g["left"][:3, 3], g["right"][:3, 3]
+    B = rigid_pair_motions(pl, pr)
+    R = rigid_pair_response(m.rim(g), pl, pr)
+    assert B.shape == (12, 6) and R.shape == (96, 6)
+    h = 1e-5
+    for k in range(6):
+        fd = (m.rim(apply_increment(g, h * B[:, k])) - m.rim(apply_increment(g, -h * B[:, k]))).ravel() / (2 * h)
+        assert np.allclose(fd, R[:, k], atol=1e-6), k
+
+
+def test_pin_sets_the_pinned_directions_and_keeps_the_rest():
+    """After `pin`, J maps the basis to the response exactly; its action on inputs orthogonal to the
+    basis (in the update's C7 units) is J's before."""
+    rng = np.random.default_rng(9)
+    u_max = c7_limits(MethodParams())
+    est = BroydenJacobian(rng.normal(size=(96, 12)), input_scale=u_max)
+    J_before = est.J.copy()
+    B, R = rng.normal(size=(12, 6)), rng.normal(size=(96, 6))
+    est.pin(B, R)
+    assert np.allclose(est.J @ B, R)
+    v = rng.normal(size=12)
+    W = 1.0 / u_max**2
+    v -= B @ np.linalg.solve((B.T * W) @ B, (B.T * W) @ v)  # the share of v orthogonal to B
+    assert np.allclose(est.J @ v, J_before @ v) and not np.allclose(est.J, J_before)
+    with pytest.raises(ValueError):
+        est.pin(B[:, :3], R)

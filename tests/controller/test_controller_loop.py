@@ -11,6 +11,7 @@ from bagit.common.errors import BadControlInput
 from bagit.common.messages import Path
 from bagit.common.params import MethodParams
 from bagit.services.controller import ShapeServo, c7_limits, make_controller
+from bagit.services.controller.broyden import rigid_pair_motions, rigid_pair_response
 from bagit.services.controller.mpc import separation_gradient
 from bagit.services.controller.synthetic import SyntheticRim
 
@@ -273,3 +274,27 @@ def test_a_frozen_jacobian_keeps_the_explorations_estimate_the_online_one_moves(
             assert np.array_equal(c.jacobian.J, J0) and c.jacobian.updates == 0
         else:
             assert c.jacobian.updates > 0 and not np.array_equal(c.jacobian.J, J0)
+
+
+def test_the_rigid_pair_model_sets_js_rigid_motions_each_tick_and_only_those():
+    """With `rigid_pair` (the default) J maps the grippers' six rigid motions, at the poses of the tick, to
+    the rim carried along with them; the other directions are the exploration's and Broyden's. Without
+    it J's rigid motions are what was measured (on the synthetic rim, close to the model but not it)."""
+    m = SyntheticRim(32)
+    path = _path(m)
+    for rigid in (True, False):
+        c = make_controller("mpc", MethodParams.model_validate({"rigid_pair": rigid}), m.n_x)
+        g = m.home()
+        c.reset(m.rim(g), Path(nodes=path, dagger_index=5), g)
+        t, servo_ticks = 0.0, 0
+        while servo_ticks < 20:
+            x = m.rim(g)
+            out = c.step(x, t, g, source_stamp=t)
+            servo_ticks += out.mode == "servo"
+            g_law, x_law = g, x  # the poses and SOI this tick's J was pinned at
+            g = apply_increment(g, out.u)
+            t += c.dt
+        pl, pr = g_law["left"][:3, 3], g_law["right"][:3, 3]
+        B, R = rigid_pair_motions(pl, pr), rigid_pair_response(x_law, pl, pr)
+        err = np.linalg.norm(c.jacobian.J @ B - R) / np.linalg.norm(R)
+        assert (err < 1e-9) if rigid else (1e-3 < err < 0.3), (rigid, err)
