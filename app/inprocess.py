@@ -90,7 +90,7 @@ def run_inprocess(opts: RunOptions, progress: Callable[[str], None] = lambda s: 
     fps = camera_fps(opts.fps, True, rate)  # lockstep: a frame per control tick unless told
     if not 0 < fps <= 120:
         raise BagItError(f"fps must be in (0, 120], got {fps}")
-    sim = SimRig(sc, opts.rig, opts.seed)
+    sim = SimRig(sc, (opts.rig or RigConfig()).for_bag(sc.bag.perimeter_m()), opts.seed)  # the arms keep to this bag's rim
     try:
         return _Run(sim, opts, fps, t_wall, progress).run()
     finally:

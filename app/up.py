@@ -101,6 +101,15 @@ def zenoh_config(hub: str, lease_ms: int = WALL_LEASE_MS) -> dict[str, Any]:
     }
 
 
+def lab_rig(rig: RigConfig, world: str) -> RigConfig:
+    """What a lab writes once into its rig config for the bag on its table, here the simulated world's: its
+    rim's perimeter, which the arm driver's separation limit follows (`RigConfig.for_bag`)."""
+    from bagit.common.scenario import Scenario
+    from bagit.scenarios import find_scenario
+
+    return rig.for_bag(Scenario.from_file(find_scenario(world)).bag.perimeter_m())
+
+
 def lab_perception_config(world: str) -> dict[str, Any]:
     """What a lab writes once into perception's config for the bag on its table, here the simulated
     world's: its binding's colour (perception never reads the simulator's truth, nor the scenario's binding)."""
@@ -212,7 +221,7 @@ class Up:
             "left": rig.arms["left"].model_copy(update={"dashboard_port": cr5[0], "feedback_port": cr5[1]}),
             "right": rig.arms["right"].model_copy(update={"dashboard_port": cr5[2], "feedback_port": cr5[3]}),
         }
-        rig = rig.model_copy(update={"arms": arms})
+        rig = lab_rig(rig.model_copy(update={"arms": arms}), self.opts.scenario or self.opts.world)
         rpath = self.dir / "rig.yaml"
         rpath.write_text(rig.to_yaml(), encoding="utf-8")
         self.driver_config.write_text(json.dumps({"driver": SIM_DRIVER_TIMEOUTS}, indent=2), encoding="utf-8")

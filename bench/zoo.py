@@ -423,16 +423,12 @@ def _map_lines(m: dict[str, list[dict[str, Any]]]) -> list[str]:
     if not m:
         return []
     lines = ["", f"Success against each parameter ({MAP_BINS} equal bins of its range, in its own scale; "
-             f"falls off: the bins below {FALLOFF_RATE:.0%}, with the causes of their failures):", "",
-             "| parameter | " + " | ".join(f"bin {b + 1}" for b in range(MAP_BINS)) + " | falls off | causes |",
-             "| --- |" + " --- |" * (MAP_BINS + 2)]
+             f"falls off: the bins below {FALLOFF_RATE:.0%}, each with the causes of its own failures):", "",
+             "| parameter | " + " | ".join(f"bin {b + 1}" for b in range(MAP_BINS)) + " | falls off (causes) |",
+             "| --- |" + " --- |" * (MAP_BINS + 1)]
     for k, bins in m.items():
         cells = [f"{b['success']}/{b['of']} ({b['lo']:.3g}-{b['hi']:.3g})" for b in bins]
         low = [b for b in bins if b["of"] and b["success"] / b["of"] < FALLOFF_RATE]
-        where = ", ".join(f"{b['lo']:.3g}-{b['hi']:.3g}" for b in low) or "-"
-        causes: dict[str, int] = {}
-        for b in low:
-            for c, n in b["causes"].items():
-                causes[c] = causes.get(c, 0) + n
-        lines.append(f"| {k} | " + " | ".join(cells) + f" | {where} | {', '.join(f'{c} {n}' for c, n in sorted(causes.items())) or '-'} |")
+        where = "; ".join(f"{b['lo']:.3g}-{b['hi']:.3g} ({', '.join(f'{c} {n}' for c, n in sorted(b['causes'].items()))})" for b in low)
+        lines.append(f"| {k} | " + " | ".join(cells) + f" | {where or '-'} |")
     return lines

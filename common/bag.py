@@ -27,6 +27,7 @@ RIM_TUBE_RADIUS_M = 0.006  # the binding's radius (drawn, and its bending sectio
 RIM_YOUNG_PA = 1e5  # the binding's Young's modulus before bending was a field: EI = E pi r^4 / 4
 RIM_BENDING_NM2 = RIM_YOUNG_PA * math.pi * RIM_TUBE_RADIUS_M**4 / 4  # ~1.02e-4 N m^2, a doubled fabric strip's
 RIM_COLOR: RGB = (0.85, 0.05, 0.05)  # the red edge
+RIM_PERIMETER_M = 0.68  # the paper's bag: the simulated rim of a scenario that gives neither bag.rim_perimeter nor bag.initial_rim
 KEY_LIGHT_DIRECTION = (0.0, 0.0, -1.0)  # straight down onto the table
 
 # -- physically sane bounds (validation) --------------------------------------------------------------

@@ -15,6 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bagit.common import cr5
+from bagit.common.bag import RIM_PERIMETER_M
 from bagit.common.board import BoardSpec
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import make_transform, pose_to_matrix
@@ -112,6 +113,27 @@ def _default_arms() -> dict[ArmName, ArmConfig]:
     }
 
 
+# How far short of half its rim's perimeter the mounts stay (`rim_separation_limit_m`): what the rig's one fixed
+# limit, 0.32 m, always left under the paper's 0.68 m bag (0.34 - 0.32), now kept for every bag, so that a run
+# of a 0.68 m bag keeps the limit it had to the last bit.
+RIM_SEPARATION_MARGIN_M = 0.02
+
+
+def rim_separation_limit_m(rim_perimeter_m: float) -> float:
+    """The farthest apart the two mounts may hold a rim of perimeter P (m): P/2 - RIM_SEPARATION_MARGIN_M.
+
+    Why P/2: two points of a closed curve of length P are at most P/2 apart (the two arcs between them are
+    each at least as long as the chord and together P long), and a mount's centre is the mean of the rim
+    points it clamps, inside the rim's convex hull, whose diameter is the rim's. So no intact rim can hold
+    the mounts further apart than P/2, whatever the mounts' shape: that is the rim folded flat and pulled
+    taut between them. Beyond it the arms pull against each other through the fabric (a real bag tears; the
+    simulated membrane stretches). The shapes the method asks for lie well inside: a round rim holds the
+    mounts P/pi (0.32 P) apart, the simulator's start rim 0.31 P (an ellipse of aspect 1.3) and, pulled
+    taut, 0.33 P (each of its mounts clamps a quarter of the rim); the goal's rim has the bag's perimeter.
+    """
+    return rim_perimeter_m / 2 - RIM_SEPARATION_MARGIN_M
+
+
 class SafetyLimits(BaseModel):
     """Limits the arm driver enforces on every outgoing command.
 
@@ -145,8 +167,15 @@ class SafetyLimits(BaseModel):
     stop_tcp_jerk_mps3: float = Field(100.0, gt=0, le=1000.0, description="a stop's jerk at the mount (norm)")
     stop_angular_accel_rps2: float = Field(8.0, gt=0, description="a stop's angular deceleration of the tool (norm)")
     stop_angular_jerk_rps3: float = Field(200.0, gt=0, le=2000.0, description="a stop's angular jerk of the tool (norm)")
-    min_flange_distance_m: float = Field(0.08, ge=0.0)
-    max_flange_distance_m: float = Field(0.32, gt=0.0, description="the rim cannot stretch further")
+    min_flange_distance_m: float = Field(0.08, ge=0.0, description="the mounts at least this far apart: the tools must not meet")
+    max_flange_distance_m: float | None = Field(
+        None, gt=0.0, description="the rig's own ceiling on the mounts' separation (m), if it has one (its cell, its cables); "
+        "the arms keep the lower of it and the bag's rim's (`max_separation_m`); the workspace boxes bound them besides",
+    )
+    rim_perimeter_m: float = Field(
+        RIM_PERIMETER_M, gt=0.05, lt=10.0, description="the perimeter of the rim of the bag the arms hold (m): the separation "
+        "follows it (`rim_separation_limit_m`); `bagit run` and `bagit up` set the scenario's, a lab its own bag's (`RigConfig.for_bag`)",
+    )
     watchdog_s: float = Field(
         0.12, gt=0, le=5.0,
         description="no command for this long: the arms brake to rest (issued a servo period ahead, so a gap of "
@@ -179,6 +208,22 @@ class SafetyLimits(BaseModel):
             if getattr(self, stop) > most:
                 raise ValueError(f"{stop} ({getattr(self, stop):g}) is more than the CR5's joints can brake ({most:g}, cr5.JOINT_ACCEL_LIMIT)")
         return self
+
+    @model_validator(mode="after")
+    def _the_bag_fits_between_the_tools(self) -> SafetyLimits:
+        """The tools cannot come closer than `min_flange_distance_m`: a rim that cannot hold them that far apart
+        is too small for this rig (or its ceiling below its floor)."""
+        if self.max_separation_m <= self.min_flange_distance_m:
+            raise ValueError(f"the mounts may be at most {self.max_separation_m * 1000:.0f} mm apart (a rim of {self.rim_perimeter_m:g} m"
+                             + (f", the rig's ceiling {self.max_flange_distance_m:g} m" if self.max_flange_distance_m is not None else "")
+                             + f"), not more than min_flange_distance_m ({self.min_flange_distance_m * 1000:.0f} mm): the bag is too small for the tools")
+        return self
+
+    @property
+    def max_separation_m(self) -> float:
+        """The farthest apart the arm driver lets the mounts be: the bag's rim's limit, under the rig's own ceiling if any."""
+        bag = rim_separation_limit_m(self.rim_perimeter_m)
+        return bag if self.max_flange_distance_m is None else min(bag, self.max_flange_distance_m)
 
     def path_limits(self) -> np.ndarray:
         """`(2, 3)` [[speed, acceleration, jerk] linear (m), [...] angular (rad)]: what following keeps."""
@@ -219,6 +264,15 @@ class RigConfig(BaseModel):
         except ValidationError as e:
             first = e.errors()[0]
             raise BadScenario(f"{p}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+
+    def for_bag(self, rim_perimeter_m: float) -> RigConfig:
+        """This rig holding a bag whose rim is `rim_perimeter_m` (m) long: its separation limit follows that rim.
+        BadScenario when the rig cannot hold it (too small for the tools)."""
+        try:
+            safety = SafetyLimits.model_validate({**self.safety.model_dump(), "rim_perimeter_m": rim_perimeter_m})
+        except ValidationError as e:
+            raise BadScenario(f"a bag of perimeter {rim_perimeter_m:g} m: {e.errors()[0]['msg']}") from None
+        return self.model_copy(update={"safety": safety})
 
     def to_yaml(self) -> str:
         import json

@@ -15,7 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from bagit.common.aruco import ARUCO_DICTIONARIES, ArucoDictionary
-from bagit.common.bag import FabricSpec, RimSpec, SimSpec
+from bagit.common.bag import RIM_PERIMETER_M, FabricSpec, RimSpec, SimSpec
 from bagit.common.errors import BadScenario
 from bagit.common.geometry import closed_polyline_length, make_transform, pca, pose_to_matrix, resample_closed
 from bagit.common.names import MAX_N_X, MIN_N_X
@@ -189,6 +189,10 @@ class BagSpec(BaseModel):
         if self.rim_perimeter is None and self.initial_rim is not None:
             self.rim_perimeter = closed_polyline_length(np.asarray(self.initial_rim))
         return self
+
+    def perimeter_m(self) -> float:
+        """The rim's perimeter the simulator builds and the arms hold: R (given or measured from g0), else the paper's bag's."""
+        return self.rim_perimeter or RIM_PERIMETER_M
 
     def g0(self) -> np.ndarray | None:
         """The initial SOI `(n_x, 3)` resampled to n_x points, or None when perception must give it."""

@@ -7,7 +7,8 @@ mount transforms, one per arm, in a dict keyed 'left' / 'right'. The envelope, f
 - workspace: each arm's mount centre and tool flange stay inside that arm's box (world frame,
   `ArmConfig.workspace_min/max`); a pose outside is translated back in;
 - separation: the two mount centres stay between `min_flange_distance_m` (the tools must not
-  meet) and `max_flange_distance_m` (the bag cannot stretch further than its rim). Both limits are
+  meet) and `max_separation_m` (the bag cannot stretch further than its rim: half its perimeter less a
+  margin, `bagit.common.rig.rim_separation_limit_m`, under the rig's own ceiling if any). Both limits are
   measured between the mounts, which hold the rim: with the default rig the flanges sit 6 cm further
   out each, 0.33 m apart at the start, so measuring at the flanges would refuse the rig's own start;
 - speed: from one command to the next (`dt` apart) a mount moves at most `max_tcp_speed_mps * dt`
@@ -111,8 +112,8 @@ def static_violations(p: np.ndarray, R: np.ndarray, env: Envelope, tol: float = 
     lim = env.limits
     if d < lim.min_flange_distance_m - tol:
         out.append(Violation("both", "min_distance", f"mounts {d * 1000:.1f} mm apart < {lim.min_flange_distance_m * 1000:.0f} mm"))
-    if d > lim.max_flange_distance_m + tol:
-        out.append(Violation("both", "max_distance", f"mounts {d * 1000:.1f} mm apart > {lim.max_flange_distance_m * 1000:.0f} mm"))
+    if d > lim.max_separation_m + tol:
+        out.append(Violation("both", "max_distance", f"mounts {d * 1000:.1f} mm apart > {lim.max_separation_m * 1000:.0f} mm"))
     return out
 
 
@@ -168,9 +169,9 @@ def clip_static(p: np.ndarray, R: np.ndarray, env: Envelope, previous_p: np.ndar
         # separation: move both mounts symmetrically along the line between them
         d = p[1] - p[0]
         n = float(np.linalg.norm(d))
-        if n > lim.max_flange_distance_m:
+        if n > lim.max_separation_m:
             u = d / n
-            excess = (n - lim.max_flange_distance_m) / 2
+            excess = (n - lim.max_separation_m) / 2
             p[0] += excess * u
             p[1] -= excess * u
         elif n < lim.min_flange_distance_m:

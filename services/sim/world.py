@@ -28,7 +28,6 @@ from bagit.services.sim.objects import object_mesh, object_parts, object_pose
 from bagit.services.sim.scene import TIMESTEP, build_mjcf, scene_files
 from bagit.services.sim.truth import GroundTruth, PenetrationMonitor
 
-DEFAULT_PERIMETER_M = 0.68  # the paper's bag
 RIM_BELOW_OBJECT_M = 0.12  # default start: the rim this far below the object's lowest point ...
 RIM_BESIDE_OBJECT_M = 0.15  # ... and this far beside it (towards +x, the camera's side)
 MAX_MOUNT_SPEED_MPS = 1.5  # an arm's flange cannot move faster than this ...
@@ -88,7 +87,7 @@ class SimWorld:
         self.scenario = scenario
         self.rig = rig or RigConfig()
         self.seed = int(seed)
-        R = scenario.bag.rim_perimeter or DEFAULT_PERIMETER_M
+        R = scenario.bag.perimeter_m()
         g0 = scenario.bag.g0()
         if g0 is not None:
             # At g0's centroid, level: the bag hangs from mounts at one height (perception's solid-bag

@@ -25,7 +25,7 @@ def _arms(q_left: np.ndarray, q_right: np.ndarray) -> tuple[Cr5Arms, dict[str, S
     rig = RigConfig()
     rig = rig.model_copy(update={
         "arms": {a: rig.arms[a].model_copy(update={"workspace_min": (-2.0, -2.0, -2.0), "workspace_max": (2.0, 2.0, 2.0)}) for a in ARMS},
-        "safety": rig.safety.model_copy(update={"min_flange_distance_m": 0.0, "max_flange_distance_m": 5.0}),
+        "safety": rig.safety.model_copy(update={"min_flange_distance_m": 0.0, "rim_perimeter_m": 9.9}),
     })
     robots = {"left": SimulatedCR5(rig.arms["left"], q0=q_left, name="left"), "right": SimulatedCR5(rig.arms["right"], q0=q_right, name="right")}
 

@@ -6,7 +6,7 @@ from arm_driver_support import home_poses
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bagit.common.rig import ArmConfig, RigConfig
+from bagit.common.rig import RIM_SEPARATION_MARGIN_M, ArmConfig, RigConfig
 from bagit.common.so3 import so3_exp
 from bagit.services.arm_driver.limits import (
     Envelope,
@@ -90,13 +90,30 @@ def test_separation_is_kept_between_the_limits():
     out, found = check_and_clip(far, None, DT, ENV)
     assert [v.kind for v in found] == ["max_distance"]
     d = np.linalg.norm(out["right"][:3, 3] - out["left"][:3, 3])
-    assert d == pytest.approx(LIM.max_flange_distance_m, abs=1e-9)
+    assert d == pytest.approx(LIM.max_separation_m, abs=1e-9)
     mid_in, mid_out = (far["left"][:3, 3] + far["right"][:3, 3]) / 2, (out["left"][:3, 3] + out["right"][:3, 3]) / 2
     assert np.allclose(mid_in, mid_out)  # both arms give way equally
     near = moved(prev, dl=(0, 0.07, 0), dr=(0, -0.07, 0))  # 0.072 m < 0.08 m
     out, found = check_and_clip(near, None, DT, ENV)
     assert [v.kind for v in found] == ["min_distance"]
     assert np.linalg.norm(out["right"][:3, 3] - out["left"][:3, 3]) == pytest.approx(LIM.min_flange_distance_m, abs=1e-9)
+
+
+@pytest.mark.parametrize("perimeter", [0.4, 0.56, 0.68, 1.03, 1.06, 1.3])
+def test_every_envelope_bag_starts_inside_its_own_limit_and_a_pull_past_it_stops_there(perimeter):
+    """The simulator's start mounts (0.31 P apart) pass the gate of the rig holding that bag, from the smallest
+    envelope bag to the largest; pulled apart past P/2 less the margin, both give way to exactly the limit."""
+    from bagit.common.mounts import rim_frame
+    from bagit.services.sim.bag import bag_layout
+
+    env = Envelope.from_rig(RigConfig().for_bag(perimeter))
+    start = bag_layout(perimeter, 0.3, rim_frame(np.array([0.1, 0.0, 0.47]))).mount_home
+    assert violations(start, None, DT, env) == []
+    d0 = np.linalg.norm(start["right"][:3, 3] - start["left"][:3, 3])
+    pull = (perimeter / 2 - d0) / 2  # each mount: together they ask for P/2, past the limit by the margin
+    out, found = check_and_clip(moved(start, dl=(0, -pull, 0), dr=(0, pull, 0)), None, DT, env)
+    assert [v.kind for v in found] == ["max_distance"]
+    assert np.linalg.norm(out["right"][:3, 3] - out["left"][:3, 3]) == pytest.approx(perimeter / 2 - RIM_SEPARATION_MARGIN_M, abs=1e-9)
 
 
 def test_coincident_mounts_are_pushed_apart_along_the_previous_separation():
