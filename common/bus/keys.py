@@ -103,7 +103,8 @@ class KeySpec:
 # The key space and QoS, in one place (docs/architecture.md's "Zenoh key space and QoS" is generated from this).
 KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("camera/rgbd", RgbdFrame, STATE, "pub", "640x480 colour + depth, ~1.5 MB; a stale frame is useless", lockstep=True),
-    KeySpec("perception/cloud", PointCloud, DISPLAY, "pub", "down-sampled cloud, for display only; made only while subscribed (the dashboard subscribes while a browser watches)"),
+    KeySpec("perception/cloud", PointCloud, DISPLAY, "pub",
+            "down-sampled cloud, for display only; made only while subscribed (the dashboard subscribes while a browser watches)"),
     KeySpec("perception/soi", SoiState, STATE_HIGH, "pub", "rim estimate; the controller wants the newest", lockstep=True),
     KeySpec("perception/object", ObjectDetection, STATE, "pub",
             "marker id, object and its outline V in the world, ~1 Hz while a run perceives; the newest replaces the last", lockstep=True),
