@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TextIO
+from typing import TYPE_CHECKING, Any, Literal, TextIO
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
 from bagit.common.errors import BusError
@@ -46,6 +46,9 @@ from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES
 from bagit.common.rig import RigConfig
 from bagit.forkserver import ForkedProcess, ForkServer, child_env, child_setup
 from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
+
+if TYPE_CHECKING:
+    from bagit.common.scenario import BagSpec
 
 SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboard")
 # A service that needs another one up before it can start (the arm driver connects to the CR5s the
@@ -101,22 +104,24 @@ def zenoh_config(hub: str, lease_ms: int = WALL_LEASE_MS) -> dict[str, Any]:
     }
 
 
-def lab_rig(rig: RigConfig, world: str) -> RigConfig:
-    """What a lab writes once into its rig config for the bag on its table, here the simulated world's: its
-    rim's perimeter, which the arm driver's separation limit follows (`RigConfig.for_bag`)."""
+def lab_bag(world: str) -> BagSpec:
+    """The bag on the simulated world's table, which a lab would describe once for its own: the arm driver's
+    separation limit follows its rim's perimeter (`RigConfig.for_bag`), perception takes its binding's colour."""
     from bagit.common.scenario import Scenario
     from bagit.scenarios import find_scenario
 
-    return rig.for_bag(Scenario.from_file(find_scenario(world)).bag.perimeter_m())
+    return Scenario.from_file(find_scenario(world)).bag
+
+
+def bag_perception_config(bag: BagSpec) -> dict[str, Any]:
+    """What a lab writes once into perception's config for its bag: the binding's colour (perception never
+    reads the simulator's truth, nor the scenario's binding)."""
+    return {"bag_rim_color": list(bag.rim.color)}
 
 
 def lab_perception_config(world: str) -> dict[str, Any]:
-    """What a lab writes once into perception's config for the bag on its table, here the simulated
-    world's: its binding's colour (perception never reads the simulator's truth, nor the scenario's binding)."""
-    from bagit.common.scenario import Scenario
-    from bagit.scenarios import find_scenario
-
-    return {"bag_rim_color": list(Scenario.from_file(find_scenario(world)).bag.rim.color)}
+    """Perception's config for the bag of the simulated world `world` (`bag_perception_config`)."""
+    return bag_perception_config(lab_bag(world))
 
 
 @dataclass
@@ -177,7 +182,7 @@ class Up:
         self.dir = Path(tempfile.mkdtemp(prefix="bagit-up-")) if opts.workdir is None else Path(opts.workdir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.driver_config = self.dir / "arm-driver.yaml"  # the arm driver's link time-outs (SIM_DRIVER_TIMEOUTS)
-        self.perception_config = self.dir / "perception.yaml"  # the lab's bag: its binding colour (`lab_perception_config`)
+        self.perception_config = self.dir / "perception.yaml"  # the lab's bag: its binding colour (`bag_perception_config`)
         self.keys = Keys(opts.rig)
         self.children: dict[str, Child] = {}
         self._stopping = threading.Event()
@@ -221,11 +226,12 @@ class Up:
             "left": rig.arms["left"].model_copy(update={"dashboard_port": cr5[0], "feedback_port": cr5[1]}),
             "right": rig.arms["right"].model_copy(update={"dashboard_port": cr5[2], "feedback_port": cr5[3]}),
         }
-        rig = lab_rig(rig.model_copy(update={"arms": arms}), self.opts.scenario or self.opts.world)
+        bag = lab_bag(self.opts.scenario or self.opts.world)  # read once: the rig and perception both describe it
+        rig = rig.model_copy(update={"arms": arms}).for_bag(bag.perimeter_m())
         rpath = self.dir / "rig.yaml"
         rpath.write_text(rig.to_yaml(), encoding="utf-8")
         self.driver_config.write_text(json.dumps({"driver": SIM_DRIVER_TIMEOUTS}, indent=2), encoding="utf-8")
-        self.perception_config.write_text(json.dumps(lab_perception_config(self.opts.scenario or self.opts.world), indent=2), encoding="utf-8")
+        self.perception_config.write_text(json.dumps(bag_perception_config(bag), indent=2), encoding="utf-8")
         return zpath, rpath
 
     def _argv(self, name: str, zpath: Path, rpath: Path) -> list[str]:
