@@ -18,6 +18,7 @@ that order, and returns the node's final status.
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 import time
@@ -136,37 +137,63 @@ def flagged_camera(camera: CameraConfig, **flags: Any) -> CameraConfig:
         raise CameraError(f"bad camera settings: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
 
 
-SIGNAL_WAKE_S = 0.1  # the longest a command's main thread waits between looks at its signals
+ENDED_POLL_S = 0.1  # how often a waiting command looks at its node's own `stopped` event
 
 
 def stop_on_signals(stop: threading.Event) -> Callable[[], None]:
-    """SIGINT and SIGTERM set `stop` (in the main thread only: elsewhere Python cannot take signals);
-    returns what puts the previous handlers back. Every command's one way to be stopped."""
+    """SIGINT and SIGTERM set `stop`; returns what puts the previous handlers back. Every command's one way to
+    be stopped (set up in the main thread only: elsewhere Python cannot take signals).
+
+    No handler takes a lock. Python runs a handler in the main thread between two bytecodes; one that called
+    `stop.set()` while the main thread was entering `stop.wait()`, holding `stop`'s own lock, deadlocked (the
+    planner's rare hang on SIGTERM, caught by its stack dump). Here the C-level wake-up fd gets the signal's
+    number whichever thread the kernel picked, the Python handler writes it too, and a relay thread reading
+    that pipe sets `stop`, so a signal also wakes a main thread blocked in a wait of any length."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    stops = {int(signal.SIGINT), int(signal.SIGTERM)}
+
+    def poke(signum: int, _frame: object) -> None:
+        try:
+            os.write(w, bytes([signum]))
+        except OSError:  # the pipe is full (a byte is already waiting) or closed (restored)
+            pass
+
+    def relay() -> None:
+        while data := os.read(r, 64):  # EOF once restore closes the write end
+            if stops.intersection(data):
+                stop.set()
+
+    thread = threading.Thread(target=relay, name="signal-relay", daemon=True)
+    thread.start()
+    previous_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    previous = {s: signal.signal(s, poke) for s in (signal.SIGINT, signal.SIGTERM)}
 
     def restore() -> None:
         for s, h in previous.items():
             signal.signal(s, h)
+        signal.set_wakeup_fd(previous_fd)
+        os.close(w)
+        thread.join(1.0)  # at once; only a child forked without exec could still hold the write end
+        if not thread.is_alive():
+            os.close(r)
 
     return restore
 
 
 def wait_stop(stop: threading.Event, duration: float | None = None, ended: threading.Event | None = None) -> bool:
-    """Until `stop` (the command's SIGINT/SIGTERM handler sets it), `duration` s or `ended`; True if `ended`.
-
-    Woken every SIGNAL_WAKE_S: a signal the kernel hands to another thread (a SIGTERM right after a
-    SIGCONT can land there) only flags it, and Python runs the handler once the main thread next wakes;
-    a wait with no time-out would never see it."""
+    """Until `stop` (set by `stop_on_signals` on SIGINT/SIGTERM, at once), `duration` s or `ended`; True if
+    `ended`. Only `ended`, a node's own event, is looked at on an interval (ENDED_POLL_S)."""
     deadline = None if duration is None else time.monotonic() + duration
     while not stop.is_set():
         if ended is not None and ended.is_set():
             return True
-        left = SIGNAL_WAKE_S if deadline is None else min(SIGNAL_WAKE_S, deadline - time.monotonic())
-        if left <= 0:
+        left = None if deadline is None else deadline - time.monotonic()
+        if left is not None and left <= 0:
             break
-        stop.wait(left)
+        stop.wait(left if ended is None else ENDED_POLL_S if left is None else min(ENDED_POLL_S, left))
     return False
 
 
