@@ -410,6 +410,8 @@ def _stop_recorder(proc: subprocess.Popen) -> tuple[int, dict[str, Any], str]:
 def hostile_headers(hub: Any, ep: str, rig: str, d: Path) -> dict[str, Any]:
     """A ~200 kB nested header on any key and on run/state, and one that decodes but nests too deep for a
     JSON record, then a run with 50 SOIs: `bagit recorder`'s exit, summary, stderr and the SOIs recorded."""
+    import zenoh
+
     from bagit.common.messages import RunState, SoiState
     from bagit.services.recorder import read_messages
 
@@ -418,9 +420,10 @@ def hostile_headers(hub: Any, ep: str, rig: str, d: Path) -> dict[str, Any]:
     try:
         state, soi = _run_publishers(hub, rig)
         deep = nested_payload(100_000)
-        hub.put(f"bagit/{rig}/anything/at/all", deep)
-        hub.put(f"bagit/{rig}/run/state", deep)
-        hub.put(f"bagit/{rig}/run/state", nested_payload(600))  # decodes; pydantic cannot serialise it
+        block = {"congestion_control": zenoh.CongestionControl.BLOCK}  # each must arrive: a busy link drops big samples
+        hub.put(f"bagit/{rig}/anything/at/all", deep, **block)
+        hub.put(f"bagit/{rig}/run/state", deep, **block)
+        hub.put(f"bagit/{rig}/run/state", nested_payload(600), **block)  # decodes; pydantic cannot serialise it
         state.put(RunState(run_id="h1", stage="bagging"))
         for i in range(50):
             soi.put(SoiState(seq=i, rim=np.full((32, 3), float(i))))

@@ -244,9 +244,9 @@ def test_every_numeric_flag_refuses_nan_inf_and_negatives(command, flag, kind, c
 
 @pytest.mark.parametrize("value", ["inf", "nan", "-5", "1e308", "0.001"])
 def test_recorder_max_mb_is_validated_before_the_bus_opens(value, monkeypatch, capsys):
-    import bagit.common.bus as bus
+    import bagit.commands._service as service  # where the recorder opens the bus (imported here, before the patch)
 
-    monkeypatch.setattr(bus, "open_session", lambda *a, **k: pytest.fail("the recorder opened the bus"))
+    monkeypatch.setattr(service, "open_session", lambda *a, **k: pytest.fail("the recorder opened the bus"))
     one_line_error(capsys, ["recorder", "--max-mb", value, "--duration", "0.1"], "--max-mb")
 
 

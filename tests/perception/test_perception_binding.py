@@ -96,7 +96,7 @@ def test_the_perception_node_segments_the_binding_its_config_names():
             try:
                 sois: list[SoiState] = []
                 Subscriber(b, keys.perception_soi, SoiState, sois.append)
-                pub = Publisher(b, keys.camera_rgbd, RgbdFrame)
+                pub = Publisher(b, keys.camera_rgbd, RgbdFrame, lockstep=True)  # reliable: on a busy machine a best-effort 1.5 MB frame can be dropped
                 assert wait_until(lambda: pub.matched)
                 for k, f in enumerate(frames):  # each sent again until the node has it (a put before its subscriber is up is lost)
                     seen = node.counters["processed"] + node.counters["dropped"]
