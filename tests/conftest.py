@@ -1,6 +1,7 @@
 """Test-wide settings: headless MuJoCo rendering, no network beyond loopback."""
 
 import os
+from typing import Any
 
 from bus_support import pair  # noqa: F401 - the two-session fixture every bus test takes
 from hypothesis import settings
@@ -27,3 +28,29 @@ def pytest_collection_modifyitems(items: list) -> None:
         module = getattr(item, "module", None)
         if module is not None and any(v is rig_up or v is start_up for v in vars(module).values()):
             item.add_marker(pytest.mark.processes)
+
+
+# The files whose tests bring up whole rigs (`bagit up`, the multi-host rig, a Dask cluster) or a browser.
+# `make test` runs the suite on two workers, a file whole on one (`--dist loadfile`); these run one after
+# another on one worker, so that two rigs or a rig and a Chromium never share the two cores.
+ONE_AT_A_TIME = (
+    "tests/app/test_up.py",
+    "tests/app/test_up_browser.py",
+    "tests/dashboard/test_dashboard_browser.py",
+    "tests/bench/test_bench_multihost.py",
+    "tests/bench/test_bench_cluster.py",
+)
+
+
+def pytest_xdist_make_scheduler(config: Any, log: Any) -> Any:
+    """`--dist loadfile`, with the ONE_AT_A_TIME files as one unit of work."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class OneRigAtATime(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = super()._split_scope(nodeid)
+            return "whole rigs" if path in ONE_AT_A_TIME else path
+
+    return OneRigAtATime(config, log)
