@@ -84,7 +84,7 @@ class PlannerParams(BaseModel):
 
 
 class ControllerExperimental(BaseModel):
-    """The controller's additions to the paper (docs/experiments.md: twist weight, settle at g†)."""
+    """The controller's additions to the paper (docs/experiments.md: twist weight, settle at g†, the lift round V)."""
 
     model_config = _STRICT
 
@@ -99,6 +99,9 @@ class ControllerExperimental(BaseModel):
     # their midpoint) is the rim moving as that body, from the grippers' and the SOI's positions each
     # tick, not measured: the exploration measures those directions mostly as the bag's own motion.
     rigid_pair: bool = Field(True, description="J's rigid motions of the gripper pair from the rigid model (False: measured, the paper)")
+    # g† is the paper's bagging ellipse because it goes round V (C1): the SOI within the RMS tolerance
+    # of g† can still leave a corner of V outside it, and a lift from there catches the corner.
+    dagger_round_v: bool = Field(True, description="the lift starts only once the SOI at the settle's end goes round V; else servo to g† again (bounded)")
 
 
 class ControllerParams(BaseModel):

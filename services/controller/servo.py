@@ -10,6 +10,7 @@ tracker picks g_next on the path; the law (MPC, IBVS, SSVS) gives u (12,), which
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,7 +18,7 @@ import numpy as np
 
 from bagit.common.dual_arm import DualArmIncrement, apply_increment, pose_increment
 from bagit.common.errors import BadControlInput, NumericalFailure
-from bagit.common.geometry import closed_polyline_length
+from bagit.common.geometry import closed_polyline_length, enclosure
 from bagit.common.messages import Command
 from bagit.common.names import ServoMode
 from bagit.common.params import MethodParams
@@ -44,6 +45,9 @@ MIN_SCALED_STEP = 0.5
 REACH_BAR_TICKS = 30
 MIN_BAR_STEP = 0.5  # motion in flight under half a full-speed tick (in C7 units) names no direction to bar
 GOAL_STALL_TICKS = 45  # at g*: no improvement for this long (within 2x subgoal_tol) ends the run
+# With `dagger_round_v`, a settle at g† whose end finds V not inside the SOI is void and the servoing to
+# g† goes on; after this long since the first void settle, the next settle's end lifts regardless.
+DAGGER_ROUND_WAIT_S = 5.0
 # What a numerical routine raises on bad data (LinAlgError: e.g. 'SVD did not converge'); a tick that
 # meets one holds the arms with the reason.
 NUMERIC_ERRORS = (NumericalFailure, np.linalg.LinAlgError, FloatingPointError)
@@ -226,7 +230,8 @@ class ServoBase(ControllerCore):
         # a law aiming straight at g* (ssvs) has no g† to settle at
         c = self.p.controller
         settle = 0 if self.aims_at_goal else int(round(c.experimental.dagger_settle_s * c.control_rate_hz))
-        self.tracker = SubgoalTracker(nodes, dagger, c.subgoal_tol_m, c.goal_tol_m, GOAL_STALL_TICKS, settle)
+        self.tracker = SubgoalTracker(nodes, dagger, c.subgoal_tol_m, c.goal_tol_m, GOAL_STALL_TICKS, settle,
+                                      dagger_check=self._round_v_check(goal), dagger_wait_ticks=int(round(DAGGER_ROUND_WAIT_S * c.control_rate_hz)))
         self.path = self.tracker.path
         self._start_rim(x0, nodes, perimeter, self.separation_margin)
         if not (np.isfinite(self.perimeter) and self.perimeter > 2 * MIN_SEPARATION_M):
@@ -247,6 +252,25 @@ class ServoBase(ControllerCore):
         if x0 is not None and gripper_poses is not None:
             self._learn_separation_offset(x0, gripper_poses)
         self._on_reset()
+
+    def _round_v_check(self, goal: Any) -> Callable[[np.ndarray], bool] | None:
+        """With `dagger_round_v` and the run's Goal: does an SOI `(n_x, 3)` go round the goal's V (its
+        outline seen along the goal frame's z axis; `common.geometry.enclosure`)? None: no check (the
+        parameter off, no goal, or a goal without a usable outline)."""
+        if goal is None or not self.p.controller.experimental.dagger_round_v:
+            return None
+        V = np.asarray(getattr(goal, "vertices", np.zeros((0, 3))), dtype=float)
+        T = np.asarray(getattr(goal, "frame", np.eye(4)), dtype=float)
+        if V.ndim != 2 or V.shape[1:] != (3,) or len(V) < 1 or T.shape != (4, 4) or not (np.all(np.isfinite(V)) and np.all(np.isfinite(T))):
+            return None
+
+        def goes_round(x: np.ndarray) -> bool:
+            try:
+                return bool(enclosure(np.asarray(x, dtype=float).reshape(-1, 3), V, T)[0].min() >= 0.0)
+            except ValueError:  # an SOI the guard let through but the outline test cannot use: no say
+                return True
+
+        return goes_round
 
     def _on_reset(self) -> None:
         """Per-run state of the law (e.g. the MPC's solver)."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from bagit.common.errors import BadControlInput
@@ -16,7 +18,13 @@ class SubgoalTracker:
     """Walks along path `(n_nodes, n_x, 3)`: advance when close enough to the current subgoal or when a
     later node is already nearer, but never past g† (dagger_index) before g† itself was reached, that
     is, `dagger_settle_ticks` updates after the SOI first came within tolerance of it (while the
-    controller keeps the grippers still and the bag settles)."""
+    controller keeps the grippers still and the bag settles).
+
+    `dagger_check(x)`, when given, must also hold of the SOI at the settle's end (the lift's start): if
+    it does not, the settle is void, the controller servoes to g† again, and the next settle starts
+    once the SOI is within tolerance and passes the check. Once `dagger_wait_ticks` updates have gone
+    by since the first void settle, the next settle's end lifts whatever the check says (a bound on
+    the time it may cost). A settle whose end passes the check is the same as without one."""
 
     def __init__(
         self,
@@ -26,6 +34,8 @@ class SubgoalTracker:
         goal_tol: float,
         stall_ticks: int = 45,
         dagger_settle_ticks: int = 0,
+        dagger_check: Callable[[np.ndarray], bool] | None = None,
+        dagger_wait_ticks: int = 0,
     ):
         self.path = np.asarray(path, dtype=float)
         if self.path.ndim != 3 or len(self.path) < 1 or self.path.shape[2] != 3:
@@ -48,6 +58,12 @@ class SubgoalTracker:
             raise BadControlInput(f"dagger_settle_ticks must be >= 0, got {dagger_settle_ticks}")
         self.dagger_settle_ticks = dagger_settle_ticks
         self.settled_ticks = 0  # updates since the SOI first came within tolerance of g†
+        if dagger_wait_ticks < 0:
+            raise BadControlInput(f"dagger_wait_ticks must be >= 0, got {dagger_wait_ticks}")
+        self.dagger_check = dagger_check
+        self.dagger_wait_ticks = dagger_wait_ticks
+        self.void_settles = 0  # settles at g† whose end failed dagger_check
+        self._void_ticks = 0  # updates since the first of them
 
     def _reached(self, x: np.ndarray, k: int) -> bool:
         e = self.error(x, k)
@@ -58,6 +74,8 @@ class SubgoalTracker:
     def update(self, x: np.ndarray) -> int:
         """The index of g_next for the SOI `x (n_x, 3)`."""
         last = len(self.path) - 1
+        if self.void_settles and not self.dagger_reached:
+            self._void_ticks += 1
         e = self.error(x, self.index)
         if e < self._best - 1e-3:
             self._best, self._since_best = e, 0
@@ -84,13 +102,24 @@ class SubgoalTracker:
         return self.index
 
     def _settle_at_dagger(self, x: np.ndarray) -> None:
-        """One update at g†: the settle starts when the SOI first comes within tolerance and then
-        counts every update; g† is reached when it is over."""
-        if self.settled_ticks == 0 and not self._reached(x, self.dagger):
+        """One update at g†: the settle starts when the SOI first comes within tolerance (after a void
+        settle: and passes `dagger_check`) and then counts every update; g† is reached when it is over
+        and the SOI passes the check, else the settle is void and the servoing to g† goes on."""
+        if self.settled_ticks == 0 and not (self._reached(x, self.dagger) and (self.void_settles == 0 or self._lift_ok(x))):
             return
         self.settled_ticks += 1
         if self.settled_ticks > self.dagger_settle_ticks:
-            self.dagger_reached = True
+            if self._lift_ok(x):
+                self.dagger_reached = True
+            else:
+                self.settled_ticks = 0
+                self.void_settles += 1
+
+    def _lift_ok(self, x: np.ndarray) -> bool:
+        """May the lift start from the SOI `x (n_x, 3)`: no check, the check's wait over, or it holds."""
+        if self.dagger_check is None or (self.void_settles > 0 and self._void_ticks >= self.dagger_wait_ticks):
+            return True
+        return bool(self.dagger_check(x))
 
     @property
     def settling(self) -> bool:

@@ -13,6 +13,7 @@ from bagit.common.params import MethodParams
 from bagit.services.controller import ShapeServo, c7_limits, make_controller
 from bagit.services.controller.broyden import rigid_pair_motions, rigid_pair_response
 from bagit.services.controller.mpc import separation_gradient
+from bagit.services.controller.servo import DAGGER_ROUND_WAIT_S
 from bagit.services.controller.synthetic import SyntheticRim
 
 P = MethodParams()
@@ -298,3 +299,32 @@ def test_the_rigid_pair_model_sets_js_rigid_motions_each_tick_and_only_those():
         B, R = rigid_pair_motions(pl, pr), rigid_pair_response(x_law, pl, pr)
         err = np.linalg.norm(c.jacobian.J @ B - R) / np.linalg.norm(R)
         assert (err < 1e-9) if rigid else (1e-3 < err < 0.3), (rigid, err)
+
+
+def test_the_lift_waits_for_an_soi_round_the_goals_v_only_with_dagger_round_v_and_a_goal():
+    """The tracker's g† check is the run's Goal's V inside the SOI (seen along the goal frame's z): an
+    SOI that leaves a corner of V outside fails it; without a goal or with `dagger_round_v` off there
+    is no check (the lift follows the settle as before)."""
+    from types import SimpleNamespace
+
+    from bagit.common.params import merge_params
+
+    m = SyntheticRim(32)
+    path, g = _path(m), m.home()
+    x = m.rim(g)
+    c0 = x.mean(axis=0)
+    frame = np.eye(4)
+    frame[:3, 3] = c0
+    inside = c0 + np.array([[0.03, 0.03, 0], [-0.03, 0.03, 0], [-0.03, -0.03, 0], [0.03, -0.03, 0]])
+    goal = SimpleNamespace(vertices=inside, frame=frame)
+    c = make_controller("mpc", P, m.n_x)
+    c.reset(x, Path(nodes=path, dagger_index=5), g, goal=goal)
+    check = c.tracker.dagger_check
+    assert check is not None and check(x)
+    assert not check(x + [0.09, 0.0, 0.0])  # the rim moved 9 cm along x: V's -x corners lie outside it
+    assert c.tracker.dagger_wait_ticks == round(DAGGER_ROUND_WAIT_S * P.controller.control_rate_hz)
+    c.reset(x, Path(nodes=path, dagger_index=5), g)  # no goal: no check
+    assert c.tracker.dagger_check is None
+    off = make_controller("mpc", merge_params(P, {"dagger_round_v": False}), m.n_x)
+    off.reset(x, Path(nodes=path, dagger_index=5), g, goal=goal)
+    assert off.tracker.dagger_check is None

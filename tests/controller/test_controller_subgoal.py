@@ -93,3 +93,31 @@ def test_guard_holds_on_missing_stale_jumping_and_malformed_soi():
     assert "NaN" in g.check(np.full((8, 3), np.nan), 2.13)
     assert "shape" in g.check(np.zeros((7, 3)), 2.16)
     assert "stale" in g.check(x, 2.2, source_stamp=float("nan"))
+
+
+def test_a_settle_whose_end_fails_the_check_is_void_and_the_servoing_to_dagger_goes_on():
+    """With `dagger_check` (the SOI goes round V), the lift starts only from an SOI that passes it: a
+    settle ending on one that fails is void, the next starts once the SOI passes, and after
+    `dagger_wait_ticks` since the first void settle the next settle's end lifts regardless."""
+    path = np.stack([np.full((4, 3), k, float) for k in range(5)])
+    bad, good = path[2] + [0.05, 0, 0], path[2] - [0.05, 0, 0]  # both within tolerance of g†
+    tr = SubgoalTracker(path, 2, 0.1, 0.1, dagger_settle_ticks=3, dagger_check=lambda x: bool(x[0, 0] < 2.0), dagger_wait_ticks=20)
+    assert tr.update(path[1]) == 2
+    for k in range(1, 4):  # the settle, wherever the bag drifts meanwhile
+        assert tr.update(bad) == 2 and tr.settled_ticks == k and tr.settling
+    assert tr.update(bad) == 2 and tr.void_settles == 1 and not tr.settling and tr.stage == "pre-bagging"  # void: no lift
+    assert tr.update(bad) == 2 and tr.settled_ticks == 0  # within tolerance, but fails the check: no new settle
+    for k in range(1, 4):
+        assert tr.update(good) == 2 and tr.settled_ticks == k and tr.settling
+    assert tr.update(good) == 3 and tr.stage == "bagging" and tr.void_settles == 1  # the lift, from an SOI round V
+
+    # never round V: after the wait the next settle's end lifts (the run's time is bounded)
+    tr = SubgoalTracker(path, 2, 0.1, 0.1, dagger_settle_ticks=3, dagger_check=lambda x: False, dagger_wait_ticks=10)
+    stages = [tr.update(bad) for _ in range(25)]
+    # the void settle ends on update 3; the wait is over on update 13, where the next settle starts
+    assert stages.index(3) == 3 + 10 + 3 and tr.void_settles == 1, stages
+    # a settle whose end passes the check is the settle without one (test_settles_at_dagger_before_the_lift)
+    tr = SubgoalTracker(path, 2, 0.1, 0.1, dagger_settle_ticks=3, dagger_check=lambda x: True)
+    assert [tr.update(path[2]) for _ in range(5)] == [2, 2, 2, 3, 3] and tr.void_settles == 0
+    with pytest.raises(BadControlInput):
+        SubgoalTracker(path, 2, 0.1, 0.1, dagger_wait_ticks=-1)
