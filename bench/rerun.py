@@ -1,5 +1,6 @@
-"""`python -m bagit.bench.rerun FILE... [--where slowed] [--workers 2]`: re-run, on this commit, the runs of
-record files that the arm driver slowed (`arm_events.slowed > 0`), and put each new record in its old one's place.
+"""`python -m bagit.bench.rerun FILE... [--where slowed|dirty|harness] [--workers 2]`: re-run, on this commit, the runs of
+record files that the arm driver slowed (`arm_events.slowed > 0`; or run from a dirty tree, or that the harness
+lost: timed out, crashed), and put each new record in its old one's place.
 
 For a change that can touch only those runs (issue 35's wrist lag engages only where the driver would have
 slowed a period, so every run that never slowed is the same bit for bit: checked before such a re-run), this
@@ -26,12 +27,15 @@ from typing import Any
 
 from bagit.bench.closed_loop import RUN_TIMEOUT_S, quiet_engine_logs, read_jsonl, record_key
 from bagit.bench.isolated import run_isolated
+from bagit.bench.zoo import cause
 
 log = logging.getLogger("bagit.bench.rerun")
 
 WHERE: dict[str, Callable[[dict[str, Any]], bool]] = {
     "slowed": lambda r: int((r.get("arm_events") or {}).get("slowed") or 0) > 0,
     "dirty": lambda r: bool((r.get("provenance") or {}).get("dirty")),  # run from a tree with changes: again from a clean one
+    # no result of its own (timed out on a loaded machine, crashed): the harness's failure, not the method's
+    "harness": lambda r: cause(r) == "harness",
 }
 
 
