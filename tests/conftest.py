@@ -1,6 +1,9 @@
 """Test-wide settings: headless MuJoCo rendering, no network beyond loopback."""
 
+import functools
 import os
+import re
+from pathlib import Path
 from typing import Any
 
 from bus_support import pair  # noqa: F401 - the two-session fixture every bus test takes
@@ -30,16 +33,19 @@ def pytest_collection_modifyitems(items: list) -> None:
             item.add_marker(pytest.mark.processes)
 
 
-# The files whose tests bring up whole rigs (`bagit up`, the multi-host rig, a Dask cluster) or a browser.
-# `make test` runs the suite on two workers, a file whole on one (`--dist loadfile`); these run one after
-# another on one worker, so that two rigs or a rig and a Chromium never share the two cores.
-ONE_AT_A_TIME = (
-    "tests/app/test_up.py",
-    "tests/app/test_up_browser.py",
-    "tests/dashboard/test_dashboard_browser.py",
-    "tests/bench/test_bench_multihost.py",
-    "tests/bench/test_bench_cluster.py",
-)
+# `make test` runs the suite on two workers, a file whole on one (`--dist loadfile`). The files whose tests start
+# processes (whole rigs, services, a Dask cluster, a browser, simulated CR5s) or time messages on a bus run one
+# after another on one worker, as one unit of work: they never share the two cores with each other, only with
+# the other worker's in-process tests, as the serial suite's did with nothing.
+ONE_AT_A_TIME = re.compile(r"mark\.processes|mark\.browser|start_sims|rigbus|session_pair|start_up|rig_up|subprocess")
+
+
+@functools.cache
+def _one_at_a_time(path: str) -> bool:
+    try:
+        return bool(ONE_AT_A_TIME.search((Path(__file__).parent.parent / path).read_text(encoding="utf-8")))
+    except OSError:
+        return False
 
 
 def pytest_xdist_make_scheduler(config: Any, log: Any) -> Any:
@@ -48,9 +54,9 @@ def pytest_xdist_make_scheduler(config: Any, log: Any) -> Any:
         return None
     from xdist.scheduler import LoadFileScheduling
 
-    class OneRigAtATime(LoadFileScheduling):
+    class OneAtATime(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
             path = super()._split_scope(nodeid)
-            return "whole rigs" if path in ONE_AT_A_TIME else path
+            return "processes, one at a time" if _one_at_a_time(path) else path
 
-    return OneRigAtATime(config, log)
+    return OneAtATime(config, log)
