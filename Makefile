@@ -51,9 +51,10 @@ setup: sysdeps $(VENV)/.installed
 demo: setup
 	$(BIN)/bagit up exp02 --exit-when-done
 
-# Two workers (pytest-xdist), each file on one of them, in its order (module fixtures such as a browser test's
-# rig stay one): a 2-core machine does the suite in about 5 minutes instead of 8. TEST_WORKERS=0 runs it serially.
-TEST_WORKERS ?= 2
+# Serial by default (what CI runs). TEST_WORKERS=2 runs it on two pytest-xdist workers, a file whole on one and the
+# files that start processes one after another (tests/conftest.py): about 5 minutes instead of 8 on 2 cores, but
+# timing-sensitive tests beside each other still fail on a busy machine there (docs/testing.md).
+TEST_WORKERS ?= 0
 test: setup lint
 	$(BIN)/python -m pytest -q $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile)
 

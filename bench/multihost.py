@@ -29,7 +29,6 @@ servoing, then starts the next run. Not root: one line, exit status 2.
 
 from __future__ import annotations
 
-import _thread
 import argparse
 import functools
 import json
@@ -432,20 +431,10 @@ def signals_raise() -> Iterator[None]:
     def on_signal(*_: object) -> None:
         raise KeyboardInterrupt
 
-    def on_unraisable(u: Any) -> None:
-        # raised where Python cannot pass it on (a fork's at-fork hook in logging, a finaliser) and swallowed:
-        # the handler runs again at the main thread's next instruction, and raises there
-        if isinstance(u.exc_value, KeyboardInterrupt):
-            _thread.interrupt_main(signal.SIGINT)
-        else:
-            previous_hook(u)
-
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    previous_hook, sys.unraisablehook = sys.unraisablehook, on_unraisable
     try:
         yield
     finally:
-        sys.unraisablehook = previous_hook
         for s, h in previous.items():
             signal.signal(s, h)
 
