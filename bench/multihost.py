@@ -46,6 +46,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -428,13 +429,19 @@ def signals_raise() -> Iterator[None]:
         yield
         return
 
-    def on_signal(*_: object) -> None:
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        if frame is not None and frame.f_code.co_filename == logging.__file__:
+            # inside logging: its at-fork hooks (a Popen starting a service) swallow what is raised there;
+            # SIGALRM brings the handler back in 50 ms, past them
+            signal.setitimer(signal.ITIMER_REAL, 0.05)
+            return
         raise KeyboardInterrupt
 
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGALRM)}
     try:
         yield
     finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
         for s, h in previous.items():
             signal.signal(s, h)
 
