@@ -14,7 +14,7 @@ from bus_support import wait_until
 
 from bagit.cli import main
 from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Publisher, Subscriber, locators, open_session
-from bagit.common.dobot import Alarm
+from bagit.common.dobot import Alarm, RobotMode
 from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.common.names import ESTOP_SOURCE_DASHBOARD
 from bagit.services.arm_driver.config import DriverConfig
@@ -157,14 +157,16 @@ def test_a_new_stream_after_a_hold_starts_from_the_measured_pose():
         q = np.degrees(robot.q)
         robot.mov_j(joint_deg=q + np.array([4.0, 0, 0, 0, 0, 0]))  # the operator jogs joint 1 by 4 degrees
         assert wait_until(lambda: np.linalg.norm(drv.states()["left"].tool_pose[:3] - held) > 0.02)
-        assert wait_until(lambda: np.linalg.norm(drv.states()["left"].qd) < 1e-4)
+        # the jog is over when the controller says so (RobotMode ENABLE, not RUNNING): a joint speed near zero
+        # is also the quintic's last milliseconds, and a ServoP while the MovJ runs is refused (a fault)
+        assert wait_until(lambda: int(drv.links.record("left")["RobotMode"]) == RobotMode.ENABLE)
         moved = drv.states()["left"].tool_pose[:3].copy()
         assert drv.mode == "holding"
         t0 = time.monotonic()
         small = np.zeros(12)
         small[2] = small[8] = 0.01 / 30  # 1 cm/s up
         for k in range(6):
-            assert drv.submit(Command(u=small, dt=1 / 30, seq=100 + k))
+            assert drv.submit(Command(u=small, dt=1 / 30, seq=100 + k)), (drv.last_refusal, drv.status())
             time.sleep(1 / 30)
         time.sleep(0.3)
         sent = [np.array([float(v) for v in text[len("ServoP("):].split(",")[:3]]) / 1000.0
