@@ -7,11 +7,11 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bagit.common.messages import Command
+from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.sim.harness import (  # noqa: F401 - re-exported for the arm driver tests
     HOME_CENTRE,
     HOME_HALF_SEPARATION,
@@ -24,9 +24,11 @@ from bagit.services.sim.harness import (  # noqa: F401 - re-exported for the arm
     servo_positions,
     start_sims,
 )
+from bagit.up import SIM_DRIVER_TIMEOUTS
 
-if TYPE_CHECKING:
-    from bagit.services.arm_driver.config import DriverConfig
+# The link time-outs `bagit up` gives a driver whose simulated controllers share the machine with it
+# (a busy machine stalls the simulated feedback a while); tests of a lost link set their own.
+SIM_CFG = DriverConfig(**SIM_DRIVER_TIMEOUTS)
 
 
 def stream_at_rest(server: RecordingServer, t0: float) -> bool:

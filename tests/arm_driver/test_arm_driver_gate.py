@@ -13,13 +13,12 @@ import time
 
 import numpy as np
 import pytest
-from arm_driver_support import node_on_bus, servo_positions, stream_at_rest
+from arm_driver_support import SIM_CFG, node_on_bus, servo_positions, stream_at_rest
 from bus_support import wait_until
 
 from bagit.common.bus import LatestCache, Publisher
 from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.common.names import ESTOP_RELEASE_SOURCES, ESTOP_SOURCE_CLI, ESTOP_SOURCE_DASHBOARD, SERVO_STAGES, STAGES
-from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.gate import (
     CLOCK_SKEW,
     ESTOP_RELEASE_SOURCE,
@@ -33,7 +32,7 @@ from bagit.services.arm_driver.gate import (
 )
 from bagit.services.arm_driver.node import ArmDriverNode
 
-CFG = DriverConfig(feedback_timeout_s=0.5)  # a loaded machine can stall the simulated feedback a while
+CFG = SIM_CFG
 U = np.zeros(12)
 U[0] = U[6] = 0.05 / 30  # both mounts along +x at 5 cm/s, 30 commands a second
 

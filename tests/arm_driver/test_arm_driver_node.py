@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from arm_driver_support import node_on_bus, start_sims
+from arm_driver_support import SIM_CFG, node_on_bus, start_sims
 from bus_support import wait_until
 
 from bagit.cli import main
@@ -17,10 +17,9 @@ from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Pu
 from bagit.common.dobot import Alarm, RobotMode
 from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.common.names import ESTOP_SOURCE_DASHBOARD
-from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 
-CFG = DriverConfig(feedback_timeout_s=0.5)  # a loaded CI machine can stall the simulated feedback a while
+CFG = SIM_CFG
 
 
 @pytest.fixture

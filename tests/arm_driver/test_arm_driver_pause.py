@@ -23,18 +23,17 @@ import time
 
 import numpy as np
 import pytest
-from arm_driver_support import FeedbackRecorder, servo_positions, start_sims
+from arm_driver_support import SIM_CFG, FeedbackRecorder, servo_positions, start_sims
 from bus_support import wait_until
 
 from bagit.common.bus import BusConfig, Keys, LatestCache, Publisher, locators, open_session
 from bagit.common.messages import ArmState, Command, RunState
 from bagit.common.rig import ARMS
 from bagit.harness import stop_process
-from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import STALE
 
-CFG = DriverConfig(feedback_timeout_s=0.5)  # a loaded machine can stall the simulated feedback a while
+CFG = SIM_CFG
 V0 = 0.04  # m/s: the mounts' speed when the driver is frozen
 
 

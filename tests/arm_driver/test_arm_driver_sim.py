@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 import pytest
-from arm_driver_support import FeedbackRecorder, Streamer, home_poses, servo_parameter, servo_positions, start_sims, stream_at_rest
+from arm_driver_support import SIM_CFG, FeedbackRecorder, Streamer, home_poses, servo_parameter, servo_positions, start_sims, stream_at_rest
 from suite_support import wait_until
 
 from bagit.common.dobot import Alarm
@@ -27,7 +27,7 @@ from bagit.services.arm_driver.driver import ArmDriver
 
 # On a loaded CI machine the simulated controllers' feedback threads can stall for a while; only the
 # feedback-loss test uses the (shorter) production default.
-CFG = DriverConfig(feedback_timeout_s=0.5)
+CFG = SIM_CFG
 
 
 @pytest.fixture
