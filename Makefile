@@ -51,10 +51,10 @@ setup: sysdeps $(VENV)/.installed
 demo: setup
 	$(BIN)/bagit up exp02 --exit-when-done
 
-# Serial by default (what CI runs). TEST_WORKERS=2 runs it on two pytest-xdist workers, a file whole on one and the
-# files that start processes one after another (tests/conftest.py): about 5 minutes instead of 8 on 2 cores, but
-# timing-sensitive tests beside each other still fail on a busy machine there (docs/testing.md).
-TEST_WORKERS ?= 0
+# Two pytest-xdist workers by default (what CI runs): a file whole on one, and the files that start processes or
+# time a bus one after another as one unit of work (tests/conftest.py), so those never share the cores with each
+# other. TEST_WORKERS=0 runs it serially (about 1.6x the wall time on 2 cores).
+TEST_WORKERS ?= 2
 test: setup lint
 	$(BIN)/python -m pytest -q $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile)
 

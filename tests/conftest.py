@@ -33,7 +33,7 @@ def pytest_collection_modifyitems(items: list) -> None:
             item.add_marker(pytest.mark.processes)
 
 
-# `make test TEST_WORKERS=2` runs the suite on two workers, a file whole on one (`--dist loadfile`). The files whose tests start
+# `make test` runs the suite on two workers (TEST_WORKERS=2), a file whole on one (`--dist loadfile`). The files whose tests start
 # processes (whole rigs, services, a Dask cluster, a browser, simulated CR5s) or time messages on a bus run one
 # after another on one worker, as one unit of work: they never share the two cores with each other, only with
 # the other worker's in-process tests, as the serial suite's did with nothing.
