@@ -316,7 +316,7 @@ class ServoPath:
         r = solve_within(prev, cmd, solve, lag=lag, accept=lambda poses: not violations(poses, prev, self.period, self.env))
         if r.lagged is not None and r.poses is not None and r.joints is not None:
             # the positions go as planned; the rotation carries on from what is sent
-            self.smoother.sync_rotation(r.poses, prev, self.period)
+            self.smoother.sync(r.poses, prev, self.period, rotation_only=True)
             self.last_sent = {a: np.array(r.poses[a], dtype=float) for a in ARMS}
         self.lagging = self._episode("lagged", self.lagging, r.lagged is not None, f"near the wrist singularity: {r.lagged}",
                                      "the rotation follows again")

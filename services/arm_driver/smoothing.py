@@ -162,33 +162,25 @@ class RuckigSmoother:
                 out[6 * i + 3 * k : 6 * i + 3 * k + 3] = d[:, None] * cart[None, :]
         return out
 
-    def sync(self, sent: Poses, previous: Poses, dt: float) -> None:
+    def sync(self, sent: Poses, previous: Poses, dt: float, rotation_only: bool = False) -> None:
         """Take the pose actually sent (after the safety gate changed it) as the trajectory's state.
 
         The velocity becomes the step's average, clipped to the limits, the acceleration zero: a kink
         the gate caused and reported, after which the trajectory carries on smoothly from the truth.
+        `rotation_only`: the positions sent were the trajectory's own (a rotation that lagged near the
+        wrist singularity), so their state carries on untouched.
         """
         p, R = poses_to_arrays(sent)
         pp, Rp = poses_to_arrays(previous)
-        v = np.zeros((2, 6))
-        for i in range(2):
-            v[i, :3] = (p[i] - pp[i]) / dt
-            v[i, 3:] = rotvec_between(Rp[i], R[i]) / dt
         lim = self.max_velocity.reshape(2, 6)
-        self.p, self.R = p, R
-        self.vel = np.clip(v, -lim, lim)
-        self.acc[:] = 0.0
-
-    def sync_rotation(self, sent: Poses, previous: Poses, dt: float) -> None:
-        """`sync` for the orientations only: the positions sent were the trajectory's own (a rotation
-        that lagged near the wrist singularity), so their state carries on untouched."""
-        _, R = poses_to_arrays(sent)
-        _, Rp = poses_to_arrays(previous)
-        lim = self.max_velocity.reshape(2, 6)[:, 3:]
         for i in range(2):
             self.R[i] = R[i]
-            self.vel[i, 3:] = np.clip(rotvec_between(Rp[i], R[i]) / dt, -lim[i], lim[i])
+            self.vel[i, 3:] = np.clip(rotvec_between(Rp[i], R[i]) / dt, -lim[i, 3:], lim[i, 3:])
             self.acc[i, 3:] = 0.0
+            if not rotation_only:
+                self.p[i] = p[i]
+                self.vel[i, :3] = np.clip((p[i] - pp[i]) / dt, -lim[i, :3], lim[i, :3])
+                self.acc[i, :3] = 0.0
 
     # -- one cycle -------------------------------------------------------------------------------
 
