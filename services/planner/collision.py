@@ -56,6 +56,19 @@ def segments_hit(p0: np.ndarray, p1: np.ndarray, poly: Polytope, margin: float =
     return (t_enter <= t_exit) & (t_enter <= 1.0) & (t_exit >= 0.0) & ~parallel_out
 
 
+GAP_SAMPLES_PER_SEGMENT = 8  # points per rim segment where `rim_gap` measures
+
+
+def rim_gap(rim: np.ndarray, poly: Polytope) -> float:
+    """How far the closed polyline `rim (n_x, 3)` stays outside `poly` (>= 0 outside, < 0 inside), by the
+    planes' own measure: min over points on the rim of max_k (A_k p - b_k), a point being within a margin
+    m exactly when this is <= m (as `segments_hit` inflates). Sampled along the segments: a lower bound of
+    the Euclidean distance, exact at faces."""
+    s = np.linspace(0, 1, GAP_SAMPLES_PER_SEGMENT, endpoint=False)[:, None, None]
+    dense = (rim[None] + s * (np.roll(rim, -1, axis=0) - rim)[None]).reshape(-1, 3)
+    return float((dense @ poly.A.T - poly.b).max(axis=1).min())
+
+
 class RimCollision:
     """Checks rims (closed polylines) against the object and the obstacles."""
 
@@ -71,6 +84,12 @@ class RimCollision:
         for poly, m in zip(self.polytopes, self.margins, strict=False):
             hit |= segments_hit(p0, p1, poly, m).any(axis=-1)
         return hit
+
+    def touched(self, rim: np.ndarray, margins: bool = True) -> list[int]:
+        """Indices of the polytopes a single rim `(n_x, 3)` touches, within their margins or (False) themselves."""
+        seg = (rim, np.roll(rim, -1, axis=0))
+        return [k for k, (poly, m) in enumerate(zip(self.polytopes, self.margins, strict=True))
+                if segments_hit(*seg, poly, m if margins else 0.0).any()]
 
     def first_hit(self, rim: np.ndarray) -> str | None:
         """Name of the first thing a single rim `(n_x, 3)` touches, or None."""

@@ -9,7 +9,8 @@ from bagit.common.geometry import closed_polyline_length
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario, list_scenarios
 from bagit.services.planner import PLANNERS, plan_scenario
-from bagit.services.planner.plan import check_scenario_goal
+from bagit.services.planner.collision import rim_gap
+from bagit.services.planner.plan import check_scenario_goal, collision_model
 
 SAMPLES_PER_SEGMENT = 24
 
@@ -231,3 +232,37 @@ def test_bad_g0_is_a_clear_error(g0, word):
 
     with pytest.raises(BadCloud, match=word):
         plan("exp01", g0=g0)
+
+
+def _exp01_with_flat_bag(perimeter: float, rim_z: float) -> Scenario:
+    """exp01 with a flat round bag of `perimeter` centred under its opening's old centre, at height `rim_z`
+    (exp01's box has its bottom at z = 0.5 and reaches over x in [-0.067, 0.067])."""
+    s = Scenario.from_file(find_scenario("exp01"))
+    t = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+    r = perimeter / (32 * 2 * np.sin(np.pi / 32))  # the 32-gon's circumradius
+    rim = np.column_stack([0.15 + r * np.cos(t), r * np.sin(t), np.full(32, rim_z)])
+    doc = s.model_dump(exclude_none=True)
+    doc["bag"].update(initial_rim=rim.tolist(), rim_perimeter=perimeter)
+    return Scenario.from_dict(doc)
+
+
+def test_a_start_rim_within_the_margin_under_the_object_is_left_along_a_growing_clearance():
+    # a large bag hanging 1.5 cm under the box's bottom, its rim passing under the box (the envelope zoo's
+    # exp01 bags): inside the planner's 2 cm margin, touching nothing
+    s = _exp01_with_flat_bag(1.1, 0.485)
+    res = plan_scenario(s, "cbirrt", 0)
+    check_path(res, s)  # starts at g0 exactly, no node or midpoint in the object
+    goal = res.goal
+    coll = collision_model(s, goal.up, s.params.planner.clearance_m, goal.g_dagger)
+    margin = coll.margins[0]
+    gaps = [rim_gap(rim, coll.polytopes[0]) for rim in res.path]
+    assert 0 < gaps[0] <= margin  # g0 within the margin: refused before
+    first_clear = next(k for k, g in enumerate(gaps) if g > margin)
+    assert np.all(np.diff(gaps[: first_clear + 1]) > 0)  # the clearance grows until the margin is met
+    assert all(not coll.touched(rim) for rim in res.path[first_clear:])  # and the margin holds from there
+
+
+def test_a_start_rim_through_the_object_is_still_refused():
+    s = _exp01_with_flat_bag(1.1, 0.52)  # the same bag 2 cm up: its rim passes through the box
+    res = plan_scenario(s, "cbirrt", 0)
+    assert not res.success and res.reason.startswith("g0 touches the object") and res.iterations == 0
