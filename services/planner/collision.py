@@ -93,7 +93,5 @@ class RimCollision:
 
     def first_hit(self, rim: np.ndarray) -> str | None:
         """Name of the first thing a single rim `(n_x, 3)` touches, or None."""
-        for poly, m in zip(self.polytopes, self.margins, strict=False):
-            if segments_hit(rim, np.roll(rim, -1, axis=0), poly, m).any():
-                return poly.name
-        return None
+        hit = self.touched(rim)
+        return self.polytopes[hit[0]].name if hit else None

@@ -119,9 +119,10 @@ def start_escape(g0: np.ndarray, collision: RimCollision, up: np.ndarray, object
         across = across / np.linalg.norm(across)
         directions += [across, (across - up) / np.linalg.norm(across - up)]
     steps = np.arange(1, int(round(ESCAPE_MAX_M / ESCAPE_STEP_M)) + 1) * ESCAPE_STEP_M
+    start_gaps = [rim_gap(g0, collision.polytopes[k]) for k in within]
     best: tuple[float, np.ndarray] | None = None
     for d in directions:
-        gaps = [rim_gap(g0, collision.polytopes[k]) for k in within]
+        gaps = start_gaps
         for dist in steps:
             if best is not None and dist >= best[0]:
                 break
