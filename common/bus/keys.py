@@ -123,8 +123,9 @@ KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("alive/*", None, None, "liveliness", "liveliness token per service; gone within ~1 s of its death"),
     KeySpec("sim/clock", ClockTick, CONTROL, "pub",
             "the simulated rig's time and servo ticks: every service's clock when the bus config says `clock: sim`"),
-    KeySpec("sim/ack", StepAck, CONTROL, "pub",
-            "lockstep: each service's answer to a frame or servo tick; the simulator steps on when all are in"),
+    KeySpec("sim/ack/*", StepAck, CONTROL, "pub",
+            "lockstep: each service's answer to a frame or servo tick, on its own key (sim/ack/<service>: a service "
+            "hears only the answers it waits for); the simulator steps on when all are in"),
     KeySpec("sim/truth", SimTruth, DISPLAY, "pub",
             "simulator ground truth (true rim, pass-through, real-time factor) for tests and benchmarks only: no service may subscribe"),
 )
@@ -155,7 +156,7 @@ class Keys:
         self.recorder_status = f"{p}/recorder/status"
         self.alive_any = f"{p}/alive/*"
         self.sim_clock = f"{p}/sim/clock"
-        self.sim_ack = f"{p}/sim/ack"
+        self.sim_ack = f"{p}/sim/ack/*"  # every service's answers (the simulator's wait)
         self.sim_truth = f"{p}/sim/truth"  # tests and benchmarks only
         self.all = f"{p}/**"
 
@@ -163,6 +164,13 @@ class Keys:
         if arm not in ("left", "right"):
             raise BusError(f"arm must be 'left' or 'right', got {arm!r}")
         return f"{self.prefix}/arm/{arm}/state"
+
+    def step_ack(self, service: str) -> str:
+        """The key `service` answers lockstep steps on (sim/ack/<service>)."""
+        try:
+            return f"{self.prefix}/sim/ack/{check_name(service, 'service name')}"
+        except ValueError as e:
+            raise BusError(str(e)) from None
 
     def alive(self, service: str) -> str:
         try:

@@ -50,6 +50,7 @@ from bagit.services.arm_driver.gate import NO_ACTIVE_RUN, Refusal, command_refus
 
 log = logging.getLogger("bagit.arm_driver")
 
+SERVICE_NAME = "arm-driver"
 REPEAT_S = 5.0  # the same event is printed again at most this often
 # Events that are the driver going about its work: logged at INFO and not shown on ArmState.
 ROUTINE_EVENTS = frozenset({"started", "closed", "estop_reset", "fault_cleared", "reconnected"})
@@ -93,7 +94,7 @@ class ArmDriverNode:
         driver.on_state = self._on_state
         driver.on_event = self._on_event
         self._clock, self._clock_sub = rig_clock(session, keys, clock)
-        self._ack = Publisher(session, keys.sim_ack, StepAck) if self._clock.simulated else None
+        self._ack = Publisher(session, keys.step_ack(SERVICE_NAME), StepAck) if self._clock.simulated else None
         if self._clock.simulated:
             driver.set_clock(self._clock, on_tick=self._on_tick)
         driver.start()  # ProtocolError: a controller is unreachable or refuses; nothing declared yet
@@ -126,7 +127,7 @@ class ArmDriverNode:
                 self._streaming_run = cmd.run_id
         if self._ack is not None:
             late = "the run/state that lets its command through" if expired and not ok else None
-            self._answer(StepAck(service="arm-driver", run_id=cmd.run_id, cmd_seq=cmd.seq, late=late))
+            self._answer(StepAck(service=SERVICE_NAME, run_id=cmd.run_id, cmd_seq=cmd.seq, late=late))
         with self._lock:
             self.commands += 1
             if not ok:
@@ -169,7 +170,7 @@ class ArmDriverNode:
         self._on_command(parked[0])
 
     def _on_tick(self, tick: int, sent: dict[str, int], late: str | None = None) -> None:
-        self._answer(StepAck(service="arm-driver", run_id=self._run_id, tick=tick, servo_sent=sent, late=late))
+        self._answer(StepAck(service=SERVICE_NAME, run_id=self._run_id, tick=tick, servo_sent=sent, late=late))
 
     def _answer(self, ack: StepAck) -> None:
         try:

@@ -57,6 +57,7 @@ from bagit.services.controller.session import ARM_MAX_AGE_S, SOI_MAX_AGE_S, Outb
 
 log = logging.getLogger("bagit.controller")
 
+SERVICE_NAME = "controller"
 CLOCK_SKEW_S = 3600.0  # a SOI made longer than this after its frame has stamps on two clocks (a simulator's): not used
 SOI_TICK_SHARE = 0.75  # wall clock: a new SOI is ticked on at once, but at least this share of a period after the last one
 KEEPALIVE_TICK = "sim-keepalive"  # lockstep: a keep-alive tick from sim/clock, queued with the frames to tick on
@@ -137,8 +138,8 @@ class ControllerNode:
         # on the wall clock a timer and each new SOI; in lockstep the simulator's steps, answered on sim/ack.
         loop = self._loop
         if self.lockstep:
-            self._ack = Publisher(session, keys.sim_ack, StepAck)
-            self._subs.append(Subscriber(session, keys.sim_ack, StepAck, self._on_ack))
+            self._ack = Publisher(session, keys.step_ack(SERVICE_NAME), StepAck)
+            self._subs.append(Subscriber(session, keys.step_ack("planner"), StepAck, self._on_ack))
             self._subs.append(Subscriber(session, keys.sim_clock, ClockTick, self._on_clock))
             loop = self._lockstep_loop
         self._thread = threading.Thread(target=loop, name="controller-loop", daemon=True)
@@ -222,7 +223,7 @@ class ControllerNode:
                     self._hold(f"controller node error: {type(e).__name__}: {e}", self._run, ack.frame)
                 answered = (ack.service, ack.frame, self._sent, self._status_sent, late)
             assert self._ack is not None
-            self._ack.put(StepAck(service="controller", run_id=ack.run_id, frame=ack.frame, cmd_seq=self._sent,
+            self._ack.put(StepAck(service=SERVICE_NAME, run_id=ack.run_id, frame=ack.frame, cmd_seq=self._sent,
                                   status_seq=self._status_sent, stamp=ack.frame, late=late))
 
     def _arms_at(self, t: float) -> bool:

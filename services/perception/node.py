@@ -65,6 +65,7 @@ from bagit.services.perception.tracker import RimTracker, frame_soi, start_hint
 
 log = logging.getLogger("bagit.perception")
 
+SERVICE_NAME = "perception"
 REPORT_EVERY_S = 5.0
 
 
@@ -160,7 +161,7 @@ class PerceptionNode:
         self._soi_pub = Publisher(session, keys.perception_soi, SoiState, lockstep=self.lockstep)
         self._cloud_pub = Publisher(session, keys.perception_cloud, PointCloud)
         self._object_pub = Publisher(session, keys.perception_object, ObjectDetection, lockstep=self.lockstep) if self._library is not None else None
-        self._ack = Publisher(session, keys.sim_ack, StepAck) if self.lockstep else None
+        self._ack = Publisher(session, keys.step_ack(SERVICE_NAME), StepAck) if self.lockstep else None
         self._step_wait = StepWait()  # lockstep: the left arm's state of a frame's step
         self._arm = LatestCache(session, keys.arm_state("left"), ArmState, self._step_wait.notify)
         self._subs: list[Subscriber[Any]] = [Subscriber(session, keys.run_state, RunState, self._on_run_state)]
@@ -386,7 +387,7 @@ class PerceptionNode:
         """Perception is done with `frame`: its SOI (seq), whether it gave an object detection too, and what it
         went without (`late`: the step may differ from `bagit run`'s)."""
         assert self._ack is not None
-        self._ack.put(StepAck(service="perception", run_id=self._run_id, frame=frame.stamp, soi_seq=soi_seq,
+        self._ack.put(StepAck(service=SERVICE_NAME, run_id=self._run_id, frame=frame.stamp, soi_seq=soi_seq,
                               object_stamp=frame.stamp if detected else None, stamp=frame.stamp, late=late))
 
     def _soi(self, frame: RgbdFrame) -> tuple[int | None, str | None]:

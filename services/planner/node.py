@@ -112,9 +112,9 @@ class PlannerNode:
         ]
         self._ack_pub: Publisher[StepAck] | None = None
         if self.lockstep:  # the lockstep protocol: the simulator's steps in, this node's answers out
-            self._ack_pub = Publisher(session, keys.sim_ack, StepAck)
+            self._ack_pub = Publisher(session, keys.step_ack(SERVICE_NAME), StepAck)
             self._subs += [Subscriber(session, keys.sim_clock, ClockTick, self._on_clock),
-                           Subscriber(session, keys.sim_ack, StepAck, self._on_ack)]
+                           *(Subscriber(session, keys.step_ack(s), StepAck, self._on_ack) for s in ("perception", "controller"))]
         self._server = serve_run_control(session, keys, self._on_control)
         self._token = declare_alive(session, keys, SERVICE_NAME)
         self._ticker = threading.Thread(target=self._tick_loop, name="planner-tick", daemon=True)

@@ -22,7 +22,8 @@ from bagit.common.bus import (
     open_session,
 )
 from bagit.common.errors import BusError
-from bagit.common.messages import ArmState, Command, EStop, RunControl, SoiState
+from bagit.common.messages import ArmState, Command, EStop, RunControl, SoiState, StepAck
+from bagit.common.names import LOCKSTEP_SERVICES
 
 
 def _get(zc: zenoh.Config, key: str):
@@ -138,6 +139,19 @@ def test_key_space():
     assert k.spec(k.alive("x")).kind == "liveliness"
     assert k.spec("bagit/other/perception/soi") is None  # another rig
     assert k.spec("bagit/lab2/nothing") is None
+
+
+def test_each_service_answers_lockstep_on_its_own_key():
+    """A service subscribes only to the answers it waits for; the simulator's wildcard hears them all."""
+    k = Keys("lab2")
+    assert k.step_ack("planner") == "bagit/lab2/sim/ack/planner"
+    everyone = zenoh.KeyExpr(k.sim_ack)
+    for s in LOCKSTEP_SERVICES:
+        assert everyone.includes(zenoh.KeyExpr(k.step_ack(s)))
+        assert k.spec(k.step_ack(s)).message is StepAck
+    assert not zenoh.KeyExpr(k.step_ack("planner")).includes(zenoh.KeyExpr(k.step_ack("controller")))
+    with pytest.raises(BusError, match="service name"):
+        k.step_ack("planner/*")
     assert k.spec(k.perception_soi).message is SoiState
 
 
