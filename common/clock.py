@@ -104,6 +104,7 @@ class SimClock:
         self._t = float(t0)
         self._tick: tuple[int, float] = (-1, float("-inf"))  # (servo tick number, its time)
         self._event: tuple[float, int | None] = (float("-inf"), None)  # the newest step heard: (time, its servo tick or None)
+        self._control_step = True  # whether the controller ticks at that step (a frame's or a keep-alive's)
         self._cond = threading.Condition()
 
     def now(self) -> float:
@@ -120,17 +121,23 @@ class SimClock:
         arrived says nothing: a busy machine makes a run slower, never different)."""
         return now - stamp
 
-    def advance(self, t: float, servo_tick: int | None = None) -> None:
-        """The simulator says it is `t` (and, with `servo_tick`, that this is servo tick number n)."""
+    def advance(self, t: float, servo_tick: int | None = None, control_step: bool = True) -> None:
+        """The simulator says it is `t` (and, with `servo_tick`, that this is servo tick number n;
+        `control_step`: that the controller ticks at `t` too, on a frame or a keep-alive)."""
         with self._cond:
             if t > self._t:
                 self._t = float(t)
             if servo_tick is not None and servo_tick > self._tick[0]:
                 self._tick = (int(servo_tick), float(t))
-                self._event = (float(t), int(servo_tick))
+                self._event, self._control_step = (float(t), int(servo_tick)), control_step
             elif t > self._event[0]:
-                self._event = (float(t), None)
+                self._event, self._control_step = (float(t), None), control_step
             self._cond.notify_all()
+
+    def control_step_at(self, t: float) -> bool:
+        """Whether the controller ticks at the step at `t` (True when `t` is not the newest step heard)."""
+        with self._cond:
+            return self._control_step or self._event[0] != t
 
     def _wait_for(self, ready: Callable[[], bool], stop: threading.Event, timeout: float | None) -> bool:
         """Until `ready()` (with the lock held), `stop` or `timeout` wall seconds; woken by `advance`, and

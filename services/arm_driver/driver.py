@@ -379,17 +379,17 @@ class ArmDriver:
         due_ms = round(t * 1000.0)  # a simulated controller stamps its packets with its step's time
         return all((r := self.links.record(a)) is not None and int(r["TimeStamp"]) >= due_ms for a in ARMS)
 
-    def step_done(self, tick: int | None, sent: dict[str, int], late: str | None) -> None:
-        """Lockstep: the tick's answer (`on_tick`), then both arms' states (from here only, never the feedback
-        thread: none races a cycle). The answer first: the simulator steps on at once, and whoever needs
-        a state of this step waits for its stamp (the controller's tick, perception's hint), so the
-        states may come after it without changing anything but the time the step took."""
+    def step_done(self, tick: int | None, sent: dict[str, int], late: str | None, states: bool = True) -> None:
+        """Lockstep: the tick's answer (`on_tick`), then, with `states`, both arms' states (from here only,
+        never the feedback thread: none races a cycle). The answer first: the simulator steps on at once,
+        and whoever needs a state of this step waits for its stamp (the controller's tick, perception's
+        hint), so the states may come after it without changing anything but the time the step took."""
         if tick is not None and (tick_cb := self.on_tick) is not None:
             try:
                 tick_cb(tick, sent, late)
             except Exception as e:  # noqa: BLE001 - a closing bus must not stop the arms' loop
                 self.event("tick_callback", repr(e))
-        if (cb := self.on_state) is not None:
+        if states and (cb := self.on_state) is not None:
             for a in ARMS:
                 if (rec := self.links.record(a)) is not None:
                     cb(self._state_of(a, rec))

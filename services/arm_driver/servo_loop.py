@@ -35,7 +35,7 @@ class CycleHost(Protocol):
     def stalled(self, why: str, unsent: bool = False) -> None: ...  # the loop did not run in time / `unsent`: the poses made were too old to send
     def cycle_failed(self, e: Exception) -> None: ...  # a cycle raised: a fault
     def step_ready(self, t: float) -> bool: ...  # lockstep: both arms' feedback shows the step at `t`
-    def step_done(self, tick: int | None, sent: dict[str, int], late: str | None) -> None: ...  # lockstep: states, answer
+    def step_done(self, tick: int | None, sent: dict[str, int], late: str | None, states: bool = True) -> None: ...  # lockstep: answer, states
     def event(self, kind: str, detail: str) -> None: ...
 
 
@@ -132,12 +132,16 @@ class ServoLoop:
             if event is None:
                 continue
             last_t, n = event
+            # The arms' states of a servo tick the controller does not tick on are read by nobody whose
+            # answer the world waits for (the next frame's states supersede them): not published. Read
+            # before the answer, after which the simulator may announce the next step.
+            states = clock.control_step_at(last_t)
             late = self._await_feedback(last_t)
             before = dict(self.servo_sent)
             if n is not None and n > last_tick:
                 last_tick = n
                 self.once(spaced=False)
-            self.host.step_done(n, {a: self.servo_sent[a] - before[a] for a in ARMS}, late)
+            self.host.step_done(n, {a: self.servo_sent[a] - before[a] for a in ARMS}, late, states)
 
     def _await_feedback(self, t: float) -> str | None:
         """Until both arms' feedback shows the step at `t`, woken by each packet, at most the lockstep

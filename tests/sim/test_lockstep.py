@@ -216,6 +216,21 @@ def test_sim_clock_next_event_gives_every_step_with_its_servo_tick_if_any():
     assert woke == [(1.06, 5)]
 
 
+def test_sim_clock_says_which_steps_the_controller_ticks_on():
+    """The arm driver publishes the arms' states only at steps the controller ticks on (a frame's, a
+    keep-alive's); unknown or older steps count as such, so a state is never held back by mistake."""
+    c = SimClock()
+    c.advance(1.0, servo_tick=4, control_step=False)  # a servo tick alone
+    assert not c.control_step_at(1.0)
+    c.advance(1.0333)  # a frame's step
+    assert c.control_step_at(1.0333) and c.control_step_at(1.0)  # 1.0 is no longer the newest step
+    c.advance(1.06, servo_tick=5, control_step=True)  # a servo tick with a frame
+    assert c.control_step_at(1.06)
+    c.advance(1.09, servo_tick=6, control_step=False)
+    c.advance(1.09, servo_tick=6)  # heard again: the step's kind stays
+    assert not c.control_step_at(1.09)
+
+
 def test_a_step_wait_ends_on_what_it_waits_for_on_stop_or_after_its_time_out():
     from bagit.common.lockstep import StepWait
 
