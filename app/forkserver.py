@@ -2,9 +2,11 @@
 
 Six services started as six `python -m bagit.cli SERVICE` interpreters each import numpy, scipy,
 pydantic, Zenoh and `bagit.common` (about a CPU second each on a 2-core EPYC): on one machine most
-of a rig's start-up. `bagit up` instead starts this module once (`python -m bagit.forkserver FD`, a
-fresh interpreter: no thread of `bagit up`'s, no Zenoh session in it), which imports `PRELOAD` and
-then, for each request on the socket FD, forks a child that runs `bagit.cli.main(argv)` as the
+of a rig's start-up. `bagit up` instead forks this server from itself once its own imports are made
+(numpy, scipy, pydantic, Zenoh, `bagit.common`: most of `PRELOAD`) and while it still runs one thread,
+no Zenoh session open (`ForkServer(inherit=True)`; otherwise, and for `python -m bagit.forkserver FD`,
+a fresh interpreter). The server imports the rest of `PRELOAD` and then, for each request on its
+socket, forks a child that runs `bagit.cli.main(argv)` as the
 command line `bagit SERVICE ...` would: the same code, arguments, environment and exit status, only
 without the shared imports (a service's own heavy imports, MuJoCo, Open3D, viser, happen in its
 child, in parallel with the others). Nothing of a run is computed here, so results cannot differ.
@@ -163,7 +165,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     """`python -m bagit.forkserver FD`: preload, then serve the socket FD; in a child, run its command
     and exit with its status."""
     args = list(sys.argv[1:] if argv is None else argv)
-    sock = socket.socket(fileno=int(args[0]))
+    _serve_and_run(socket.socket(fileno=int(args[0])))
+    return 0  # not reached: the server and its children leave by os._exit
+
+
+def _serve_and_run(sock: socket.socket) -> None:
+    """Preload, serve `sock`; in a forked child, run its command. Never returns (os._exit)."""
     preload()
     cmd = serve(sock)
     if cmd is None:  # every child reaped and reported: nothing of the server's is left to close or flush
@@ -180,6 +187,69 @@ def main(argv: Sequence[str] | None = None) -> int:
     for stream in (sys.stdout, sys.stderr):
         stream.flush()
     os._exit(code)
+
+
+class _ForkedServer:
+    """The server forked from this process, with the part of `subprocess.Popen` ForkServer uses."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                pid, status = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped elsewhere
+                self.returncode = -signal.SIGTERM
+                return self.returncode
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        if self.poll() is None:
+            fd = os.pidfd_open(self.pid)
+            try:
+                select.select([fd], [], [], timeout)
+            finally:
+                os.close(fd)
+        code = self.poll()
+        if code is None:
+            raise subprocess.TimeoutExpired(f"fork server {self.pid}", timeout or 0.0)
+        return code
+
+    def kill(self) -> None:
+        try:
+            os.kill(self.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def _fork_server(theirs: socket.socket, ours: socket.socket, env: Mapping[str, str]) -> _ForkedServer:
+    """Fork this process into the server (see ForkServer's `inherit`): the child gets what `python -m
+    bagit.forkserver` gets from ForkServer's Popen (the services' environment, its own session and the
+    parent-death signal, stdin and stdout on /dev/null) and output that reaches its pipe line by line, as
+    PYTHONUNBUFFERED gives a fresh interpreter."""
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()  # nothing buffered here is written twice
+    pid = os.fork()
+    if pid:
+        return _ForkedServer(pid)
+    try:  # pragma: no cover - the forked server; leaves only by os._exit
+        ours.close()
+        os.environ.clear()
+        os.environ.update(env)
+        child_setup()
+        null = os.open(os.devnull, os.O_RDWR)
+        os.dup2(null, 0)
+        os.dup2(null, 1)
+        os.close(null)
+        for stream in (sys.stdout, sys.stderr):
+            stream.reconfigure(line_buffering=True, write_through=True)  # type: ignore[union-attr]
+        _serve_and_run(theirs)
+    finally:
+        os._exit(1)
 
 
 class ForkedProcess:
@@ -207,13 +277,20 @@ class ForkedProcess:
 class ForkServer:
     """`bagit up`'s end: starts the server process, asks it for children, follows their exits."""
 
-    def __init__(self, env: Mapping[str, str], on_exit: Callable[[int, int], None] | None = None) -> None:
+    def __init__(self, env: Mapping[str, str], on_exit: Callable[[int, int], None] | None = None, inherit: bool = False) -> None:
+        """`inherit`: the server is a fork of this process, sharing the imports it has made (`bagit up`'s,
+        most of the services'), not a fresh interpreter importing them again; only while this process runs
+        one thread (else a fresh interpreter all the same)."""
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._sock = ours
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "bagit.forkserver", str(theirs.fileno())], stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, env=env, pass_fds=(theirs.fileno(),), preexec_fn=child_setup,
-        )
+        self.proc: subprocess.Popen[bytes] | _ForkedServer
+        if inherit and threading.active_count() == 1:
+            self.proc = _fork_server(theirs, ours, env)
+        else:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "bagit.forkserver", str(theirs.fileno())], stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL, env=env, pass_fds=(theirs.fileno(),), preexec_fn=child_setup,
+            )
         theirs.close()
         self.on_exit = on_exit  # called on the reader thread with (pid, exit status)
         self._cond = threading.Condition()

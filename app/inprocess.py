@@ -28,7 +28,7 @@ import numpy as np
 from bagit.common.errors import BagItError, SimulationFailed, WallLimitReached
 from bagit.common.geometry import enclosure
 from bagit.common.messages import ArmState, Goal, Path, RunControl, RunState, SoiState
-from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, PERCEIVE_STAGES, SERVO_STAGES, ArmsMode
+from bagit.common.names import DEFAULT_CONTROLLER, DEFAULT_PLANNER, FINAL_STAGES, PERCEIVE_STAGES, SERVO_STAGES, SIM_TIME_LIMIT_S, ArmsMode
 from bagit.common.params import merge_params
 from bagit.common.results import RunResult, points_list, provenance
 from bagit.common.rig import ArmName, RigConfig
@@ -36,7 +36,7 @@ from bagit.common.scenario import Scenario
 from bagit.services.controller.session import SOI_MAX_AGE_S, Outbox, ServoRuns, tick_period
 from bagit.services.perception.marker import MarkerSchedule, ObjectLibrary, detect_object, with_run_object
 from bagit.services.perception.tracker import RimTracker, frame_soi, start_hint
-from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S, Coordinator, CoordinatorConfig, Effect, compute_plan
+from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, compute_plan
 from bagit.services.planner.goal import bottom_frame
 from bagit.services.sim.judge import truth_of
 from bagit.services.sim.lockstep import Schedule

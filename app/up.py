@@ -5,8 +5,8 @@ The composition root of the distributed rig. It writes, in a scratch folder, a Z
 every peer connected to the hub session
 this process listens with), a rig YAML (free ports for the simulated CR5s) and an arm-driver
 config (link time-outs for controllers that share the CPU, `SIM_DRIVER_TIMEOUTS`), then starts
-the services as child processes running `bagit <service> ...`: forked by `bagit.forkserver`, one
-interpreter that imported what they share once (`--no-fork-server`: `python -m bagit.cli <service>`
+the services as child processes running `bagit <service> ...`: forked by `bagit.forkserver`, a fork of
+`bagit up` made before it starts a thread, with what they share imported once (`--no-fork-server`: `python -m bagit.cli <service>`
 each, as a deployed rig starts them), streams their output with
 `[service]` prefixes, waits for each one's liveliness token, and can start a run on run/control
 and wait for its end.
@@ -42,10 +42,9 @@ from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Su
 from bagit.common.errors import BusError
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
-from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES
+from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES, SIM_TIME_LIMIT_S
 from bagit.common.rig import RigConfig
 from bagit.forkserver import ForkedProcess, ForkServer, child_env, child_setup
-from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
 
 if TYPE_CHECKING:
     from bagit.common.scenario import BagSpec

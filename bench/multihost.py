@@ -276,7 +276,7 @@ class Lab:
                 self._install(DEPLOY / "secure" / "client.json5", etc / zcfg)
             (etc / "rig.yaml").write_text(rig.to_yaml())
         self._install(DEPLOY / "secure" / "zenoh-router-secure.json5", self.etc("plan") / "secure" / "zenoh-router-secure.json5")
-        from bagit.services.planner.coordinator import SIM_TIME_LIMIT_S
+        from bagit.common.names import SIM_TIME_LIMIT_S
         from bagit.up import WALL_TIME_LIMIT_S
 
         limit = SIM_TIME_LIMIT_S if self.clock == "lockstep" else WALL_TIME_LIMIT_S

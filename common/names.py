@@ -59,3 +59,5 @@ LOCKSTEP_SERVICES: tuple[ServiceName, ...] = ("perception", "planner", "controll
 # hard search: 16 s on a lightly loaded 2-core EPYC); a 10 s budget failed such runs only when the
 # machine was busy, so a run's plan depended on the load.
 PLAN_WALL_GUARD_S = 300.0
+# A simulated run's servoing limit (`bagit run`, `bagit up` in lockstep), on the simulated clock: runs take 10-30 s.
+SIM_TIME_LIMIT_S = 40.0

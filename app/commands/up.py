@@ -95,16 +95,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import threading
     import time
 
+    from bagit.commands._service import stop_on_signals, wait_stop
+    from bagit.common.errors import BadScenario
     from bagit.forkserver import ForkServer, child_env
+    from bagit.up import Up
 
     t0 = time.monotonic()
-    # The fork server first: its imports (a fresh interpreter) run beside ours and the scenario's check below.
-    forks = None if args.no_fork_server else ForkServer(child_env())
+    # The fork server first, forked from this process while it runs one thread: it shares the imports just
+    # made (most of what the services import) instead of making them again in an interpreter of its own.
+    forks = None if args.no_fork_server else ForkServer(child_env(), inherit=True)
     try:
-        from bagit.commands._service import stop_on_signals, wait_stop
-        from bagit.common.errors import BadScenario
-        from bagit.up import Up
-
         opts = options(args)  # refused here, before any service starts
     except BaseException:
         if forks is not None:

@@ -47,8 +47,6 @@ from bagit.common.results import RunResult, axis_error_cm, points_list
 from bagit.common.rig import RigConfig
 from bagit.common.scenario import Scenario
 
-SIM_TIME_LIMIT_S = 40.0  # a simulated run's servoing limit (`bagit run`, `bagit up` in lockstep): runs take 10-30 s
-
 
 class CoordinatorConfig(BaseModel):
     """Timing rules of the coordinator (the `coordinator:` section of the planner's config)."""
