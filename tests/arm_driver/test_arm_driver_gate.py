@@ -32,7 +32,6 @@ from bagit.services.arm_driver.gate import (
 )
 from bagit.services.arm_driver.node import ArmDriverNode
 
-CFG = SIM_CFG
 U = np.zeros(12)
 U[0] = U[6] = 0.05 / 30  # both mounts along +x at 5 cm/s, 30 commands a second
 
@@ -102,7 +101,7 @@ def test_an_estop_engages_from_anyone_and_is_released_only_by_the_operators_tool
 @pytest.fixture
 def rigbus(request):
     """(sims, node, peer session, keys): the node on one peer, the test's publishers on the other."""
-    with node_on_bus("ag" + "".join(c for c in request.node.name if c.isalnum())[-30:], CFG) as bus:
+    with node_on_bus("ag" + "".join(c for c in request.node.name if c.isalnum())[-30:], SIM_CFG) as bus:
         yield bus
 
 

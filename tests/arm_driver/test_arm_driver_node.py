@@ -19,13 +19,11 @@ from bagit.common.messages import ArmState, Command, EStop, RunState
 from bagit.common.names import ESTOP_SOURCE_DASHBOARD
 from bagit.services.arm_driver.driver import ArmDriver
 
-CFG = SIM_CFG
-
 
 @pytest.fixture
 def rigbus(request):
     """(sims, node, peer session, keys): the node on one peer, the test's publishers on the other."""
-    with node_on_bus("ad" + "".join(c for c in request.node.name if c.isalnum())[-30:], CFG) as bus:
+    with node_on_bus("ad" + "".join(c for c in request.node.name if c.isalnum())[-30:], SIM_CFG) as bus:
         yield bus
 
 
@@ -141,7 +139,7 @@ def test_a_new_stream_after_a_hold_starts_from_the_measured_pose():
     """While the driver holds, the arm is moved behind its back (jogged, or a simulator resetting its
     world): the next command stream starts from where the arm IS, not from the old target."""
     sims = start_sims()
-    drv = ArmDriver(sims.rig, CFG)
+    drv = ArmDriver(sims.rig, SIM_CFG)
     try:
         drv.start()
         u = np.zeros(12)

@@ -33,7 +33,6 @@ from bagit.harness import stop_process
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import STALE
 
-CFG = SIM_CFG
 V0 = 0.04  # m/s: the mounts' speed when the driver is frozen
 
 
@@ -58,7 +57,7 @@ def _stream(drv: ArmDriver, seconds: float, seq0: int = 0) -> int:
 @pytest.mark.slow
 def test_a_frozen_servo_loop_sends_no_new_target_until_a_fresh_command_comes():
     sims = start_sims()
-    drv = ArmDriver(sims.rig, CFG)
+    drv = ArmDriver(sims.rig, SIM_CFG)
     rec = {a: FeedbackRecorder(s.feedback_port) for a, s in sims.servers.items()}
     try:
         drv.start()

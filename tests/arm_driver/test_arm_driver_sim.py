@@ -25,16 +25,12 @@ from bagit.common.rig import ARMS
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.driver import ArmDriver
 
-# On a loaded CI machine the simulated controllers' feedback threads can stall for a while; only the
-# feedback-loss test uses the (shorter) production default.
-CFG = SIM_CFG
-
 
 @pytest.fixture
 def rig():
     made = []
 
-    def make(config=CFG, proxy=False, **sim_kw):
+    def make(config=SIM_CFG, proxy=False, **sim_kw):
         sims = start_sims(proxy=proxy, **sim_kw)
         drv = ArmDriver(sims.rig, config)
         made.append((sims, drv))
@@ -158,7 +154,7 @@ def test_streamed_commands_are_jerk_limited_as_received_and_in_the_feedback(rig)
             # the watchdog's stop at the end brakes within the stop's limits, everything before within the path's:
             # a difference is judged by the limits of its last ServoP (the first braking one is sent with halt_aheadtime)
             braking = [t for t, text, reply in srv.commands("ServoP")
-                       if t0 <= t <= t1 and reply.startswith("0,") and servo_parameter(text, "aheadtime") == CFG.halt_aheadtime]
+                       if t0 <= t <= t1 and reply.startswith("0,") and servo_parameter(text, "aheadtime") == SIM_CFG.halt_aheadtime]
             assert braking, "the watchdog's stop"
             t_brake = braking[0]
             brakes = ts >= t_brake
@@ -419,7 +415,7 @@ def test_a_restart_while_an_arm_still_moves_starts_from_its_target_not_where_it_
 
 
 def test_servoj_streams_through_the_cr5_inverse_kinematics(rig):
-    sims, drv = rig(config=CFG.model_copy(update={"servo_command": "servoj"}))
+    sims, drv = rig(config=SIM_CFG.model_copy(update={"servo_command": "servoj"}))
     drv.start()
     before = mount_positions(drv)
     u = np.zeros(12)
