@@ -105,8 +105,9 @@ class ControllerExperimental(BaseModel):
     # J's rigid model of the pair has the whole rim turn with a turn of both grippers, which a hem with
     # little bending stiffness of its own barely follows: the MPC then turns them on, past 100° from where
     # they started, and the twisted rim stalls far from its subgoal or is lost (docs/experiments.md, "the
-    # floppy hem's turns"). Unbounded, no run that bagged turned a gripper this far.
-    max_turn_deg: float = Field(45.0, ge=0.0, le=180.0, description="each gripper turns at most this far from its pose at the first tick (deg); 0: unbounded")
+    # floppy hem's turns"). Off by default: at 45° it bags envelope -90 and -94, but bags that bag
+    # unbounded turn up to 83° too and would change (not re-run yet).
+    max_turn_deg: float = Field(0.0, ge=0.0, le=180.0, description="each gripper turns at most this far from its pose at the first tick (deg); 0: unbounded")
 
 
 class ControllerParams(BaseModel):

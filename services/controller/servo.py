@@ -417,7 +417,7 @@ class ServoBase(ControllerCore):
         """`u (12,)` with no share turning a gripper further from its pose at the first tick once it has turned
         `max_turn_deg` from it (its turn back, and every other axis, untouched; inside C7). Why: a hem with
         little bending stiffness barely follows a turn of its clamps while J's rigid model of the pair has
-        the rim turn with them, and unbounded the MPC turns the grippers on past 100°."""
+        the rim turn with them, and unbounded the MPC turns the grippers on past 100°. 0: unbounded, u as given."""
         cap = np.radians(self.p.controller.experimental.max_turn_deg)
         if cap <= 0.0 or self._start_turns is None:
             return u

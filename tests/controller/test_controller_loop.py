@@ -335,7 +335,7 @@ def test_the_lift_waits_for_an_soi_round_the_goals_v_only_with_dagger_round_v_an
 def test_a_gripper_turns_no_further_than_max_turn_deg_and_below_it_nothing_changes():
     """`max_turn_deg` bounds each gripper's turn from its pose at the first tick (the goal here asks 11.5°
     about z): at 5° the grippers stop turning there, a tick's turn past it at most; unbounded (0) they turn
-    on; the default 45° never engages here, so that run is the unbounded one to the last bit."""
+    on; at 45° it never engages here, so that run is the unbounded one to the last bit."""
     m = SyntheticRim(32)
     home = m.home()
     turned: dict[float, list[float]] = {}
