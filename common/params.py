@@ -102,6 +102,12 @@ class ControllerExperimental(BaseModel):
     # g† is the paper's bagging ellipse because it goes round V (C1): the SOI within the RMS tolerance
     # of g† can still leave a corner of V outside it, and a lift from there catches the corner.
     dagger_round_v: bool = Field(True, description="the lift starts only once the SOI at the settle's end goes round V; else servo to g† again (bounded)")
+    # J's rigid model of the pair has the whole rim turn with a turn of both grippers, which a hem with
+    # little bending stiffness of its own barely follows: the MPC then turns them on, past 100° from where
+    # they started, and the twisted rim stalls far from its subgoal or is lost (docs/experiments.md, "the
+    # floppy hem's turns"). Off by default: at 45° it bags envelope -90 and -94, but bags that bag
+    # unbounded turn up to 83° too and would change (not re-run yet).
+    max_turn_deg: float = Field(0.0, ge=0.0, le=180.0, description="each gripper turns at most this far from its pose at the first tick (deg); 0: unbounded")
 
 
 class ControllerParams(BaseModel):

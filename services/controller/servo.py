@@ -16,13 +16,14 @@ from typing import Any
 
 import numpy as np
 
-from bagit.common.dual_arm import DualArmIncrement, apply_increment, pose_increment
+from bagit.common.dual_arm import ROTATION, DualArmIncrement, apply_increment, pose_increment
 from bagit.common.errors import BadControlInput, NumericalFailure
 from bagit.common.geometry import closed_polyline_length, enclosure
 from bagit.common.messages import Command
 from bagit.common.names import ServoMode
 from bagit.common.params import MethodParams
-from bagit.common.rig import ArmName
+from bagit.common.rig import ARMS, ArmName
+from bagit.common.so3 import rotvec_between
 from bagit.services.controller.broyden import BroydenJacobian, Exploration, rigid_pair_motions, rigid_pair_response
 from bagit.services.controller.guard import SoiGuard
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
@@ -249,6 +250,7 @@ class ServoBase(ControllerCore):
         self.ticks = 0
         self._barred: np.ndarray | None = None  # (12,) unit, C7 units: motion the arm side could not make (see _note_reach)
         self._barred_ticks = 0
+        self._start_turns: dict[ArmName, np.ndarray] | None = None  # each gripper's rotation (3, 3) at the first tick (see _bound_turn)
         if x0 is not None and gripper_poses is not None:
             self._learn_separation_offset(x0, gripper_poses)
         self._on_reset()
@@ -300,6 +302,8 @@ class ServoBase(ControllerCore):
         (its joints), so that motion is not coming and is not asked for again (see `_bar_unmade`)."""
         tracker = self._path_tracker()
         self.ticks += 1
+        if self._start_turns is None and gripper_poses and pose_problem(gripper_poses) is None:
+            self._start_turns = {a: np.array(gripper_poses[a], dtype=float)[:3, :3] for a in ARMS}
         reason = self.guard.check(x, now, source_stamp) or pose_problem(gripper_poses)
         if reason is not None:
             self._x_prev = None  # never learn across a gap
@@ -348,6 +352,7 @@ class ServoBase(ControllerCore):
             return out
         u = np.clip(u, -self.u_max, self.u_max)  # C7, whatever the law
         u = self._bar_unmade(u, pending if slowed else None)
+        u = self._bound_turn(u, gripper_poses)
         out = self._out(u, "servo", None, x)
         out.solve_ms = solve_ms
         return out
@@ -407,6 +412,28 @@ class ServoBase(ControllerCore):
         v = np.asarray(u, dtype=float) / self.u_max
         limit = 0.0 if unmade is None else -min(max(float((unmade / self.u_max) @ d), 0.0), 1.0)
         return project_box_halfspace(v, d, limit) * self.u_max
+
+    def _bound_turn(self, u: np.ndarray, grippers: dict[ArmName, np.ndarray]) -> np.ndarray:
+        """`u (12,)` with no share turning a gripper further from its pose at the first tick once it has turned
+        `max_turn_deg` from it (its turn back, and every other axis, untouched; inside C7). Why: a hem with
+        little bending stiffness barely follows a turn of its clamps while J's rigid model of the pair has
+        the rim turn with them, and unbounded the MPC turns the grippers on past 100°. 0: unbounded, u as given."""
+        cap = np.radians(self.p.controller.experimental.max_turn_deg)
+        if cap <= 0.0 or self._start_turns is None:
+            return u
+        out = u
+        for arm in ARMS:
+            r = rotvec_between(self._start_turns[arm], np.asarray(grippers[arm], dtype=float)[:3, :3])
+            angle = float(np.linalg.norm(r))
+            if angle <= cap:
+                continue
+            axis = r / angle
+            w = out[ROTATION[arm]]
+            further = float(w @ axis)
+            if further > 0.0:
+                out = out.copy()
+                out[ROTATION[arm]] = w - further * axis
+        return out
 
     @property
     def barred(self) -> np.ndarray | None:

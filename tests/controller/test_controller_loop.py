@@ -10,6 +10,7 @@ from bagit.common.dual_arm import apply_increment
 from bagit.common.errors import BadControlInput
 from bagit.common.messages import Path
 from bagit.common.params import MethodParams
+from bagit.common.so3 import rotvec_between
 from bagit.services.controller import ShapeServo, c7_limits, make_controller
 from bagit.services.controller.broyden import rigid_pair_motions, rigid_pair_response
 from bagit.services.controller.mpc import separation_gradient
@@ -328,3 +329,23 @@ def test_the_lift_waits_for_an_soi_round_the_goals_v_only_with_dagger_round_v_an
     off = make_controller("mpc", merge_params(P, {"dagger_round_v": False}), m.n_x)
     off.reset(x, Path(nodes=path, dagger_index=5), g, goal=goal)
     assert off.tracker.dagger_check is None
+
+
+
+def test_a_gripper_turns_no_further_than_max_turn_deg_and_below_it_nothing_changes():
+    """`max_turn_deg` bounds each gripper's turn from its pose at the first tick (the goal here asks 11.5°
+    about z): at 5° the grippers stop turning there, a tick's turn past it at most; unbounded (0) they turn
+    on; at 45° it never engages here, so that run is the unbounded one to the last bit."""
+    m = SyntheticRim(32)
+    home = m.home()
+    turned: dict[float, list[float]] = {}
+    inputs = {}
+    for cap in (5.0, 0.0, 45.0):
+        turned[cap] = []
+        _, _, outs, _ = _run("mpc", m, _path(m), ticks=400, params=MethodParams.model_validate({"max_turn_deg": cap}),
+                             check=lambda g, out, cap=cap: turned[cap].extend(
+                                 np.degrees(np.linalg.norm(rotvec_between(home[a][:3, :3], g[a][:3, :3]))) for a in ("left", "right")))
+        inputs[cap] = np.stack([o.u for o in outs])
+    assert max(turned[5.0]) <= 5.0 + 1.0, max(turned[5.0])
+    assert max(turned[0.0]) > 8.0, max(turned[0.0])
+    assert np.array_equal(inputs[45.0], inputs[0.0])
