@@ -43,7 +43,8 @@ def rig():
 
 
 def stream(drv, u_of_t, seconds, rate=30.0, t_start=None):
-    """Submit `u_of_t(t)` at `rate` Hz for `seconds`; returns (monotonic time of the last submit, accepted count)."""
+    """Submit `u_of_t(t)` at `rate` Hz for `seconds`; returns (monotonic time of the last accepted submit, accepted
+    count). A loaded machine can hold a command back past the watchdog's time: the driver refuses it as stale."""
     t0 = time.monotonic() if t_start is None else t_start
     k, accepted, last = 0, 0, t0
     while True:
@@ -53,8 +54,9 @@ def stream(drv, u_of_t, seconds, rate=30.0, t_start=None):
         wait = t0 + t - time.monotonic()
         if wait > 0:
             time.sleep(wait)
-        last = time.monotonic()
-        accepted += drv.submit(Command(u=u_of_t(t), dt=1 / rate, seq=k))
+        sent = time.monotonic()
+        if drv.submit(Command(u=u_of_t(t), dt=1 / rate, seq=k)):
+            accepted, last = accepted + 1, sent
         k += 1
 
 
@@ -92,8 +94,7 @@ def test_bring_up_and_shutdown_follow_the_real_rig(rig):
     # stream a little, then close mid-motion: the arms brake to rest before DisableRobot
     u = np.zeros(12)
     u[0] = u[6] = 0.08 / 30
-    stream(drv, lambda t: u, 0.5)
-    t_close = time.monotonic()
+    last, _ = stream(drv, lambda t: u, 0.5)
     drv.close()
     for a, srv in sims.servers.items():
         assert not sims.robots[a].enabled
@@ -101,7 +102,7 @@ def test_bring_up_and_shutdown_follow_the_real_rig(rig):
         assert log[-1][1] == "DisableRobot()" and log[-1][2].startswith("0,")
         # the ServoPs around the close: tracking, then braking ones (halt_aheadtime) to the end, each step no
         # longer than the one before, the last one the pose the trajectory came to rest at
-        t0 = t_close - 0.2
+        t0 = last - 0.2  # (the last accepted command: a loaded machine may have let the watchdog brake before the close)
         ts, xyz = servo_positions(srv, t0=t0)
         ahead = [servo_parameter(text, "aheadtime") for t, text, reply in srv.commands("ServoP") if t >= t0 and reply.startswith("0,")]
         halting = np.array(ahead) == drv.cfg.halt_aheadtime

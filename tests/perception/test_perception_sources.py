@@ -67,7 +67,8 @@ def test_playback_gives_back_the_written_frames_and_the_soi(sim, recording):
 def test_real_time_playback_keeps_the_recorded_spacing_and_loops(sim, recording):
     """Played at the recorded pace, in a loop. Real-time playback drops a frame the reader is late for (as a
     camera does), so each frame read is matched to the recording's by its pixels: their order only goes
-    forward or wraps to the start, and the first pass is never read faster than recorded."""
+    forward or wraps to the start (a reader late by a whole loop reads the same frame of the next pass), and
+    the first pass is never read faster than recorded."""
     written = [f.depth for f in sim[0]]
     cfg = SourceConfig(kind="realsense-file", path=recording, real_time=True, loop=True)
     t0 = time.monotonic()  # playback starts as the source opens
@@ -80,7 +81,6 @@ def test_real_time_playback_keeps_the_recorded_spacing_and_loops(sim, recording)
     index = [i for _, _, i in read]
     wraps = [k for k in range(1, len(index)) if index[k] < index[k - 1]]
     assert wraps and index.count(0) >= 2, index  # it looped back to the start
-    assert all(b != a for a, b in zip(index, index[1:], strict=False)), index  # every read a new frame
     t_last, _, i_last = read[wraps[0] - 1]  # the first pass's last frame read: frame i_last, recorded i_last/FPS after frame 0
     assert t_last >= 0.9 * i_last / FPS, read  # never faster than recorded (a dropped frame makes it later, not sooner)
 
