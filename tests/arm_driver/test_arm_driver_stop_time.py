@@ -40,8 +40,7 @@ def test_the_arms_brake_after_the_last_command_and_come_to_rest(end):
           f"{', '.join(f'{s * 1000:.0f}' for s in still)} ms, median {np.median(still) * 1000:.0f} ms; first braking ServoP "
           f"median {np.median(halt) * 1000:.0f} ms, last moving {np.median(servo) * 1000:.0f} ms; loop stall {stall * 1000:.0f} ms")
     assert len(trials) == TRIALS and np.all(np.isfinite(still)), still  # every trial came to rest
-    braked = np.array([t["stalls"] == 0 for t in trials])  # (a loop starved past the watchdog holds without braking)
-    assert np.all(halt[braked] > 0) and np.all(servo[braked] >= halt[braked]), (halt, servo, braked)  # braking after the last command, then the last move
+    assert np.all(halt > 0) and np.all(servo >= halt), (halt, servo)  # braking after the last command, then the last move
 
 
 @pytest.mark.parametrize("case", ["from rest, x", "from rest, diagonal"])
