@@ -209,11 +209,7 @@ class _ForkedServer:
 
     def wait(self, timeout: float | None = None) -> int:
         if self.poll() is None:
-            fd = os.pidfd_open(self.pid)
-            try:
-                select.select([fd], [], [], timeout)
-            finally:
-                os.close(fd)
+            _await_end(self.pid, timeout)
         code = self.poll()
         if code is None:
             raise subprocess.TimeoutExpired(f"fork server {self.pid}", timeout or 0.0)
@@ -366,15 +362,8 @@ class ForkServer:
                 return True
             if not self._closed:
                 return False
-        try:  # an orphan now (its parent-death signal is on its way): woken by its end, not by polling
-            fd = os.pidfd_open(pid)
-        except ProcessLookupError:
-            return True
-        try:
-            left = None if deadline is None else max(0.0, deadline - time.monotonic())
-            select.select([fd], [], [], left)
-        finally:
-            os.close(fd)
+        # an orphan now (its parent-death signal is on its way): woken by its end, not by polling
+        _await_end(pid, None if deadline is None else max(0.0, deadline - time.monotonic()))
         return self.exit_code(pid) is not None
 
     def cpu_s(self) -> float:
@@ -397,6 +386,18 @@ class ForkServer:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             return self.proc.wait(timeout=5)
+
+
+def _await_end(pid: int, timeout: float | None) -> None:
+    """Until process `pid` has ended (or `timeout` s): woken by its end through a pidfd, not by polling."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return
+    try:
+        select.select([fd], [], [], timeout)
+    finally:
+        os.close(fd)
 
 
 def _pid_alive(pid: int) -> bool:

@@ -314,6 +314,12 @@ class ClockTick(Message):
     keepalive: bool = False
     frame: bool = False
 
+    @property
+    def control_step(self) -> bool:
+        """Whether the controller ticks at `t` (a frame's or a keep-alive's step; a step that is no servo
+        tick counts as one): the arm driver publishes the arms' states only at such steps."""
+        return self.frame or self.keepalive or self.servo_tick is None
+
 
 class StepAck(Message):
     """A service's answer to one step of a lockstep simulator (sim/ack): it is done with it.

@@ -17,5 +17,5 @@ def rig_clock(session: zenoh.Session, keys: Keys, kind: ClockKind) -> tuple[Wall
     if not isinstance(clock, SimClock):
         return clock, None
     sim = clock
-    return clock, Subscriber(session, keys.sim_clock, ClockTick, lambda m: sim.advance(m.t, m.servo_tick, m.frame or m.keepalive or m.servo_tick is None))
+    return clock, Subscriber(session, keys.sim_clock, ClockTick, lambda m: sim.advance(m.t, m.servo_tick, m.control_step))
 
