@@ -34,10 +34,11 @@ def pytest_collection_modifyitems(items: list) -> None:
 
 
 # `make test` runs the suite on two workers (TEST_WORKERS=2), a file whole on one (`--dist loadfile`). The files whose tests start
-# processes (whole rigs, services, a Dask cluster, a browser, simulated CR5s) or time messages on a bus run one
+# processes (whole rigs, services, a Dask cluster, a browser, simulated CR5s: start_sims, or the stop-time bench's
+# driver_trials, which streams to them on the wall clock) or time messages on a bus run one
 # after another on one worker, as one unit of work: they never share the two cores with each other, only with
 # the other worker's in-process tests, as the serial suite's did with nothing.
-ONE_AT_A_TIME = re.compile(r"mark\.processes|mark\.browser|start_sims|rigbus|session_pair|start_up|rig_up|subprocess")
+ONE_AT_A_TIME = re.compile(r"mark\.processes|mark\.browser|start_sims|driver_trials|rigbus|session_pair|start_up|rig_up|subprocess")
 
 
 @functools.cache

@@ -13,6 +13,9 @@ controller follows them without its lag. What is asserted is the order on the co
 braking after the last command, the last moving ServoP after the first braking one, the arms still in
 the end. How soon is printed here and held to its goal (p95 within 250 ms, n >= 20) by the benchmark,
 `python -m bagit.bench.stop_time`: a loaded machine makes it later, and a test must not fail for that.
+A trial a starved process disturbed (a command refused as stale, the servo loop stalled past the
+watchdog, a link time-out: the driver's protections, tested on their own elsewhere) is redone and printed.
+The wall-clock trials run with the files that start simulated CR5s, one at a time (tests/conftest.py).
 """
 
 from __future__ import annotations
@@ -31,14 +34,15 @@ TRIALS = 5
 @pytest.mark.slow
 @pytest.mark.parametrize("end", ["hold", "silence"])
 def test_the_arms_brake_after_the_last_command_and_come_to_rest(end):
-    trials = driver_trials(end, TRIALS)
+    disturbed: list[str] = []
+    trials = driver_trials(end, TRIALS, disturbed)
     still = np.array([t["still_s"] for t in trials])
     halt = np.array([t["halt_s"] for t in trials])
     servo = np.array([t["servo_s"] for t in trials])
     stall = float(np.median([t["stall_s"] for t in trials]))
     print(f"\nstop after the last command ({end}, {V0 * 100:.0f} cm/s, {TRIALS} trials): still at "
           f"{', '.join(f'{s * 1000:.0f}' for s in still)} ms, median {np.median(still) * 1000:.0f} ms; first braking ServoP "
-          f"median {np.median(halt) * 1000:.0f} ms, last moving {np.median(servo) * 1000:.0f} ms; loop stall {stall * 1000:.0f} ms")
+          f"median {np.median(halt) * 1000:.0f} ms, last moving {np.median(servo) * 1000:.0f} ms; loop stall {stall * 1000:.0f} ms; redone: {disturbed}")
     assert len(trials) == TRIALS and np.all(np.isfinite(still)), still  # every trial came to rest
     assert np.all(halt > 0) and np.all(servo >= halt), (halt, servo)  # braking after the last command, then the last move
 
