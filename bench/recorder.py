@@ -48,7 +48,7 @@ def _noise_frame() -> RgbdFrame:
                      depth=rng.integers(300, 3000, (480, 640), dtype=np.uint16))
 
 
-def _one(payload: bytes, n: int, compression: str) -> dict[str, Any]:
+def _one(payload: bytes | bytearray, n: int, compression: str) -> dict[str, Any]:
     d = Path(tempfile.mkdtemp(prefix="bagit-bench-rec-"))
     try:
         w = RecordingWriter(RecorderConfig(dir=d, compression=compression, flush_s=1.0), "bench")
