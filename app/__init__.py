@@ -6,3 +6,7 @@ imports several services. The ground floor is `bagit.common`; each stage lives i
 """
 
 __version__ = "0.1.0"
+
+from bagit.common.machine import pin_blas_kernel
+
+pin_blas_kernel()  # before anything loads numpy: one BLAS kernel on every AVX2 machine (common/machine.py's PINNED_BLAS_ENV)

@@ -11,6 +11,7 @@ import importlib
 import os
 import platform
 import sys
+from collections.abc import MutableMapping
 from functools import cache
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -26,6 +27,11 @@ NUMERIC_ENV = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "OPENBLAS_NUM_THREADS", 
 # The CPU's instruction sets that the libraries above choose kernels by (x86 `flags`, Arm `Features` in /proc/cpuinfo).
 ISA_FLAGS = ("sse4_2", "avx", "avx2", "fma", "f16c", "avx512f", "avx512dq", "avx512cd", "avx512bw", "avx512vl", "avx512ifma", "avx512vbmi",
              "avx512_vnni", "avx512_bf16", "avx512_fp16", "amx_tile", "asimd", "sve", "sve2")
+# The BLAS kernel every BagIt process computes with on an x86-64 CPU with AVX2 and FMA, whatever OpenBLAS would pick
+# by itself (SkylakeX on an AVX-512 CPU, Zen, ...) or a machine's image sets: the kernel changes a run's last bits,
+# which the closed loop grows into other ticks and errors. Haswell's, with the L2 size its blocking assumes, is what
+# the published records were computed with (their `numerics.env`) and runs on every such CPU. Set where unset.
+PINNED_BLAS_ENV = {"OPENBLAS_CORETYPE": "Haswell", "OPENBLAS_L2_SIZE": "512"}
 # PIQP's builds, one per instruction set; its package loads the widest the CPU runs.
 PIQP_BUILDS = {"piqp.piqp_python_avx512": "avx512", "piqp.piqp_python_avx2": "avx2", "piqp.piqp_python": "generic"}
 
@@ -64,6 +70,18 @@ class Numerics(BaseModel):
                 f"CPU flags: {' '.join(self.cpu_flags)}" + (f"; {env}" if env else ""))
 
 
+def pin_blas_kernel(environ: MutableMapping[str, str] = os.environ) -> bool:
+    """Set PINNED_BLAS_ENV in `environ` (a variable already set wins: an explicit choice) before OpenBLAS loads;
+    children inherit it. False when it cannot apply: not an x86-64 CPU with AVX2 and FMA, or numpy (and its
+    OpenBLAS) already loaded; the kernel is then OpenBLAS's own pick, which every record still names."""
+    flags = set(_cpu_flags())
+    if platform.machine().lower() not in ("x86_64", "amd64") or not {"avx2", "fma"} <= flags or "numpy" in sys.modules:
+        return False
+    for k, v in PINNED_BLAS_ENV.items():
+        environ.setdefault(k, v)
+    return all(environ.get(k) == v for k, v in PINNED_BLAS_ENV.items())
+
+
 def cpu_model() -> str:
     """The CPU's model name (Linux's /proc/cpuinfo; else what the platform says)."""
     for key, value in _cpuinfo_fields():
@@ -88,13 +106,14 @@ def blas_libraries() -> list[BlasLibrary]:
             for i in threadpool_info() if i.get("user_api") == "blas"]
 
 
+def _cpu_flags() -> list[str]:
+    """The first processor's instruction-set flags (x86 `flags`, Arm `Features` in /proc/cpuinfo)."""
+    return next((value.split() for key, value in _cpuinfo_fields() if key in ("flags", "Features")), [])
+
+
 @cache
 def _static_numerics() -> Numerics:
-    flags: set[str] = set()
-    for key, value in _cpuinfo_fields():
-        if key in ("flags", "Features"):
-            flags = set(value.split())
-            break
+    flags = set(_cpu_flags())
     return Numerics(libraries={d: _version(d) for d in NUMERIC_LIBRARIES}, env={k: os.environ[k] for k in NUMERIC_ENV if k in os.environ},
                     cpu_flags=[f for f in ISA_FLAGS if f in flags], numpy_simd=_numpy_simd())
 

@@ -1,5 +1,7 @@
 """Test-wide settings: headless MuJoCo rendering, no network beyond loopback."""
 
+import bagit  # noqa: F401, I001 - first: importing bagit pins the BLAS kernel before numpy loads (common/machine.py)
+
 import functools
 import os
 import re

@@ -69,3 +69,29 @@ def test_the_lock_pins_every_declared_dependency_within_its_range():
         name = canonicalize_name(spec.name)
         assert name in pins, f"{spec.name} is declared in pyproject.toml but not in requirements.lock: run `make lock`"
         assert spec.specifier.contains(pins[name], prereleases=True), f"requirements.lock pins {spec.name}=={pins[name]}, outside {spec}"
+
+
+def _blas_kernels(env: dict[str, str], first: str = "import bagit, numpy") -> list[str]:
+    """The OpenBLAS kernels a fresh interpreter runs after `first`, with `env` on top of this one's less the pin."""
+    import os
+    import subprocess
+    import sys
+
+    base = {k: v for k, v in os.environ.items() if k not in machine.PINNED_BLAS_ENV}
+    code = f"{first}\nfrom threadpoolctl import threadpool_info\nprint(sorted({{i['architecture'] for i in threadpool_info()}}))"
+    out = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True, timeout=120, check=True)
+    return json.loads(out.stdout.strip().replace("'", '"'))
+
+
+def test_every_bagit_process_computes_with_one_blas_kernel():
+    """A process that imports bagit before numpy runs OpenBLAS's Haswell kernel on any CPU with AVX2 and FMA,
+    whatever OpenBLAS would have picked (the records' kernel: a run on another kernel differs in its last bits,
+    and the closed loop makes that another run). A kernel set explicitly wins; numpy loaded first, no pin."""
+    avx2 = {"avx2", "fma"} <= set(machine._cpu_flags())
+    assert machine.pin_blas_kernel({}) is False  # numpy is loaded in this process: too late to choose
+    if not avx2:
+        return
+    assert _blas_kernels({}) == ["Haswell"]
+    assert _blas_kernels({"OPENBLAS_CORETYPE": "Sandybridge"}) == ["Sandybridge"]
+    unpinned = _blas_kernels({}, "import numpy, bagit")
+    assert len(unpinned) == 1  # OpenBLAS's own pick (SkylakeX on an AVX-512 CPU), which the record then names
