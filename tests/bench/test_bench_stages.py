@@ -81,6 +81,28 @@ def test_the_up_lockstep_goals_judge_the_whole_life_and_the_run_alone_apart():
     assert not goals({**r, "ratio_the_run": None}, exact=True)["wall_ratio_the_run"]
 
 
+def test_up_lockstep_pairs_judge_the_goals_by_the_median_pair_and_bit_for_bit_by_every_one(monkeypatch):
+    """`--pairs N`: the record is the median pair's, the ratios the medians of all pairs, bit for bit only if all are."""
+    from bagit.bench import up_lockstep
+
+    made = iter([(1.30, 1.50, True), (1.05, 1.25, True), (1.10, 1.28, False)])
+
+    def measure(**_kw):
+        wall, cpu, same = next(made)
+        return {"machine": {"commit": "abc"}, "load_before": [1.0], "load_after": [2.0], "params": {"scenario": "exp02"},
+                "run": {"wall_s": 10.0, "cpu_s": 10.0, "result": {}}, "bit_for_bit": same,
+                "up": {"wall_s": 10 * wall, "cpu_s": 10 * cpu, "exact": True, "cpu_s_per_service": {}, "result": {}},
+                "ratio": {"wall": wall, "cpu": cpu}, "ratio_the_run": {"wall": wall - 0.1, "cpu": cpu - 0.1}}
+
+    monkeypatch.setattr(up_lockstep, "measure", measure)
+    r = up_lockstep.measure_pairs(3, scenario="exp02")
+    assert r["ratio"] == {"wall": 1.1, "cpu": 1.28} and r["up"]["cpu_s"] == 12.8  # the medians; the median CPU pair's details
+    assert r["params"]["pairs"] == 3 and len(r["pairs"]) == 3 and r["bit_for_bit"] is False
+    assert r["goal"] == {"bit_for_bit": False, "wall_ratio": True, "cpu_ratio": True, "wall_ratio_the_run": True, "cpu_ratio_the_run": True}
+    md = up_lockstep.markdown(r)
+    assert "| up / run: wall, CPU (the median of 3 pairs) | 1.1, 1.28" in md and "1.3, 1.5; 1.05, 1.25; 1.1, 1.28" in md, md
+
+
 def test_the_cpu_lines_of_bagit_up_are_read_per_service_and_its_own_apart():
     from bagit.bench.deployed import cpu_per_service
 
