@@ -32,7 +32,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,7 +43,10 @@ from bagit.common.results import provenance
 from bagit.common.rig import ARMS, ArmName
 from bagit.harness import ENV, stop_process, wait_until
 from bagit.services.arm_driver.config import DriverConfig
-from bagit.services.sim.harness import FeedbackRecorder, RecordingServer, servo_parameter, servo_positions, start_sims
+from bagit.services.sim.harness import FeedbackRecorder, RecordingServer, SimPair, servo_parameter, servo_positions, start_sims
+
+if TYPE_CHECKING:
+    from bagit.services.arm_driver.driver import ArmDriver
 
 log = logging.getLogger("bagit.bench.stop_time")
 
@@ -134,7 +137,7 @@ def driver_trials(end: str, trials: int, disturbed: list[str] | None = None) -> 
     return out
 
 
-def _driver_trial(drv: Any, sims: Any, rec: dict[ArmName, FeedbackRecorder], end: str,
+def _driver_trial(drv: ArmDriver, sims: SimPair, rec: dict[ArmName, FeedbackRecorder], end: str,
                   trial: int) -> tuple[dict[str, float], str | None]:
     """One stream and its end: the row, and why the machine disturbed it (None: it did not)."""
     u = increment(1.0 if trial % 2 == 0 else -1.0)  # there and back: the arms stay near home

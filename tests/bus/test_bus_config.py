@@ -139,6 +139,7 @@ def test_key_space():
     assert k.spec(k.alive("x")).kind == "liveliness"
     assert k.spec("bagit/other/perception/soi") is None  # another rig
     assert k.spec("bagit/lab2/nothing") is None
+    assert k.spec(k.perception_soi).message is SoiState
 
 
 def test_each_service_answers_lockstep_on_its_own_key():
@@ -152,7 +153,6 @@ def test_each_service_answers_lockstep_on_its_own_key():
     assert not zenoh.KeyExpr(k.step_ack("planner")).includes(zenoh.KeyExpr(k.step_ack("controller")))
     with pytest.raises(BusError, match="service name"):
         k.step_ack("planner/*")
-    assert k.spec(k.perception_soi).message is SoiState
 
 
 def test_qos_table_follows_the_policy():
