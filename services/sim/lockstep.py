@@ -212,16 +212,20 @@ class Lockstep:
     def _waits_for(self, service: str) -> bool:
         return self.active and service in self.services and service not in self.dropped
 
+    def tick_pending(self) -> list[str]:
+        """What the servo tick still waits for (the arm driver's cycle, its ServoPs landed); [] = the
+        world may step on, as far as the tick goes."""
+        if self.tick is None or not self._waits_for("arm-driver"):
+            return []
+        n = self.tick[0]
+        if self.tick_sent is None:
+            return [f"arm-driver: servo tick {n}"]
+        late = [a for a, k in self.tick_sent.items() if self.received.get(a, 0) - self.tick_base.get(a, 0) < k]
+        return [f"{a} CR5: the servo command of tick {n}" for a in late]
+
     def pending(self) -> list[str]:
         """Who the simulator still waits for, as short texts; [] = step on."""
-        out: list[str] = []
-        if self.tick is not None and self._waits_for("arm-driver"):
-            n = self.tick[0]
-            if self.tick_sent is None:
-                out.append(f"arm-driver: servo tick {n}")
-            else:
-                late = [a for a, k in self.tick_sent.items() if self.received.get(a, 0) - self.tick_base.get(a, 0) < k]
-                out += [f"{a} CR5: the servo command of tick {n}" for a in late]
+        out = self.tick_pending()
         f = self.frame
         if f is None:
             return out

@@ -24,7 +24,9 @@ services' sim/ack and the controllers' servo counts). A loaded machine then make
 never different. A lockstep run goes as fast as the rig answers (no faster than `speed` if set);
 between runs it is paced to the wall clock (`speed`, default real time). While the rig works on
 a frame the world already steps on to the next event (`_step_ahead`: provably the same world), so
-the simulator's physics overlaps the services' work on the machine's other core.
+the simulator's physics overlaps the services' work on the machine's other core; and a servo tick
+that falls with a frame is answered while that frame renders (the render reads the world at the
+tick, which the tick's ServoPs move only after it; the world steps on once they have landed).
 """
 
 from __future__ import annotations
@@ -314,18 +316,21 @@ class SimNode:
                 t_sim0, t_wall0 = rig.clock_s, time.monotonic()
                 continue
             now, world_t = rig.clock_s, rig.time
+            framing = sched.frame_pending(world_t)
+            idle = not self.lockstep.active and world_t - self._idle_frame < 1.0 / IDLE_FPS - 1e-9  # between runs: fewer frames
+            render = framing and cfg.camera and self._camera_paused is None and not idle
             n = sched.servo_due(world_t)
             if n is not None:
                 with self._cond:
                     self.lockstep.servo_tick(n, rig.servo_counts(), time.monotonic())
-                self._publish_clock(now, n, frame=sched.frame_pending(world_t))
-                self._wait(stop)
+                self._publish_clock(now, n, frame=framing)
+                if not render:  # else answered while the frame renders (below)
+                    self._wait(stop)
             stepped = False  # the world already stepped to the next event while the rig worked on this one
             if sched.frame_due(world_t):
                 if n is None:
                     self._publish_clock(now, None, frame=True)
-                idle = not self.lockstep.active and world_t - self._idle_frame < 1.0 / IDLE_FPS - 1e-9  # between runs: fewer frames
-                if cfg.camera and self._camera_paused is None and not idle:
+                if render:
                     self._idle_frame = world_t
                     frame = rig.render_rgbd(self._world_frames)  # numbered (and its noise seeded) per world, as in `bagit run`
                     self._world_frames += 1
@@ -335,6 +340,8 @@ class SimNode:
                         self.lockstep.frame_published(now, time.monotonic())
                     self._frame_pub.put(frame)
                     self.stats.frames += 1
+                    if n is not None:
+                        self._wait(stop, tick_only=True)
                     stepped = self._step_ahead(sched.until_next(world_t))
                     self._wait(stop)
             elif sched.keep_due(world_t):  # frames sparser than the controller's keep-alive pace
@@ -382,10 +389,12 @@ class SimNode:
     def _publish_clock(self, t: float, servo_tick: int | None, keepalive: bool = False, frame: bool = False) -> None:
         self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive, frame=frame))
 
-    def _wait(self, stop: threading.Event) -> None:
+    def _wait(self, stop: threading.Event, tick_only: bool = False) -> None:
         """Until the rig has answered this step (or a new run, or `stop`). Every answer wakes it (an ack, a
         servo command reaching a simulated controller, a liveliness change, a new run): nothing polls;
-        the timed wake-up only lets `expire` drop a service silent for the lockstep time-out."""
+        the timed wake-up only lets `expire` drop a service silent for the lockstep time-out.
+        `tick_only`: until the servo tick is answered, its ServoPs landed (the world may then step on),
+        the frame's answers still awaited: the step is not done."""
         with self._cond:
             while not stop.is_set() and self._pending is None:
                 self.lockstep.controllers(self.rig.servo_counts())
@@ -393,14 +402,18 @@ class SimNode:
                 for note in self.lockstep.notes:
                     self.say(note)
                 self.lockstep.notes.clear()
-                if not waiting:
+                if tick_only:
+                    if not self.lockstep.tick_pending():
+                        return
+                elif not waiting:
                     if self.lockstep.ended() and self._ended != self.run_id:
                         self._ended = self.run_id
                         self._final_truth()  # at the very step the run ended, before the world moves on
                         self.lockstep.start_run(None)
                     break
                 self._cond.wait(EXPIRE_CHECK_S)
-            self.lockstep.done_with_step()
+            if not tick_only:  # (a tick-only wait ended by `stop` or a new run: the step's full wait says so)
+                self.lockstep.done_with_step()
 
     def _say_alarms(self) -> None:
         """Print why a simulated controller alarmed (its GetErrorID gives the id only)."""

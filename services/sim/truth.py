@@ -60,6 +60,7 @@ class PenetrationMonitor:
         self._radii = [float(np.linalg.norm(p.points - c, axis=1).max()) for p, c in zip(parts, self._centres, strict=False)]
         self.max_depth = 0.0
         self.passed = False
+        self.last_depth: float | None = None  # `depth` at the last `update`: the world's truth now, as long as nothing moved since
 
     def depth(self, verts: np.ndarray) -> float:
         """Deepest fabric point inside any part (m), for the fabric's vertices `verts (n, 3)`; -inf if none is near."""
@@ -76,7 +77,7 @@ class PenetrationMonitor:
         return deepest
 
     def update(self, verts: np.ndarray) -> None:
-        d = self.depth(verts)
+        d = self.last_depth = self.depth(verts)
         if d > self.max_depth:
             self.max_depth = d
         if d > self.tol:

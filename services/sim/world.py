@@ -279,9 +279,15 @@ class SimWorld:
             object_vertices=self.scenario.object.bottom_vertices(),
             passed_through=self._monitor.passed,
             max_penetration_m=max(self._monitor.max_depth, 0.0),
-            clearance_m=-self._monitor.depth(self.bag_vertices()),
+            clearance_m=-self._clearance_depth(),
             mount_poses=self.mount_poses(),
         )
+
+    def _clearance_depth(self) -> float:
+        """The fabric's deepest point inside the object now: the monitor's from the last physics step (the
+        vertices move only in `step`), measured afresh before the first."""
+        d = self._monitor.last_depth
+        return self._monitor.depth(self.bag_vertices()) if d is None else d
 
     def object_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """The object for display: vertices `(n, 3)` (world) and triangles `(m, 3)`."""

@@ -108,6 +108,23 @@ def test_a_servo_tick_waits_for_the_drivers_cycle_and_its_servo_commands_to_land
     assert ls.pending() == []
 
 
+def test_a_tick_with_a_frame_is_answered_apart_from_the_frames_chain():
+    # the simulator renders and publishes the frame before the tick is answered: the world may step
+    # on once the tick's ServoPs landed (`tick_pending` empty) while the frame's chain is still awaited
+    ls = Lockstep()
+    ls.start_run("r1")
+    ls.servo_tick(40, {"left": 7, "right": 7}, wall=0.0)
+    ls.frame_published(12.0, wall=0.0)
+    assert ls.tick_pending() == ["arm-driver: servo tick 40"]
+    assert ls.pending() == ["arm-driver: servo tick 40", "perception: frame 12.000"]
+    ls.on_ack(_ack("perception", 12.0, soi_seq=9), 0.0)  # the frame's chain may run ahead of the tick's answer
+    ls.on_ack(_ack("arm-driver", tick=40, servo_sent={"left": 1, "right": 1}), 0.0)
+    ls.controllers({"left": 8, "right": 7})
+    assert ls.tick_pending() == ["right CR5: the servo command of tick 40"]
+    ls.controllers({"left": 8, "right": 8})
+    assert ls.tick_pending() == [] and ls.pending() == ["planner: frame 12.000"]
+
+
 def test_a_service_gone_or_silent_is_dropped_for_the_run_and_said_so():
     ls = Lockstep(timeout_s=2.0)
     ls.start_run("r1")
