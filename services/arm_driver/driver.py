@@ -352,7 +352,12 @@ class ArmDriver:
             return None if out.poses is None else (out, made)
 
     def send_cycle(self, out: Cycle) -> list[ArmName]:
-        return self.links.send(out.servo, self._dispatch)
+        """The cycle's ServoPs, under the lock: `estop` latches under it before its EmergencyStop goes out
+        (on the same connection), so a ServoP made before the latch goes out before the EmergencyStop or not at all."""
+        with self._lock:
+            if self.state.estop:
+                return []
+            return self.links.send(out.servo, self._dispatch)
 
     def _check_stall(self, now: float) -> None:
         """A loop that has not run for longer than the watchdog's time (with the lock held): `stalled`."""

@@ -251,6 +251,26 @@ def test_the_watchdog_stops_both_arms_after_the_last_command(rig):
             r.close()
 
 
+def test_a_servo_cycle_made_before_the_estop_latched_is_not_sent_after_it(rig):
+    # the servo loop makes a cycle, then (on the wall clock) waits up to a period to space its sends: an
+    # e-stop latched in between must not let that cycle's ServoPs out after the EmergencyStop
+    sims, drv = rig()
+    drv.start()
+    u = np.zeros(12)
+    u[2], u[8] = 0.03 / 30, 0.03 / 30
+    for _ in range(20):  # a starved stream can stall the driver (its watchdog): stream again until it moves
+        stream(drv, lambda t: u, 0.2)
+        made = drv.make_cycle()
+        if made is not None and made[0].servo:
+            break
+    assert made is not None and made[0].servo  # moving: this cycle has ServoPs for both arms
+    drv.estop("test: pressed between a cycle and its send")
+    assert drv.send_cycle(made[0]) == []
+    for a, srv in sims.servers.items():
+        texts = [text for _, text, _ in srv.log]
+        assert "EmergencyStop(1)" in texts and not [x for x in texts[texts.index("EmergencyStop(1)"):] if x.startswith("ServoP")], a
+
+
 def test_estop_reaches_both_controllers_and_stays_latched(rig):
     sims, drv = rig()
     seen = []
@@ -269,6 +289,9 @@ def test_estop_reaches_both_controllers_and_stays_latched(rig):
         got = [t for t, text, reply in srv.log if text == "EmergencyStop(1)"]
         assert len(got) == 1 and got[0] >= t_call, got[0] - t_call
         assert sims.robots[a].estop_pressed and not sims.robots[a].enabled
+        texts = [text for _, text, _ in srv.log]
+        # a servo cycle made before the latch goes out before the EmergencyStop (one connection) or not at all
+        assert not [x for x in texts[texts.index("EmergencyStop(1)"):] if x.startswith("ServoP")], a
     th.join()
     assert drv.status()["rejections"].get("estopped", 0) > 0  # the stream kept coming and was refused
     time.sleep(0.3)
