@@ -138,7 +138,7 @@ class DobotClient:
         self._backoff = self._backoff0
         self._next_attempt = 0.0
         self._lock = threading.Lock()
-        self._send_lock = threading.Lock()
+        self._send_lock = threading.RLock()  # one command on the wire at a time (`send_unless` holds it across its check)
         self._dash: socket.socket | None = None
         self._fb: socket.socket | None = None
         self._pending: deque[PendingReply] = deque()
@@ -242,27 +242,34 @@ class DobotClient:
     # -- dashboard -------------------------------------------------------------------------------
 
     def send(self, text: str) -> PendingReply:
-        """Send one command without waiting; the returned handle's `wait()` gives its reply."""
-        pending = PendingReply(text)
-        with self._lock:
-            sock = self._dash
-            if sock is None or not self.connected:
-                raise ConnectionLost(f"{self.name}: not connected ({self.last_error or 'never connected'})")
-            self._pending.append(pending)
-            self.counters["requests"] += 1
-            epoch = self.epoch
+        """Send one command without waiting; the returned handle's `wait()` gives its reply. Queued for its
+        reply and put on the wire in one turn of the send lock, so the replies' order is the wire's."""
         try:
-            with self._send_lock:
-                sock.sendall(text.encode("ascii"))
-        except OSError as e:
-            self.drop(f"send failed: {e.strerror or e}", epoch)
-            pending._resolve(error=ConnectionLost(f"{self.name}: send failed: {e.strerror or e}"))
+            data = text.encode("ascii")
         except UnicodeEncodeError:
-            with self._lock:
-                if pending in self._pending:
-                    self._pending.remove(pending)
             raise ProtocolError(f"{self.name}: command is not ASCII: {text[:60]!r}") from None
+        pending = PendingReply(text)
+        with self._send_lock:
+            with self._lock:
+                sock = self._dash
+                if sock is None or not self.connected:
+                    raise ConnectionLost(f"{self.name}: not connected ({self.last_error or 'never connected'})")
+                self._pending.append(pending)
+                self.counters["requests"] += 1
+                epoch = self.epoch
+            try:
+                sock.sendall(data)
+            except OSError as e:
+                self.drop(f"send failed: {e.strerror or e}", epoch)
+                pending._resolve(error=ConnectionLost(f"{self.name}: send failed: {e.strerror or e}"))
         return pending
+
+    def send_unless(self, text: str, stop: Callable[[], bool]) -> PendingReply | None:
+        """`send`, unless `stop()` says no when it is this command's turn on the wire (None: not sent). What
+        latches `stop` before sending on this connection (the e-stop) then finds this command ahead of it, or
+        never sent."""
+        with self._send_lock:
+            return None if stop() else self.send(text)
 
     def wait(self, pending: PendingReply, timeout: float | None = None) -> Reply:
         """The reply to a sent command (ProtocolError on time-out, malformed reply or lost link)."""

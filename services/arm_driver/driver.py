@@ -352,12 +352,10 @@ class ArmDriver:
             return None if out.poses is None else (out, made)
 
     def send_cycle(self, out: Cycle) -> list[ArmName]:
-        """The cycle's ServoPs, under the lock: `estop` latches under it before its EmergencyStop goes out
-        (on the same connection), so a ServoP made before the latch goes out before the EmergencyStop or not at all."""
-        with self._lock:
-            if self.state.estop:
-                return []
-            return self.links.send(out.servo, self._dispatch)
+        """The cycle's ServoPs, each unless the e-stop has latched by its turn on its connection: `estop`
+        latches before its EmergencyStop goes out on the same connections, so a ServoP made before the latch
+        goes out before the EmergencyStop or not at all (and no arm's e-stop waits for the other arm's link)."""
+        return self.links.send(out.servo, self._dispatch, lambda: self.state.estop)
 
     def _check_stall(self, now: float) -> None:
         """A loop that has not run for longer than the watchdog's time (with the lock held): `stalled`."""

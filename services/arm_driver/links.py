@@ -183,17 +183,20 @@ class Cr5Links:
 
     # -- the servo period ------------------------------------------------------------------------
 
-    def send(self, commands: dict[ArmName, ServoCommand], step: Callable[[m.Event], object]) -> list[ArmName]:
-        """Each arm's ServoP (its reply is checked a period later); the arms it went to. A link lost
-        sending one is stepped (`step`) at once."""
+    def send(self, commands: dict[ArmName, ServoCommand], step: Callable[[m.Event], object], halted: Callable[[], bool]) -> list[ArmName]:
+        """Each arm's ServoP (its reply is checked a period later), unless `halted()` (the e-stop latched) when
+        its turn on the wire comes; the arms it went to. A link lost sending one is stepped (`step`) at once."""
         sent = []
         for a, cmd in commands.items():
             text = DobotClient.servo_text(cmd.name, cmd.values, cmd.t, cmd.aheadtime, cmd.gain)
             try:
-                self.in_flight[a].append(self.clients[a].send(text))
-                sent.append(a)
+                pending = self.clients[a].send_unless(text, halted)
             except ProtocolError as e:
                 step(m.LinkLost(a, str(e)))
+                continue
+            if pending is not None:
+                self.in_flight[a].append(pending)
+                sent.append(a)
         return sent
 
     def check_replies(self, now: float, lockstep: bool, failed: Callable[[ArmName], int], step: Callable[[m.Event], object]) -> None:
