@@ -75,7 +75,9 @@ def test_malformed_payloads_are_dropped_and_counted(pair, caplog):
         for payload in bad.values():
             a.put(keys.perception_soi, payload)
         pub.put(good)  # a good one after the garbage still arrives
-        assert wait_until(lambda: len(got) == 1 and sub.dropped == len(bad)), (len(got), sub.dropped)
+        # both subscribers hear every sample, each in its own time: wait for the two
+        assert wait_until(lambda: len(got) == 1 and sub.dropped == len(bad) and cache.get() is not None and cache.dropped == len(bad)), \
+            (len(got), sub.dropped, cache.received, cache.dropped)
 
     assert got[0].seq == 1 and np.array_equal(got[0].rim, good.rim)
     assert sub.received == 1 and cache.received == 1
