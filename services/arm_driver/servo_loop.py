@@ -101,10 +101,11 @@ class ServoLoop:
                 else:
                     self.last_send = time.monotonic()
                     self.send_times.append(self.last_send)
-                    for a in self.host.send_cycle(out):
+                    arms = self.host.send_cycle(out)  # none once the e-stop has latched
+                    for a in arms:
                         self.counters["servo_sent"] += 1
                         self.servo_sent[a] += 1
-                    sent = bool(out.servo)
+                    sent = bool(arms)
         except Exception as e:  # never let the loop die: whatever went wrong becomes a fault
             self.host.cycle_failed(e)
         self.cycle_ms.append((time.monotonic() - t0) * 1000.0)
