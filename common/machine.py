@@ -74,8 +74,7 @@ def pin_blas_kernel(environ: MutableMapping[str, str] = os.environ) -> bool:
     """Set PINNED_BLAS_ENV in `environ` (a variable already set wins: an explicit choice) before OpenBLAS loads;
     children inherit it. False when it cannot apply: not an x86-64 CPU with AVX2 and FMA, or numpy (and its
     OpenBLAS) already loaded; the kernel is then OpenBLAS's own pick, which every record still names."""
-    flags = set(_cpu_flags())
-    if platform.machine().lower() not in ("x86_64", "amd64") or not {"avx2", "fma"} <= flags or "numpy" in sys.modules:
+    if "numpy" in sys.modules or platform.machine().lower() not in ("x86_64", "amd64") or not {"avx2", "fma"} <= set(_cpu_flags()):
         return False
     for k, v in PINNED_BLAS_ENV.items():
         environ.setdefault(k, v)
@@ -106,9 +105,10 @@ def blas_libraries() -> list[BlasLibrary]:
             for i in threadpool_info() if i.get("user_api") == "blas"]
 
 
-def _cpu_flags() -> list[str]:
-    """The first processor's instruction-set flags (x86 `flags`, Arm `Features` in /proc/cpuinfo)."""
-    return next((value.split() for key, value in _cpuinfo_fields() if key in ("flags", "Features")), [])
+@cache
+def _cpu_flags() -> tuple[str, ...]:
+    """The first processor's instruction-set flags (x86 `flags`, Arm `Features` in /proc/cpuinfo), read once a process."""
+    return next((tuple(value.split()) for key, value in _cpuinfo_fields() if key in ("flags", "Features")), ())
 
 
 @cache
