@@ -28,6 +28,7 @@ from bagit.common.errors import BadScenario
 DEFAULT_LAMBDA_D_M = 0.04
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN passes no bound check
+RigidTurns = Literal["all", "line"]  # the pair's turns J's rigid model sets (ControllerExperimental.rigid_pair_turns)
 
 
 # ---- goal: the bagging ellipse g† and the goal SOI g* (paper section V) --------------------------
@@ -99,6 +100,12 @@ class ControllerExperimental(BaseModel):
     # their midpoint) is the rim moving as that body, from the grippers' and the SOI's positions each
     # tick, not measured: the exploration measures those directions mostly as the bag's own motion.
     rigid_pair: bool = Field(True, description="J's rigid motions of the gripper pair from the rigid model (False: measured, the paper)")
+    # Which of the pair's rigid turns the model sets. A turn about an axis across the grippers' line
+    # moves them round their midpoint, and Broyden, learning what the executed turns of both grippers in
+    # place did, shares most of that direction with it: pinned every tick, it undoes what Broyden learnt
+    # of a hem that does not follow those turns (envelope -90 and -94: docs/experiments.md). About the
+    # line itself the rigid turn is the turn in place, and the clamps carry the rim with it.
+    rigid_pair_turns: RigidTurns = Field("all", description="the pair's turns the rigid model pins: all three axes, or only about the grippers' line")
     # g† is the paper's bagging ellipse because it goes round V (C1): the SOI within the RMS tolerance
     # of g† can still leave a corner of V outside it, and a lift from there catches the corner.
     dagger_round_v: bool = Field(True, description="the lift starts only once the SOI at the settle's end goes round V; else servo to g† again (bounded)")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from bagit.common.errors import NumericalFailure
+from bagit.common.params import RigidTurns
 
 MIN_STEP_NORM = 1e-4  # skip updates for ||u|| below this (m / rad per update)
 MAX_JACOBIAN_NORM = 50.0  # Frobenius bound on J (SOI metres per input unit)
@@ -102,25 +103,37 @@ def pinned(J: np.ndarray, basis: np.ndarray, response: np.ndarray, input_scale: 
     return J + (np.asarray(response, dtype=float) - J @ B) @ K
 
 
-def rigid_pair_motions(p_left: np.ndarray, p_right: np.ndarray) -> np.ndarray:
-    """The six inputs `(12, 6)` that move both grippers as one rigid body: a unit translation along x, y,
-    z, then a unit turn (rad) about x, y, z through their midpoint (each gripper turns and is carried
-    round it). u's layout is `dual_arm`'s: [left dp drot, right dp drot], world frame, each gripper
-    turned about its own origin."""
+def turn_axes(p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all") -> np.ndarray:
+    """The unit axes `(k, 3)` of the pair's rigid turns: x, y, z ("all"), or the grippers' line ("line")."""
+    if turns == "all":
+        return np.eye(3)
+    line = np.asarray(p_right, dtype=float) - np.asarray(p_left, dtype=float)
+    n = float(np.linalg.norm(line))
+    if not n > 1e-6:
+        raise NumericalFailure(f"the grippers are {n:.2g} m apart: no line between them to turn about")
+    return (line / n)[None, :]
+
+
+def rigid_pair_motions(p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all") -> np.ndarray:
+    """The inputs `(12, 3 + k)` that move both grippers as one rigid body: a unit translation along x, y,
+    z, then a unit turn (rad) about each of the k `turn_axes` through their midpoint (each gripper turns
+    and is carried round it). u's layout is `dual_arm`'s: [left dp drot, right dp drot], world frame, each
+    gripper turned about its own origin."""
     pl, pr = np.asarray(p_left, dtype=float), np.asarray(p_right, dtype=float)
     m = 0.5 * (pl + pr)
-    B = np.zeros((12, 6))
+    axes = turn_axes(pl, pr, turns)
+    B = np.zeros((12, 3 + len(axes)))
     for k in range(3):
-        e = np.eye(3)[k]
         B[[k, 6 + k], k] = 1.0
-        B[3:6, 3 + k] = B[9:12, 3 + k] = e
-        B[0:3, 3 + k] = np.cross(e, pl - m)
-        B[6:9, 3 + k] = np.cross(e, pr - m)
+    for j, e in enumerate(axes):
+        B[3:6, 3 + j] = B[9:12, 3 + j] = e
+        B[0:3, 3 + j] = np.cross(e, pl - m)
+        B[6:9, 3 + j] = np.cross(e, pr - m)
     return B
 
 
-def rigid_pair_response(x: np.ndarray, p_left: np.ndarray, p_right: np.ndarray) -> np.ndarray:
-    """The SOI change `(3 n_x, 6)` of each of `rigid_pair_motions`' inputs if the rim `x (n_x, 3)` moves
+def rigid_pair_response(x: np.ndarray, p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all") -> np.ndarray:
+    """The SOI change `(3 n_x, 3 + k)` of each of `rigid_pair_motions`' inputs if the rim `x (n_x, 3)` moves
     with the grippers as one body: a translation moves every point by it, a turn ω about the midpoint
     m moves y by ω × (y - m).
 
@@ -132,12 +145,13 @@ def rigid_pair_response(x: np.ndarray, p_left: np.ndarray, p_right: np.ndarray) 
     measured J had it 3-5x too large and nearly orthogonal."""
     y = np.asarray(x, dtype=float).reshape(-1, 3)
     m = 0.5 * (np.asarray(p_left, dtype=float) + np.asarray(p_right, dtype=float))
+    axes = turn_axes(p_left, p_right, turns)
     n = y.shape[0]
-    out = np.zeros((3 * n, 6))
+    out = np.zeros((3 * n, 3 + len(axes)))
     for k in range(3):
-        e = np.eye(3)[k]
         out[k::3, k] = 1.0
-        out[:, 3 + k] = np.cross(e, y - m).ravel()
+    for j, e in enumerate(axes):
+        out[:, 3 + j] = np.cross(e, y - m).ravel()
     return out
 
 

@@ -363,7 +363,8 @@ class ServoBase(ControllerCore):
         if self.jacobian is None or not self.p.controller.experimental.rigid_pair:
             return
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
-        self.jacobian.pin(rigid_pair_motions(pl, pr), rigid_pair_response(x, pl, pr))
+        turns = self.p.controller.experimental.rigid_pair_turns
+        self.jacobian.pin(rigid_pair_motions(pl, pr, turns), rigid_pair_response(x, pl, pr, turns))
 
     def _predicted(
         self, xf: np.ndarray, grippers: dict[ArmName, np.ndarray], pending: np.ndarray | None

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bagit.common.dual_arm import apply_increment
+from bagit.common.errors import NumericalFailure
 from bagit.common.params import MethodParams
 from bagit.services.controller import BroydenJacobian, Exploration, c7_limits
 from bagit.services.controller.broyden import exploration_inputs, jacobian_from_exploration, rigid_pair_motions, rigid_pair_response
@@ -172,6 +173,26 @@ def test_rigid_pair_response_is_the_rim_carried_by_both_grippers():
     for k in range(6):
         fd = (m.rim(apply_increment(g, h * B[:, k])) - m.rim(apply_increment(g, -h * B[:, k]))).ravel() / (2 * h)
         assert np.allclose(fd, R[:, k], atol=1e-6), k
+
+
+def test_the_line_turn_is_the_pairs_turn_in_place_and_the_rim_follows_it():
+    """`turns="line"`: the three translations and one turn, about the grippers' line, which moves neither
+    gripper (it turns each in place); the synthetic rim follows it as predicted. Grippers at one point
+    have no line: a clear error, not a NaN in J."""
+    m = SyntheticRim(32)
+    g = apply_increment(m.home(), np.array([0.01, -0.02, 0.03, 0.1, -0.2, 0.15, -0.01, 0.02, -0.01, 0.1, -0.2, 0.15]))
+    pl, pr = g["left"][:3, 3], g["right"][:3, 3]
+    B, R = rigid_pair_motions(pl, pr, "line"), rigid_pair_response(m.rim(g), pl, pr, "line")
+    assert B.shape == (12, 4) and R.shape == (96, 4)
+    assert np.allclose(B[:, :3], rigid_pair_motions(pl, pr)[:, :3]) and np.allclose(B[[0, 1, 2, 6, 7, 8], 3], 0.0)
+    line = (pr - pl) / np.linalg.norm(pr - pl)
+    assert np.allclose(B[3:6, 3], line) and np.allclose(B[9:12, 3], line)
+    h = 1e-5
+    for k in range(4):
+        fd = (m.rim(apply_increment(g, h * B[:, k])) - m.rim(apply_increment(g, -h * B[:, k]))).ravel() / (2 * h)
+        assert np.allclose(fd, R[:, k], atol=1e-6), k
+    with pytest.raises(NumericalFailure, match="no line"):
+        rigid_pair_motions(pl, pl, "line")
 
 
 def test_pin_sets_the_pinned_directions_and_keeps_the_rest():
