@@ -24,9 +24,10 @@ What stops the arms, and how:
   `halt_aheadtime` (`python -m bagit.bench.stop_timeline`, `python -m bagit.bench.stop_time`).
 - a stale command: made (`stamp`) longer than `watchdog_s` before it is applied, or stamped that far
   ahead, is refused (`gate.stale_refusal`).
-- a pause of the loop longer than `watchdog_s` (SIGSTOP, starvation): the controllers stopped the arms
-  at the last target when its `t` ran out, so the trajectory is dropped, not braked (braking from its
-  old velocity would move the arms again); nothing moves until a new command.
+- a pause of the loop longer than a ServoP's `t` and a period (`ServoPath.stall_s`, 60 ms; SIGSTOP,
+  starvation): the controllers stopped the arms at the last target when its `t` ran out, so the
+  trajectory is dropped, not braked or resumed (either from its old velocity would start the arms
+  again with a jump); nothing moves until a new command, which starts a new stream from rest.
 - a controller in error or collision, an arm disabled behind the driver's back, a ServoP refused, or
   too many requests without a good reply: a fault; both arms brake; it stays until `clear_fault()`
   (the node clears it when a new run starts). The supervisor thread adds the alarm ids to its text.
@@ -358,8 +359,8 @@ class ArmDriver:
         return self.links.send(out.servo, self._dispatch, lambda: self.state.estop)
 
     def _check_stall(self, now: float) -> None:
-        """A loop that has not run for longer than the watchdog's time (with the lock held): `stalled`."""
-        if self.path.moving and (gap := now - self._last_cycle) > self.limits.watchdog_s:
+        """A loop that has not run for `ServoPath.stall_s` (the arms stopped at the last target; with the lock held): `stalled`."""
+        if self.path.moving and (gap := now - self._last_cycle) > self.path.stall_s:
             self.stalled(f"no servo cycle for {gap * 1000:.0f} ms (the process was paused or starved): "
                          "the arms stopped at their last target and hold; a new command starts a new stream")
 

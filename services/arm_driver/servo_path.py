@@ -87,6 +87,9 @@ class ServoPath:
         self.limits = rig.safety
         self.period = float(self.limits.servo_period_s)
         self.servo_t = self.period * self.cfg.servo_t_factor
+        # A cycle this long after the last one finds the arms stopped at its target (its ServoP's t ran out)
+        # for a whole period: resuming the trajectory would start them again at its old velocity, a jump.
+        self.stall_s = self.servo_t + self.period
         self.env = Envelope.from_rig(rig)
         self.frames = {a: ArmFrames.from_config(rig.arms[a]) for a in ARMS}
         self.smoother = RuckigSmoother(self.limits, self.period)

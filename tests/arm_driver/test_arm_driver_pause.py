@@ -102,6 +102,34 @@ def test_a_frozen_servo_loop_sends_no_new_target_until_a_fresh_command_comes():
 
 
 @pytest.mark.slow
+def test_a_brake_starved_past_its_servop_is_dropped_not_resumed():
+    # The flaky CI case (a controller killed mid-run, the arm read at rest, then moved 5 cm/s): the driver's
+    # loop starved ~100 ms mid-brake, shorter than the watchdog, the arm stopped at its last target, and the
+    # brake resumed from its old velocity. A gap longer than a ServoP's t and a period drops the trajectory.
+    sims = start_sims()
+    drv = ArmDriver(sims.rig, SIM_CFG)
+    try:
+        drv.start()
+        seq = _stream(drv, 0.5)
+        assert drv.mode == "streaming"
+        freeze = drv.path.servo_t + drv.period + 0.005  # the arm idle at its last target a period; with the cycle's phase (< a period) short of the watchdog
+        assert freeze + drv.period < drv.limits.watchdog_s
+        with drv._lock:  # noqa: SLF001 - a starved loop: the cycle waits
+            drv.hold("run over")  # braking from V0 takes ~0.2 s: the freeze comes mid-brake
+            time.sleep(freeze)
+            t_release = time.monotonic()
+        assert wait_until(lambda: drv.mode == "holding")
+        assert drv.counters["stalls"] == 1 and any(k == "stalled" for _, k, _ in drv.events), drv.status()
+        for a, srv in sims.servers.items():
+            ts, _ = servo_positions(srv, t0=t_release)
+            assert ts.size == 0, f"{a}: {ts.size} ServoP after the freeze"  # the brake dropped, not resumed
+        assert drv.submit(Command(u=_u(), dt=1 / 30, seq=seq))  # and a fresh command streams again
+    finally:
+        drv.close()
+        sims.close()
+
+
+@pytest.mark.slow
 @pytest.mark.processes
 def test_sigstop_and_sigcont_of_the_arm_driver_process_move_nothing_after_the_run_failed(tmp_path):
     """The user's case end to end: `bagit arm-driver` on the bus, a run servoing, the process stopped
