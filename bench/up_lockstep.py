@@ -64,13 +64,15 @@ def _timed(argv: list[str], timeout_s: float) -> tuple[dict[str, Any], str, floa
 def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, hogs: int = 0, timeout_s: float = 900.0,
             fork_server: bool = True) -> dict[str, Any]:
     """`bagit run` then `bagit up` (lockstep) of one scenario and seed, measured (see the module doc)."""
-    from bagit.bench.common import machine
+    from bagit.bench.common import compile_bagit, machine
     from bagit.bench.deployed import Hogs, cpu_per_service, run_cost
 
+    compile_bagit()  # both measured with their bytecode, as installed: neither compiles its imports again
     cli = [sys.executable, "-m", "bagit.cli"]
     out: dict[str, Any] = {"machine": machine(), "load_before": [round(x, 2) for x in os.getloadavg()]}
     out["params"] = {"scenario": scenario, "seed": seed, "clock": "lockstep", "dashboard": dashboard, "hogs": hogs,
-                     "speed": "as fast as the rig answers (no --speed)", "fork_server": fork_server}
+                     "speed": "as fast as the rig answers (no --speed)", "fork_server": fork_server,
+                     "bytecode": "compiled before measuring"}
     with Hogs(hogs):  # their CPU is not counted: they are reaped after the measurement
         run, _, run_wall, run_cpu, run_code = _timed([*cli, "run", scenario, "--seed", str(seed), "--json"], timeout_s)
         up_argv = [*cli, "up", scenario, "--seed", str(seed), "--exit-when-done", "--json", "--timeout", f"{timeout_s:g}"]
