@@ -28,7 +28,7 @@ from bagit.common.errors import BadScenario
 DEFAULT_LAMBDA_D_M = 0.04
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN passes no bound check
-RigidTurns = Literal["all", "line"]  # the pair's turns J's rigid model sets (ControllerExperimental.rigid_pair_turns)
+RigidTurns = Literal["all", "line", "measured"]  # the pair's turns J's rigid model sets (ControllerExperimental.rigid_pair_turns)
 
 
 # ---- goal: the bagging ellipse g† and the goal SOI g* (paper section V) --------------------------
@@ -106,7 +106,10 @@ class ControllerExperimental(BaseModel):
     # of a hem that does not follow those turns (envelope -90 and -94: docs/experiments.md). About the
     # line itself the rigid turn is the turn in place, and the clamps carry the rim with it. Off by default:
     # with "line" the envelope zoo is 98/100 (94 without), the core 100/100 either way, the CR5 sweep 118/120.
-    rigid_pair_turns: RigidTurns = Field("all", description="the pair's turns the rigid model pins: all three axes, or only about the grippers' line")
+    # "measured": the line's turn always, the two across it until Broyden has seen a step's worth of them
+    # (`broyden.TURN_SEEN`): the rigid model guides the start, what was measured of the hem then stays.
+    rigid_pair_turns: RigidTurns = Field("all", description="the pair's turns the rigid model pins: all three axes, only about the grippers' "
+                                         "line, or about the line and across it until measured")
     # g† is the paper's bagging ellipse because it goes round V (C1): the SOI within the RMS tolerance
     # of g† can still leave a corner of V outside it, and a lift from there catches the corner.
     dagger_round_v: bool = Field(True, description="the lift starts only once the SOI at the settle's end goes round V; else servo to g† again (bounded)")

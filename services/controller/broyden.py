@@ -15,6 +15,9 @@ from bagit.common.params import RigidTurns
 
 MIN_STEP_NORM = 1e-4  # skip updates for ||u|| below this (m / rad per update)
 MAX_JACOBIAN_NORM = 50.0  # Frobenius bound on J (SOI metres per input unit)
+# rigid_pair_turns "measured": a turn across the grippers' line counts as measured once the applied
+# updates' steps along it, in input units (a full C7 step is 1), add up to this in squares (`seen`).
+TURN_SEEN = 2.0
 
 
 class BroydenJacobian:
@@ -56,6 +59,7 @@ class BroydenJacobian:
         self.updates = 0
         self.skipped = 0
         self.clamped = 0
+        self._seen = np.zeros((J0.shape[1], J0.shape[1]))  # sum of v vᵀ over applied updates, v = u / scale
 
     def update(self, u: np.ndarray, s: np.ndarray) -> bool:
         """One Broyden step from input `u (12,)` and the SOI change `s (3 n_x,)` it caused. True if applied."""
@@ -75,7 +79,20 @@ class BroydenJacobian:
             self.clamped += 1
         self.J = J
         self.updates += 1
+        v = u if self.input_scale is None else u / self.input_scale
+        self._seen += np.outer(v, v)
         return True
+
+    def seen(self, direction: np.ndarray) -> float:
+        """How much of input `direction (12,)` the applied updates have measured: the sum of their steps'
+        squared components along it, in input units (a full C7 step along it adds 1)."""
+        d = np.asarray(direction, dtype=float).ravel()
+        d = d if self.input_scale is None else d / self.input_scale
+        n = float(np.linalg.norm(d))
+        if not n > 0.0:
+            raise ValueError("a zero direction")
+        d = d / n
+        return float(d @ self._seen @ d)
 
     def pin(self, basis: np.ndarray, response: np.ndarray) -> None:
         """Make J map each input direction of `basis (12, k)` to its known SOI change `response (3 n_x, k)`,
@@ -104,14 +121,20 @@ def pinned(J: np.ndarray, basis: np.ndarray, response: np.ndarray, input_scale: 
 
 
 def turn_axes(p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all") -> np.ndarray:
-    """The unit axes `(k, 3)` of the pair's rigid turns: x, y, z ("all"), or the grippers' line ("line")."""
+    """The unit axes `(k, 3)` of the pair's rigid turns: x, y, z ("all"), the grippers' line ("line"), or
+    the line, then the horizontal axis across it and the one across both ("measured")."""
     if turns == "all":
         return np.eye(3)
     line = np.asarray(p_right, dtype=float) - np.asarray(p_left, dtype=float)
     n = float(np.linalg.norm(line))
     if not n > 1e-6:
         raise NumericalFailure(f"the grippers are {n:.2g} m apart: no line between them to turn about")
-    return (line / n)[None, :]
+    e = line / n
+    if turns == "line":
+        return e[None, :]
+    a = np.cross(e, [0.0, 0.0, 1.0])
+    a = a / np.linalg.norm(a) if np.linalg.norm(a) > 1e-6 else np.array([1.0, 0.0, 0.0])  # a vertical line: any across it
+    return np.stack([e, a, np.cross(e, a)])
 
 
 def rigid_pair_motions(p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all") -> np.ndarray:

@@ -24,7 +24,7 @@ from bagit.common.names import ServoMode
 from bagit.common.params import MethodParams
 from bagit.common.rig import ARMS, ArmName
 from bagit.common.so3 import rotvec_between
-from bagit.services.controller.broyden import BroydenJacobian, Exploration, rigid_pair_motions, rigid_pair_response
+from bagit.services.controller.broyden import TURN_SEEN, BroydenJacobian, Exploration, rigid_pair_motions, rigid_pair_response
 from bagit.services.controller.guard import SoiGuard
 from bagit.services.controller.subgoal import SubgoalTracker, slide_to
 
@@ -364,7 +364,11 @@ class ServoBase(ControllerCore):
             return
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
         turns = self.p.controller.experimental.rigid_pair_turns
-        self.jacobian.pin(rigid_pair_motions(pl, pr, turns), rigid_pair_response(x, pl, pr, turns))
+        B, R = rigid_pair_motions(pl, pr, turns), rigid_pair_response(x, pl, pr, turns)
+        if turns == "measured":  # the three translations and the line's turn, then the turns across it not yet measured
+            keep = [k for k in range(B.shape[1]) if k < 4 or self.jacobian.seen(B[:, k]) < TURN_SEEN]
+            B, R = B[:, keep], R[:, keep]
+        self.jacobian.pin(B, R)
 
     def _predicted(
         self, xf: np.ndarray, grippers: dict[ArmName, np.ndarray], pending: np.ndarray | None
