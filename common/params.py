@@ -107,7 +107,8 @@ class ControllerExperimental(BaseModel):
     # line itself the rigid turn is the turn in place, and the clamps carry the rim with it. Off by default:
     # with "line" the envelope zoo is 98/100 (94 without), the core 100/100 either way, the CR5 sweep 118/120.
     # "measured": the line's turn always, the two across it until Broyden has seen a step's worth of them
-    # (`broyden.TURN_SEEN`): the rigid model guides the start, what was measured of the hem then stays.
+    # (`broyden.TURN_SEEN`): the rigid model guides the start, what was measured of the hem then stays. Off:
+    # the CR5 sweep 120/120 (0.38 cm), the envelope 95/100 ("line" bags three more large floppy bags).
     rigid_pair_turns: RigidTurns = Field("all", description="the pair's turns the rigid model pins: all three axes, only about the grippers' "
                                          "line, or about the line and across it until measured")
     # g† is the paper's bagging ellipse because it goes round V (C1): the SOI within the RMS tolerance
