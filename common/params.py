@@ -108,7 +108,7 @@ class ControllerExperimental(BaseModel):
     # with "line" the envelope zoo is 98/100 (94 without), the core 100/100 either way, the CR5 sweep 118/120.
     # "measured": the line's turn always, the two across it until Broyden has seen a step's worth of them
     # (`broyden.TURN_SEEN`): the rigid model guides the start, what was measured of the hem then stays. Off:
-    # the CR5 sweep 120/120 (0.38 cm), the envelope 95/100 ("line" bags three more large floppy bags).
+    # the CR5 sweep 120/120 (0.38 cm), the core 100/100 (0.33), the envelope 95/100 ("line": 98/100).
     rigid_pair_turns: RigidTurns = Field("all", description="the pair's turns the rigid model pins: all three axes, only about the grippers' "
                                          "line, or about the line and across it until measured")
     # g† is the paper's bagging ellipse because it goes round V (C1): the SOI within the RMS tolerance
