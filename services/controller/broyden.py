@@ -133,7 +133,8 @@ def turn_axes(p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all"
     if turns == "line":
         return e[None, :]
     a = np.cross(e, [0.0, 0.0, 1.0])
-    a = a / np.linalg.norm(a) if np.linalg.norm(a) > 1e-6 else np.array([1.0, 0.0, 0.0])  # a vertical line: any across it
+    na = float(np.linalg.norm(a))
+    a = a / na if na > 1e-6 else np.array([1.0, 0.0, 0.0])  # a vertical line: any axis across it
     return np.stack([e, a, np.cross(e, a)])
 
 

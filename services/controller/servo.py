@@ -365,8 +365,9 @@ class ServoBase(ControllerCore):
         pl, pr = grippers["left"][:3, 3], grippers["right"][:3, 3]
         turns = self.p.controller.experimental.rigid_pair_turns
         B, R = rigid_pair_motions(pl, pr, turns), rigid_pair_response(x, pl, pr, turns)
-        if turns == "measured":  # the three translations and the line's turn, then the turns across it not yet measured
-            keep = [k for k in range(B.shape[1]) if k < 4 or self.jacobian.seen(B[:, k]) < TURN_SEEN]
+        if turns == "measured":  # B's columns: three translations, the line's turn, then the turns across it
+            always = 4  # the translations and the line's turn; a turn across it only while not yet measured
+            keep = [k for k in range(B.shape[1]) if k < always or self.jacobian.seen(B[:, k]) < TURN_SEEN]
             B, R = B[:, keep], R[:, keep]
         self.jacobian.pin(B, R)
 

@@ -206,7 +206,7 @@ def test_a_service_killed_in_lockstep_fails_the_run_with_the_reason_in_bounded_w
 
 
 def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_restart_runs_again(tmp_path):
-    from bagit.common.bus import LatestCache, request_run_control
+    from bagit.common.bus import Subscriber, request_run_control
     from bagit.common.messages import ArmState, RunControl
 
     # On the wall clock, as on a real rig: the arms stop and stay still (within 250 ms of wall time on an
@@ -215,7 +215,7 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
     with rig_up(tmp_path, "--no-dashboard", "--clock", "wall") as rig:
         d, status, session, keys, state, cmds = rig.status, rig.status_path, rig.session, rig.keys, rig.state, rig.cmds
         seen: list[tuple[float, ArmState]] = []  # every arm state from now on, with its receive time
-        _arms = LatestCache(session, keys.arm_state_any, ArmState, on_update=lambda m: seen.append((time.monotonic(), m)))
+        arms = Subscriber(session, keys.arm_state_any, ArmState, lambda m: seen.append((time.monotonic(), m)))
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
         assert rep.accepted, rep.reason
         run1 = rep.run_id
@@ -263,6 +263,7 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
         stop = request_run_control(session, keys, RunControl(action="stop"), timeout=10)
         assert stop.accepted, stop.reason
         assert wait_until(lambda: state.get().stage in ("failed", "aborted"), 20, 0.1), state.get()
+        arms.close()
 
 
 def test_killing_perception_makes_the_controller_hold_on_stale_soi(tmp_path):
