@@ -28,7 +28,7 @@ from bagit.common.errors import BadScenario
 DEFAULT_LAMBDA_D_M = 0.04
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN passes no bound check
-RigidTurns = Literal["all", "line", "measured"]  # the pair's turns J's rigid model sets (ControllerExperimental.rigid_pair_turns)
+RigidTurns = Literal["measured", "all"]  # the pair's turns J's rigid model sets (ControllerExperimental.rigid_pair_turns)
 
 
 # ---- goal: the bagging ellipse g† and the goal SOI g* (paper section V) --------------------------
@@ -104,13 +104,13 @@ class ControllerExperimental(BaseModel):
     # moves them round their midpoint, and Broyden, learning what the executed turns of both grippers in
     # place did, shares most of that direction with it: pinned every tick, it undoes what Broyden learnt
     # of a hem that does not follow those turns (envelope -90 and -94: docs/experiments.md). About the
-    # line itself the rigid turn is the turn in place, and the clamps carry the rim with it. Off by default:
-    # with "line" the envelope zoo is 98/100 (94 without), the core 100/100 either way, the CR5 sweep 118/120.
-    # "measured": the line's turn always, the two across it until Broyden has seen a step's worth of them
-    # (`broyden.TURN_SEEN`): the rigid model guides the start, what was measured of the hem then stays. Off:
-    # the CR5 sweep 120/120 (0.38 cm), the core 100/100 (0.33), the envelope 95/100 ("line": 98/100).
-    rigid_pair_turns: RigidTurns = Field("all", description="the pair's turns the rigid model pins: all three axes, only about the grippers' "
-                                         "line, or about the line and across it until measured")
+    # line itself the rigid turn is the turn in place, and the clamps carry the rim with it. "measured"
+    # (the default): the line's turn always, the two across it until Broyden has seen a step's worth of
+    # them (`broyden.TURN_SEEN`): the rigid model guides the start, what was measured of the hem then
+    # stays; the CR5 sweep 120/120 (0.38 cm), the core zoo 100/100 (0.33), the envelope 95/100. "all": the
+    # three turns every tick (the default before; 120/120 at 0.41 cm, 100/100 at 0.36, 94/100).
+    rigid_pair_turns: RigidTurns = Field("measured", description="the pair's turns the rigid model pins: about the grippers' line "
+                                         "always and across it until measured, or all three axes every tick")
     # g† is the paper's bagging ellipse because it goes round V (C1): the SOI within the RMS tolerance
     # of g† can still leave a corner of V outside it, and a lift from there catches the corner.
     dagger_round_v: bool = Field(True, description="the lift starts only once the SOI at the settle's end goes round V; else servo to g† again (bounded)")

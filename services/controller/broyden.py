@@ -121,8 +121,8 @@ def pinned(J: np.ndarray, basis: np.ndarray, response: np.ndarray, input_scale: 
 
 
 def turn_axes(p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all") -> np.ndarray:
-    """The unit axes `(k, 3)` of the pair's rigid turns: x, y, z ("all"), the grippers' line ("line"), or
-    the line, then the horizontal axis across it and the one across both ("measured")."""
+    """The unit axes `(3, 3)` of the pair's rigid turns: x, y, z ("all"), or the grippers' line, then the
+    horizontal axis across it and the one across both ("measured")."""
     if turns == "all":
         return np.eye(3)
     line = np.asarray(p_right, dtype=float) - np.asarray(p_left, dtype=float)
@@ -130,8 +130,6 @@ def turn_axes(p_left: np.ndarray, p_right: np.ndarray, turns: RigidTurns = "all"
     if not n > 1e-6:
         raise NumericalFailure(f"the grippers are {n:.2g} m apart: no line between them to turn about")
     e = line / n
-    if turns == "line":
-        return e[None, :]
     a = np.cross(e, [0.0, 0.0, 1.0])
     na = float(np.linalg.norm(a))
     a = a / na if na > 1e-6 else np.array([1.0, 0.0, 0.0])  # a vertical line: any axis across it

@@ -175,24 +175,27 @@ def test_rigid_pair_response_is_the_rim_carried_by_both_grippers():
         assert np.allclose(fd, R[:, k], atol=1e-6), k
 
 
-def test_the_line_turn_is_the_pairs_turn_in_place_and_the_rim_follows_it():
-    """`turns="line"`: the three translations and one turn, about the grippers' line, which moves neither
-    gripper (it turns each in place); the synthetic rim follows it as predicted. Grippers at one point
-    have no line: a clear error, not a NaN in J."""
+def test_the_measured_turns_are_the_lines_turn_in_place_then_two_across_it_and_the_rim_follows_them():
+    """`turns="measured"`: the three translations, the turn about the grippers' line, which moves neither
+    gripper (it turns each in place), then the horizontal turn across the line and the one across both;
+    the synthetic rim follows each as predicted. Grippers at one point have no line: a clear error, not
+    a NaN in J."""
     m = SyntheticRim(32)
     g = apply_increment(m.home(), np.array([0.01, -0.02, 0.03, 0.1, -0.2, 0.15, -0.01, 0.02, -0.01, 0.1, -0.2, 0.15]))
     pl, pr = g["left"][:3, 3], g["right"][:3, 3]
-    B, R = rigid_pair_motions(pl, pr, "line"), rigid_pair_response(m.rim(g), pl, pr, "line")
-    assert B.shape == (12, 4) and R.shape == (96, 4)
+    B, R = rigid_pair_motions(pl, pr, "measured"), rigid_pair_response(m.rim(g), pl, pr, "measured")
+    assert B.shape == (12, 6) and R.shape == (96, 6)
     assert np.allclose(B[:, :3], rigid_pair_motions(pl, pr)[:, :3]) and np.allclose(B[[0, 1, 2, 6, 7, 8], 3], 0.0)
     line = (pr - pl) / np.linalg.norm(pr - pl)
-    assert np.allclose(B[3:6, 3], line) and np.allclose(B[9:12, 3], line)
+    axes = B[3:6, 3:].T  # (3, 3): the line, the horizontal axis across it, the one across both
+    assert np.allclose(axes[0], line) and np.allclose(B[9:12, 3:], B[3:6, 3:])
+    assert np.allclose(axes @ axes.T, np.eye(3)) and abs(axes[1, 2]) < 1e-12  # orthonormal; the second horizontal
     h = 1e-5
-    for k in range(4):
+    for k in range(6):
         fd = (m.rim(apply_increment(g, h * B[:, k])) - m.rim(apply_increment(g, -h * B[:, k]))).ravel() / (2 * h)
         assert np.allclose(fd, R[:, k], atol=1e-6), k
     with pytest.raises(NumericalFailure, match="no line"):
-        rigid_pair_motions(pl, pl, "line")
+        rigid_pair_motions(pl, pl, "measured")
 
 
 def test_pin_sets_the_pinned_directions_and_keeps_the_rest():

@@ -279,13 +279,14 @@ def test_a_frozen_jacobian_keeps_the_explorations_estimate_the_online_one_moves(
 
 
 def test_the_rigid_pair_model_sets_js_rigid_motions_each_tick_and_only_those():
-    """With `rigid_pair` (the default) J maps the grippers' six rigid motions, at the poses of the tick, to
-    the rim carried along with them; the other directions are the exploration's and Broyden's. Without
-    it J's rigid motions are what was measured (on the synthetic rim, close to the model but not it)."""
+    """With `rigid_pair` (the default) and `rigid_pair_turns: all` J maps the grippers' six rigid motions, at
+    the poses of the tick, to the rim carried along with them; the other directions are the exploration's
+    and Broyden's. Without it J's rigid motions are what was measured (on the synthetic rim, close to the
+    model but not it)."""
     m = SyntheticRim(32)
     path = _path(m)
     for rigid in (True, False):
-        c = make_controller("mpc", MethodParams.model_validate({"rigid_pair": rigid}), m.n_x)
+        c = make_controller("mpc", MethodParams.model_validate({"rigid_pair": rigid, "rigid_pair_turns": "all"}), m.n_x)
         g = m.home()
         c.reset(m.rim(g), Path(nodes=path, dagger_index=5), g)
         t, servo_ticks = 0.0, 0
@@ -303,12 +304,12 @@ def test_the_rigid_pair_model_sets_js_rigid_motions_each_tick_and_only_those():
 
 
 def test_measured_turns_pin_the_lines_turn_always_and_the_turns_across_it_until_broyden_saw_them():
-    """`rigid_pair_turns: measured`: each tick J maps the translations and the turn about the grippers' line
+    """`rigid_pair_turns: measured` (the default): each tick J maps the translations and the turn about the grippers' line
     to the rigid model's rim; a turn across the line only while the updates have seen less than
     `TURN_SEEN` of it. Early in the run both turns across are pinned, later at least one is Broyden's."""
     m = SyntheticRim(32)
     path = _path(m)
-    c = make_controller("mpc", MethodParams.model_validate({"rigid_pair_turns": "measured"}), m.n_x)
+    c = make_controller("mpc", MethodParams(), m.n_x)
     g = m.home()
     c.reset(m.rim(g), Path(nodes=path, dagger_index=5), g)
     t, servo_ticks, pinned_across = 0.0, 0, []
