@@ -450,10 +450,11 @@ class Up:
         procs = {n: c.proc for n, c in self.children.items() if c.proc is not None}
         deadline = time.monotonic() + grace_s
         codes: dict[str, int | None] = {}
-        # Those that need another service first (the arm driver, which disables the arms on the simulated
-        # CR5s) stop before the rest: so they close against live peers, not against time-outs.
-        first = {n: p for n, p in procs.items() if n in AFTER}
-        for group in (first, {n: p for n, p in procs.items() if n not in first}):
+        # The services another one needs (the simulator, whose CR5s the arm driver disables as it closes)
+        # stop after the rest, which stop side by side: so each closes against live peers, not time-outs.
+        needed = set(AFTER.values())
+        last = {n: p for n, p in procs.items() if n in needed}
+        for group in ({n: p for n, p in procs.items() if n not in last}, last):
             for p in group.values():
                 _signal_group(p, signal.SIGTERM)
             for n, p in group.items():
