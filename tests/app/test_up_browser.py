@@ -55,19 +55,23 @@ class Rig:
         # On the wall clock, as an operator's rig runs: the e-stop's effect is timed in wall time, against
         # the arm states' own stamps (lockstep runs are test_up's)
         self.proc, status = start_up(tmp_path, "--clock", "wall")
-        self.session = None
+        self.session = self.arm_session = None
         try:
             d = wait_status(status, (*ALL, "dashboard"), timeout=120)
             up = lambda: "all services up" in up_log(tmp_path) or self.proc.poll() is not None  # noqa: E731
             assert wait_until(up, 240, 0.2) and self.proc.poll() is None, up_log(tmp_path)[-4000:]
             self.url = d["dashboard_url"]
             self.session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
+            # The arm states (~200 a second on the wall clock) on a session of their own, so that the e-stop and
+            # the run state never queue behind them when this process is starved (CI, 2026-11-28, a slow hour: the
+            # rig stopped on the press at once, and the e-stop did not reach this test's subscriber in 60 s)
+            self.arm_session = open_session(BusConfig(rig=d["rig"], connect=[d["connect"]]))
             keys = Keys(d["rig"])
             self.run_state = LatestCache(self.session, keys.run_state, RunState)
             self.cloud = LatestCache(self.session, keys.perception_cloud, PointCloud)
             self.soi = LatestCache(self.session, keys.perception_soi, SoiState)
             self.arm_log: list[tuple[float, ArmState]] = []  # (receive time, state), every arm state
-            self.sub = Subscriber(self.session, keys.arm_state_any, ArmState, lambda m: self.arm_log.append((time.monotonic(), m)))
+            self.sub = Subscriber(self.arm_session, keys.arm_state_any, ArmState, lambda m: self.arm_log.append((time.monotonic(), m)))
             self.estops: list[EStop] = []  # every e-stop put on the bus, as sent
             self.estop_sub = Subscriber(self.session, keys.estop, EStop, self.estops.append)
         except BaseException:
@@ -96,6 +100,8 @@ class Rig:
                 for x in (self.sub, self.estop_sub, self.run_state, self.cloud, self.soi):
                     x.close()
                 self.session.close()
+            if self.arm_session is not None:
+                self.arm_session.close()
         finally:
             if self.proc.poll() is None:
                 self.proc.send_signal(signal.SIGTERM)
