@@ -79,9 +79,25 @@ def child_setup(niceness: int = 0) -> None:  # pragma: no cover - runs in a chil
     os.setsid()
     if niceness:
         os.nice(niceness)
+        set_group_niceness(niceness)
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
+        pass
+
+
+def set_group_niceness(niceness: int) -> None:
+    """Give this process's scheduling autogroup the niceness too. With autogroup on (Linux's default on
+    desktops and Debian's kernels) a new session is a group of its own, the scheduler shares a core
+    between groups first, and a niceness counts only among a group's own processes: a niced service in
+    its own session would take as much CPU as the simulator beside it. A process may raise its group's
+    niceness but not lower it: a value under 0 is left to the process's own."""
+    if niceness <= 0:
+        return
+    try:
+        with open("/proc/self/autogroup", "w") as f:
+            f.write(str(niceness))
+    except OSError:  # no autogroup (a kernel without it, or off): the process's own niceness is the one
         pass
 
 

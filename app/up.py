@@ -60,6 +60,9 @@ STOP_CHECK_S = 0.25  # how often a wait woken by the bus also looks at its `stop
 # slowed by its display, and on the wall clock the control loop keeps its pace.
 OFF_PATH_NICENESS = 10
 ON_PATH = ("sim", *LOCKSTEP_SERVICES)
+# Services a run does not wait for: the dashboard shows a run from its next message on, so a scenario's
+# run starts once the others are up (the recorder is waited for: it records the run from its start).
+WATCHERS = ("dashboard",)
 # The arm driver's link time-outs for the simulated CR5s. A real CR5 sends feedback every 8 ms and
 # answers at once, so the driver's defaults call 0.2 s without feedback a lost link and 0.5 s
 # without a reply an error. The simulated controllers share the machine's cores with the physics,
@@ -399,11 +402,17 @@ class Up:
                 tmp.write_text(json.dumps(self.status()), encoding="utf-8")
                 tmp.replace(path)
 
-    def wait_ready(self, timeout: float | None = None, stop: threading.Event | None = None) -> list[str]:
-        """Wait for every service's liveliness token; returns the ones still missing (empty: all up)."""
+    def not_up(self, names: tuple[str, ...]) -> tuple[str, ...]:
+        """Those of `names` whose liveliness token is not on the bus now."""
+        assert self.watcher is not None
+        alive = self.watcher.alive()
+        return tuple(n for n in names if n not in alive)
+
+    def wait_ready(self, timeout: float | None = None, stop: threading.Event | None = None, but: tuple[str, ...] = ()) -> list[str]:
+        """Wait for the liveliness token of every service not in `but`; returns the ones still missing (empty: all up)."""
         assert self.watcher is not None
         deadline = time.monotonic() + (timeout if timeout is not None else self.opts.ready_timeout_s)
-        want = set(self.children)
+        want = set(self.children) - set(but)
         while True:
             with self._changed:  # checked under the condition: a change after the check wakes the wait
                 missing = sorted(want - self.watcher.alive())

@@ -54,6 +54,7 @@ import numpy as np
 from bagit.bench.common import RESULTS_DIR, machine
 from bagit.bench.stop_time import TARGET_S
 from bagit.common.errors import BagItError
+from bagit.forkserver import set_group_niceness
 
 log = logging.getLogger("bagit.bench.multihost")
 
@@ -144,6 +145,7 @@ def _child_setup(niceness: int) -> None:  # pragma: no cover - between fork and 
     os.setsid()
     if niceness:
         os.nice(niceness)
+        set_group_niceness(niceness)
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: never outlive the bench
     except OSError:

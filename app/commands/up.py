@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from bagit.commands._service import stop_on_signals, wait_stop
     from bagit.common.errors import BadScenario
     from bagit.forkserver import ForkServer, child_env
-    from bagit.up import Up
+    from bagit.up import WATCHERS, Up
 
     t0 = time.monotonic()
     # The fork server first, forked from this process while it runs one thread: it shares the imports just
@@ -117,12 +117,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         up.start()
         if up.dashboard_url:
             up.say(f"dashboard: {up.dashboard_url}")
-        missing = up.wait_ready(stop=stop)
-        if stop.is_set():
+
+        def ready(but: tuple[str, ...] = ()) -> bool:
+            missing = up.wait_ready(stop=stop, but=but)
+            if missing and not stop.is_set():
+                raise BadScenario(f"services not up after {opts.ready_timeout_s:g} s: {', '.join(missing)}")
+            return not stop.is_set()
+
+        # A scenario's run starts once the services it needs are up; the dashboard joins it as it comes up
+        waiting = tuple(n for n in WATCHERS if n in up.children) if args.scenario else ()
+        if not ready(but=waiting):
             return {"success": False, "reason": "interrupted", "wall_s": time.monotonic() - t0}
-        if missing:
-            raise BadScenario(f"services not up after {opts.ready_timeout_s:g} s: {', '.join(missing)}")
-        up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
+        waiting = up.not_up(waiting)
+        if waiting:
+            up.say(f"services the run needs up in {time.monotonic() - t0:.1f} s: "
+                   f"{', '.join(sorted(set(up.children) - set(waiting)))}; starting with {', '.join(waiting)} still coming up")
+        else:
+            up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
         run_id = None
         recorder = None
         if opts.record is not None:  # the recorder's counters, so the run's result says what its recording lost
@@ -139,6 +150,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 raise BadScenario(f"run refused: {rep.reason}")
             run_id = rep.run_id
             up.say(f"run {run_id} started: {args.scenario}")
+            if waiting and ready():  # stopped meanwhile: what follows ends the run as interrupted
+                up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
         if args.exit_when_done:
             if run_id is None:  # no SCENARIO is refused with the arguments; an accepted run always has an id
                 raise BadScenario("--exit-when-done: no run to follow (the run was started without a run id)")

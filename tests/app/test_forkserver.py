@@ -68,6 +68,9 @@ def test_a_service_forked_by_the_server_is_a_fork_in_its_own_group_niced_and_sto
     assert Path(f"/proc/{p.pid}/cmdline").read_bytes().split(b"\0")[1:3] == [b"-m", b"bagit.forkserver"]
     assert Path(f"/proc/{p.pid}/comm").read_text().strip() == "planner"  # what ps -o comm, top and pgrep -x show
     assert int(st[2]) == p.pid and int(st[16]) == min(19, os.nice(0) + 1)  # its own process group, its niceness (added to ours)
+    group = Path(f"/proc/{p.pid}/autogroup")
+    if group.exists():  # its session is a scheduling group of its own: the group is niced too, or the niceness counts for nothing
+        assert group.read_text().split()[-1] == "1", group.read_text()
     with pytest.raises(subprocess.TimeoutExpired):
         p.wait(0.2)  # still running: wait gives up as Popen's does
     os.killpg(p.pid, signal.SIGTERM)
