@@ -64,6 +64,7 @@ def test_a_frozen_servo_loop_sends_no_new_target_until_a_fresh_command_comes():
         seq = _stream(drv, 0.5)
         assert drv.mode == "streaming"
         late: dict[str, bool] = {}
+        stalls = drv.counters["stalls"]  # a loaded machine may starve the stream's loop past a ServoP on its own
         with drv._lock:  # noqa: SLF001 - the freeze: the servo loop and every submit wait 2 s
             queued = Command(u=_u(), dt=1 / 30, seq=seq)  # made now, applied after the pause
             waiting = threading.Thread(target=lambda: late.setdefault("accepted", drv.submit(queued)))
@@ -75,7 +76,7 @@ def test_a_frozen_servo_loop_sends_no_new_target_until_a_fresh_command_comes():
         t_end = time.monotonic()
         assert late == {"accepted": False} and drv.rejections[STALE] == 1
         assert "2.0" in drv.last_refusal.detail and "ago" in drv.last_refusal.detail  # made ~2.0 s before it applied
-        assert drv.counters["stalls"] == 1 and drv.mode == "holding", drv.status()
+        assert drv.counters["stalls"] == stalls + 1 and drv.mode == "holding", drv.status()  # the pause: one stall
         assert any(k == "stalled" for _, k, _ in drv.events)
         for a, srv in sims.servers.items():
             ts, _ = servo_positions(srv, t0=t_release)
@@ -114,12 +115,13 @@ def test_a_brake_starved_past_its_servop_is_dropped_not_resumed():
         assert drv.mode == "streaming"
         freeze = drv.path.servo_t + drv.period + 0.005  # the arm idle at its last target a period; with the cycle's phase (< a period) short of the watchdog
         assert freeze + drv.period < drv.limits.watchdog_s
+        stalls = drv.counters["stalls"]  # a loaded machine may starve the stream's loop past a ServoP on its own (CI, 2026-11-28)
         with drv._lock:  # noqa: SLF001 - a starved loop: the cycle waits
             drv.hold("run over")  # braking from V0 takes ~0.2 s: the freeze comes mid-brake
             time.sleep(freeze)
             t_release = time.monotonic()
         assert wait_until(lambda: drv.mode == "holding")
-        assert drv.counters["stalls"] == 1 and any(k == "stalled" for _, k, _ in drv.events), drv.status()
+        assert drv.counters["stalls"] == stalls + 1 and any(k == "stalled" for _, k, _ in drv.events), drv.status()  # the freeze: one
         for a, srv in sims.servers.items():
             ts, _ = servo_positions(srv, t0=t_release)
             assert ts.size == 0, f"{a}: {ts.size} ServoP after the freeze"  # the brake dropped, not resumed
