@@ -42,7 +42,7 @@ from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Su
 from bagit.common.errors import BusError
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
-from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES, SIM_TIME_LIMIT_S
+from bagit.common.names import FINAL_STAGES, SIM_TIME_LIMIT_S
 from bagit.common.rig import RigConfig
 from bagit.forkserver import ForkedProcess, ForkServer, child_env, child_setup
 
@@ -55,11 +55,12 @@ SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboa
 AFTER = {"arm-driver": "sim"}
 SUPERVISE_S = 1.0  # the supervisor's backstop wake-up (events wake it first)
 STOP_CHECK_S = 0.25  # how often a wait woken by the bus also looks at its `stop` event (Ctrl-C)
-# Services no step waits for (the dashboard, the recorder: they watch and record) run at this niceness: on
-# a busy machine the simulator and the services a step waits for come first, so a lockstep run is not
-# slowed by its display, and on the wall clock the control loop keeps its pace.
+# The recorder, which no step waits for, runs at this niceness (its process and its autogroup: see
+# `set_group_niceness`): on a busy machine the simulator and the services a step waits for come first. Not
+# the dashboard, which carries the E-STOP button: niced, a press took 81-194 ms to reach the bus during a
+# wall-clock run on 2 cores, against 24 ms at the rig's niceness (tests/app/test_up_browser.py, 2026-11-28).
 OFF_PATH_NICENESS = 10
-ON_PATH = ("sim", *LOCKSTEP_SERVICES)
+NICED = ("recorder",)
 # Services a run does not wait for: the dashboard shows a run from its next message on, so a scenario's
 # run starts once the others are up (the recorder is waited for: it records the run from its start).
 WATCHERS = ("dashboard",)
@@ -291,7 +292,7 @@ class Up:
         self._supervisor.start()
 
     def _spawn(self, c: Child) -> None:
-        niceness = 0 if c.name in ON_PATH else OFF_PATH_NICENESS
+        niceness = OFF_PATH_NICENESS if c.name in NICED else 0
         c.proc = None
         if self.forks is not None and self.forks.alive:
             try:
