@@ -175,10 +175,13 @@ class Up:
     """The rig's processes and the hub session (see the module docstring)."""
 
     def __init__(self, opts: UpOptions, log: TextIO = sys.stderr, on_line: Callable[[str, str], None] | None = None,
-                 forks: ForkServer | None = None) -> None:
+                 forks: ForkServer | None = None, t0: float | None = None) -> None:
         """`forks`: a fork server already started (`bagit up` starts it before its own imports, so the
-        server's run alongside them); else `start` starts one when `opts.fork_server`. Closed by `stop`."""
+        server's run alongside them); else `start` starts one when `opts.fork_server`. Closed by `stop`.
+        `t0`: when the command began (`time.monotonic()`), for the time "all services up" reports."""
         self.opts = opts
+        self.t0 = time.monotonic() if t0 is None else t0
+        self._all_up_said = False
         self.log = log
         self.on_line = on_line
         self._own_dir = opts.workdir is None
@@ -317,6 +320,9 @@ class Up:
 
     def _on_alive(self, service: str, alive: bool) -> None:
         self.say(f"service {service} {'up' if alive else 'gone'}")
+        if alive and not self._all_up_said and self.watcher is not None and not self.not_up(tuple(self.children)):
+            self._all_up_said = True  # said once, when the last comes up (a run may be going already: see WATCHERS)
+            self.say(f"all services up in {time.monotonic() - self.t0:.1f} s: {', '.join(sorted(self.children))}; hub {self.hub}")
         self._wake.set()  # a service waited for may be up
         self._notify_changed()
 

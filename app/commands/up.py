@@ -112,28 +112,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise
     stop = threading.Event()
     restore = stop_on_signals(stop)
-    up = Up(opts, forks=forks)
+    up = Up(opts, forks=forks, t0=t0)
     try:
         up.start()
         if up.dashboard_url:
             up.say(f"dashboard: {up.dashboard_url}")
-
-        def ready(but: tuple[str, ...] = ()) -> bool:
-            missing = up.wait_ready(stop=stop, but=but)
-            if missing and not stop.is_set():
-                raise BadScenario(f"services not up after {opts.ready_timeout_s:g} s: {', '.join(missing)}")
-            return not stop.is_set()
-
         # A scenario's run starts once the services it needs are up; the dashboard joins it as it comes up
         waiting = tuple(n for n in WATCHERS if n in up.children) if args.scenario else ()
-        if not ready(but=waiting):
+        missing = up.wait_ready(stop=stop, but=waiting)
+        if stop.is_set():
             return {"success": False, "reason": "interrupted", "wall_s": time.monotonic() - t0}
+        if missing:
+            raise BadScenario(f"services not up after {opts.ready_timeout_s:g} s: {', '.join(missing)}")
         waiting = up.not_up(waiting)
-        if waiting:
+        if waiting:  # (once the last is up, `Up` says "all services up")
             up.say(f"services the run needs up in {time.monotonic() - t0:.1f} s: "
                    f"{', '.join(sorted(set(up.children) - set(waiting)))}; starting with {', '.join(waiting)} still coming up")
-        else:
-            up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
         run_id = None
         recorder = None
         if opts.record is not None:  # the recorder's counters, so the run's result says what its recording lost
@@ -150,8 +144,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 raise BadScenario(f"run refused: {rep.reason}")
             run_id = rep.run_id
             up.say(f"run {run_id} started: {args.scenario}")
-            if waiting and ready():  # stopped meanwhile: what follows ends the run as interrupted
-                up.say(f"all services up in {time.monotonic() - t0:.1f} s: {', '.join(sorted(up.children))}; hub {up.hub}")
         if args.exit_when_done:
             if run_id is None:  # no SCENARIO is refused with the arguments; an accepted run always has an id
                 raise BadScenario("--exit-when-done: no run to follow (the run was started without a run id)")
