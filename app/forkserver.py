@@ -72,27 +72,28 @@ def child_env() -> dict[str, str]:
     return dict(headless_gl(dict(os.environ, PYTHONUNBUFFERED="1")))
 
 
-def child_setup(niceness: int = 0) -> None:  # pragma: no cover - runs in a child between fork and exec/run
-    """Its own session and process group, its niceness, and SIGTERM when its parent dies (Linux)."""
+def child_setup(niceness: int = 0, death_signal: int = signal.SIGTERM) -> None:  # pragma: no cover - runs in a child between fork and exec/run
+    """Its own session and process group, its niceness, and `death_signal` when its parent dies (Linux)."""
     import ctypes
 
     os.setsid()
-    if niceness:
-        os.nice(niceness)
-        set_group_niceness(niceness)
+    renice(niceness)
     try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, death_signal)  # PR_SET_PDEATHSIG
     except OSError:
         pass
 
 
-def set_group_niceness(niceness: int) -> None:
-    """Give this process's scheduling autogroup the niceness too. With autogroup on (Linux's default on
-    desktops and Debian's kernels) a new session is a group of its own, the scheduler shares a core
-    between groups first, and a niceness counts only among a group's own processes: a niced service in
-    its own session would take as much CPU as the simulator beside it. A process may raise its group's
-    niceness but not lower it: a value under 0 is left to the process's own."""
-    if niceness <= 0:
+def renice(niceness: int) -> None:
+    """Add `niceness` to this process's, and give its scheduling autogroup the same. With autogroup on
+    (Linux's default on desktops and Debian's kernels) a new session is a group of its own, the scheduler
+    shares a core between groups first, and a niceness counts only among a group's own processes: a niced
+    service in its own session would take as much CPU as the simulator beside it. A process may raise its
+    group's niceness but not lower it: a value under 0 is left to the process's own."""
+    if not niceness:
+        return
+    os.nice(niceness)
+    if niceness < 0:
         return
     try:
         with open("/proc/self/autogroup", "w") as f:

@@ -56,7 +56,7 @@ AFTER = {"arm-driver": "sim"}
 SUPERVISE_S = 1.0  # the supervisor's backstop wake-up (events wake it first)
 STOP_CHECK_S = 0.25  # how often a wait woken by the bus also looks at its `stop` event (Ctrl-C)
 # The recorder, which no step waits for, runs at this niceness (its process and its autogroup: see
-# `set_group_niceness`): on a busy machine the simulator and the services a step waits for come first. Not
+# `forkserver.renice`): on a busy machine the simulator and the services a step waits for come first. Not
 # the dashboard, which carries the E-STOP button: niced, a press took 81-194 ms to reach the bus during a
 # wall-clock run on 2 cores, against 24 ms at the rig's niceness (tests/app/test_up_browser.py, 2026-11-28).
 OFF_PATH_NICENESS = 10

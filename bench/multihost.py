@@ -54,7 +54,8 @@ import numpy as np
 from bagit.bench.common import RESULTS_DIR, machine
 from bagit.bench.stop_time import TARGET_S
 from bagit.common.errors import BagItError
-from bagit.forkserver import set_group_niceness
+from bagit.forkserver import child_setup
+from bagit.up import NICED, OFF_PATH_NICENESS
 
 log = logging.getLogger("bagit.bench.multihost")
 
@@ -137,19 +138,6 @@ def clean_leftovers() -> list[str]:
         shutil.rmtree(d, ignore_errors=True)
         removed.append(str(d))
     return removed
-
-
-def _child_setup(niceness: int) -> None:  # pragma: no cover - between fork and exec
-    import ctypes
-
-    os.setsid()
-    if niceness:
-        os.nice(niceness)
-        set_group_niceness(niceness)
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: never outlive the bench
-    except OSError:
-        pass
 
 
 def procfile(path: Path) -> dict[str, str]:
@@ -340,10 +328,11 @@ class Lab:
         logs = self.root / "logs"
         logs.mkdir(exist_ok=True)
         p = Proc(host, name, cmd, env, logs / f"{host}-{name}.log")
-        nice = 10 if name in ("dashboard", "recorder") else 0  # off the run's path, as bagit up runs them
+        nice = OFF_PATH_NICENESS if name in NICED else 0  # as bagit up runs them
+        setup = functools.partial(child_setup, nice, signal.SIGKILL)  # SIGKILL when the bench dies: never outlive it
         with p.log.open("a") as out:
             p.popen = subprocess.Popen(["ip", "netns", "exec", ns_name(host), "sh", "-c", f"exec {cmd}"], env=env, stdin=subprocess.DEVNULL,
-                                       stdout=out, stderr=subprocess.STDOUT, preexec_fn=functools.partial(_child_setup, nice))
+                                       stdout=out, stderr=subprocess.STDOUT, preexec_fn=setup)
         self.procs[f"{host}/{name}"] = p
         log.info("started %s on %s (pid %d)", name, host, p.popen.pid)
 
