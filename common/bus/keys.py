@@ -123,6 +123,8 @@ KEY_TABLE: tuple[KeySpec, ...] = (
     KeySpec("alive/*", None, None, "liveliness", "liveliness token per service; gone within ~1 s of its death"),
     KeySpec("sim/clock", ClockTick, CONTROL, "pub",
             "the simulated rig's time and servo ticks: every service's clock when the bus config says `clock: sim`"),
+    KeySpec("sim/clock/keepalive", ClockTick, CONTROL, "pub",
+            "lockstep: sim/clock's keep-alive ticks again, for the controller, which ticks on them and on nothing else of it"),
     KeySpec("sim/ack/*", StepAck, CONTROL, "pub",
             "lockstep: each service's answer to a frame or servo tick, on its own key (sim/ack/<service>: a service "
             "hears only the answers it waits for); the simulator steps on when all are in"),
@@ -156,6 +158,7 @@ class Keys:
         self.recorder_status = f"{p}/recorder/status"
         self.alive_any = f"{p}/alive/*"
         self.sim_clock = f"{p}/sim/clock"
+        self.sim_keepalive = f"{p}/sim/clock/keepalive"  # the keep-alive ticks of sim/clock, again (the controller's)
         self.sim_ack = f"{p}/sim/ack/*"  # every service's answers (the simulator's wait)
         self.sim_truth = f"{p}/sim/truth"  # tests and benchmarks only
         self.all = f"{p}/**"

@@ -27,7 +27,8 @@ frame, when the coordinator has answered it on sim/ack (so on the stage that fra
 frame's SOI (if it made one) and the arms' states of that step, with ages on the simulator's clock;
 then it answers the frame on sim/ack with the command it sent. A tick per frame is the control
 rate when the camera runs at it, as in `bagit run`. With frames further apart than the keep-alive
-pace the simulator also sends keep-alive ticks on sim/clock between them (`ClockTick.keepalive`, by
+pace the simulator also sends keep-alive ticks between them (on sim/clock, and for the controller
+again on sim/clock/keepalive) (`ClockTick.keepalive`, by
 the `Schedule` `bagit run` steps by): while the run is servoed the controller ticks on its last SOI
 (a keep-alive, or a hold once that SOI is stale) and answers each as it answers a frame, so a slow
 camera gives slower motion, never a watchdog stop, and the same run as `bagit run`'s.
@@ -140,7 +141,7 @@ class ControllerNode:
         if self.lockstep:
             self._ack = Publisher(session, keys.step_ack(SERVICE_NAME), StepAck)
             self._subs.append(Subscriber(session, keys.step_ack("planner"), StepAck, self._on_ack))
-            self._subs.append(Subscriber(session, keys.sim_clock, ClockTick, self._on_clock))
+            self._subs.append(Subscriber(session, keys.sim_keepalive, ClockTick, self._on_clock))
             loop = self._lockstep_loop
         self._thread = threading.Thread(target=loop, name="controller-loop", daemon=True)
         self._thread.start()

@@ -130,7 +130,8 @@ class SimNode:
         if clock == "sim":
             rig.stamp_feedback(on_servo=self._on_servo)  # the controllers' feedback stamped on the rig's clock
             self._clock_pub = Publisher(session, keys.sim_clock, ClockTick)
-            self._lockstep_parts = [self._clock_pub, Subscriber(session, keys.sim_ack, StepAck, self._on_ack),
+            self._keepalive_pub = Publisher(session, keys.sim_keepalive, ClockTick)
+            self._lockstep_parts = [self._clock_pub, self._keepalive_pub, Subscriber(session, keys.sim_ack, StepAck, self._on_ack),
                                     LivelinessWatcher(session, keys, self._on_alive)]
         self._token = declare_alive(session, keys, SERVICE_NAME)
 
@@ -357,7 +358,7 @@ class SimNode:
                 next_report = wall + cfg.report_every_s
                 self._rtf_window = (rig.clock_s - start) / max(wall - wall_start, 1e-9)
             if not stepped:
-                rig.step(sched.until_next(world_t))
+                rig.step(sched.until_next(world_t)) if self.lockstep.active else rig.idle(sched.until_next(world_t))
             rig.push_feedback()
             self._say_alarms()
             if cfg.speed is None and self.lockstep.active:  # a lockstep run: as fast as the rig answers
@@ -387,7 +388,12 @@ class SimNode:
         return True
 
     def _publish_clock(self, t: float, servo_tick: int | None, keepalive: bool = False, frame: bool = False) -> None:
-        self._clock_pub.put(ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive, frame=frame))
+        """A step on sim/clock; a keep-alive one on sim/clock/keepalive too, the controller's only ticks (it need not
+        wake for the two or so servo and frame ticks of every frame)."""
+        tick = ClockTick(t=t, servo_tick=servo_tick, run_id=self.lockstep.run_id, stamp=t, keepalive=keepalive, frame=frame)
+        self._clock_pub.put(tick)
+        if keepalive:
+            self._keepalive_pub.put(tick)
 
     def _wait(self, stop: threading.Event, tick_only: bool = False) -> None:
         """Until the rig has answered this step (or a new run, or `stop`). Every answer wakes it (an ack, a

@@ -172,6 +172,12 @@ class SimWorld:
             if self.wall_deadline is not None and time.perf_counter() > self.wall_deadline:
                 raise WallLimitReached(f"the wall-time limit passed at t = {self.time:.3f} s simulated (the contact solver crawls?)")
 
+    def pass_time(self, dt: float) -> None:
+        """Advance the clock by `dt` (whole steps of TIMESTEP, as `step` counts them) with nothing moving:
+        the world at rest (`SimRig.idle`)."""
+        for _ in range(max(1, int(round(dt / TIMESTEP)))):
+            self.data.time += TIMESTEP
+
     def _warning_counts(self) -> tuple[int, ...]:
         return tuple(int(w.number) for w in self._warnings)
 

@@ -133,7 +133,7 @@ def run_node(model: SyntheticRim, state: RunState, path: Path, evs: list[tuple[s
             Subscriber(b, keys.step_ack("controller"), StepAck, on(answers))]
     pubs = {"run": Publisher(b, keys.run_state, RunState, lockstep=True), "path": Publisher(b, keys.planner_path, Path),
             "soi": Publisher(b, keys.perception_soi, SoiState, lockstep=True), "ack": Publisher(b, keys.step_ack("planner"), StepAck),
-            "clock": Publisher(b, keys.sim_clock, ClockTick), "left": Publisher(b, keys.arm_state("left"), ArmState),
+            "clock": Publisher(b, keys.sim_keepalive, ClockTick), "left": Publisher(b, keys.arm_state("left"), ArmState),
             "right": Publisher(b, keys.arm_state("right"), ArmState)}
     try:
         assert wait_until(lambda: all(p.matched for p in pubs.values()))

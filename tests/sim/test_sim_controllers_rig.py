@@ -153,3 +153,30 @@ def test_natural_ik_faces_the_target_with_the_elbow_up():
     far = np.eye(4)
     far[:3, 3] = [2.0, 0, 0]
     assert natural_ik(far) is None
+
+
+def test_between_runs_the_world_rests_until_an_arm_moves_and_for_a_while_after(scenario):
+    """`idle` (lockstep between runs): a world just built is at rest (its clock runs, its bag stays put);
+    an arm's motion steps the physics, and REST_AFTER_S of stillness after it rests it again."""
+    from bagit.services.sim.rig_sim import REST_AFTER_S
+
+    with SimRig(scenario, seed=0, camera=False) as rig:
+        v0, t0 = rig.world.bag_vertices().copy(), rig.time
+        rig.idle(0.5)
+        assert rig.time == pytest.approx(t0 + 0.5)
+        assert np.array_equal(rig.world.bag_vertices(), v0)  # at rest: nothing stepped
+        for arm in rig.arms.values():
+            assert arm.enable() == 0
+        pose = rig.arms["left"].get_pose6()
+        pose[2] += 10.0
+        assert rig.arms["left"].servo_p(pose, t=0.3) == 0
+        rig.idle(0.3)  # the arm moves: the physics steps
+        moved = rig.world.bag_vertices().copy()
+        assert not np.array_equal(moved, v0)
+        rig.idle(REST_AFTER_S / 2)  # still swinging after the arm stopped
+        swung = rig.world.bag_vertices().copy()
+        assert not np.array_equal(swung, moved)
+        rig.idle(1.5 + REST_AFTER_S)  # the arm's joints settle to the last bit within ~1.5 s
+        settled, t1 = rig.world.bag_vertices().copy(), rig.time
+        rig.idle(0.2)
+        assert np.array_equal(rig.world.bag_vertices(), settled) and rig.time == pytest.approx(t1 + 0.2)
