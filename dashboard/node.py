@@ -3,8 +3,11 @@
 The subscriber callbacks go straight to the Dashboard's `on_*` methods, which only leave the
 message for the render thread, so the Zenoh threads are never held up by drawing. The e-stop
 publisher is declared up front: pressing E-STOP is one `put` on a reliable, express, real-time key.
-The display cloud (~300 kB, 10 Hz) is subscribed to only while a browser watches: perception makes it
-only for a subscriber, so a dashboard nobody looks at costs the rig no cloud.
+The streams only a browser looks at (the display cloud, the SOI, the arms' states: "watched") are
+subscribed to only while one is connected: perception makes the cloud only for a subscriber, and the
+SOI and the arms' states come at every step of a run (about a thousand deliveries in a run of exp02),
+so a dashboard nobody looks at costs the rig neither. The plots' series (commands, errors) and the
+run's history are followed all the time: a browser that connects mid-run sees the run from its start.
 """
 
 from __future__ import annotations
@@ -89,8 +92,8 @@ class DashboardNode:
         self.keys = Keys(bus.rig)
         self.session = open_session(bus)
         self._closers: list[Any] = []
-        self._cloud_sub: Subscriber | None = None
-        self._cloud_lock = threading.Lock()
+        self._watched_subs: list[Subscriber[Any]] = []  # the watched streams (module doc), while a browser is connected
+        self._watch_lock = threading.Lock()
         try:
             self.link = ZenohRunLink(self.session, self.keys, query_timeout_s)
             self._closers.append(self.link)
@@ -98,12 +101,10 @@ class DashboardNode:
             k = self.keys
             d = self.dashboard
             for key, msg_type, cb in (
-                (k.perception_soi, SoiState, d.on_soi),
                 (k.planner_goal, Goal, d.on_goal),
                 (k.planner_path, Path, d.on_path),
                 (k.controller_cmd, Command, d.on_command),
                 (k.controller_status, ControllerStatus, d.on_controller_status),
-                (k.arm_state_any, ArmState, d.on_arm_state),
                 (k.run_state, RunState, d.on_run_state),
                 (k.estop, EStop, d.on_estop),
             ):
@@ -122,25 +123,29 @@ class DashboardNode:
         return self.dashboard.url
 
     def _follow_viewers(self) -> None:
-        """Subscribe to the display cloud while a browser is connected (or `draw_without_viewers`), not otherwise."""
+        """Subscribe to the watched streams while a browser is connected (or `draw_without_viewers`), not otherwise."""
         d = self.dashboard
-        with self._cloud_lock:
+        with self._watch_lock:
             if getattr(self, "_closed", False):
                 return
             watched = d.config.draw_without_viewers or bool(d.server.get_clients())
-            if watched and self._cloud_sub is None:
-                self._cloud_sub = Subscriber(self.session, self.keys.perception_cloud, PointCloud, d.on_cloud)
-            elif not watched and self._cloud_sub is not None:
-                self._cloud_sub.close()
-                self._cloud_sub = None
+            if watched and not self._watched_subs:
+                k = self.keys
+                self._watched_subs = [Subscriber(self.session, k.perception_cloud, PointCloud, d.on_cloud),
+                                      Subscriber(self.session, k.perception_soi, SoiState, d.on_soi),
+                                      Subscriber(self.session, k.arm_state_any, ArmState, d.on_arm_state)]
+            elif not watched and self._watched_subs:
+                subs, self._watched_subs = self._watched_subs, []
+                for s in subs:
+                    s.close()
 
     def close(self) -> None:
-        with self._cloud_lock:
+        with self._watch_lock:
             if getattr(self, "_closed", False):
                 return
             self._closed = True
-            cloud, self._cloud_sub = self._cloud_sub, None
-        for c in [*reversed(self._closers), *([cloud] if cloud is not None else [])]:
+            watched, self._watched_subs = self._watched_subs, []
+        for c in [*reversed(self._closers), *watched]:
             try:
                 c.close()
             except Exception:  # noqa: BLE001 - closing what is left

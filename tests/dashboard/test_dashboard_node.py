@@ -90,20 +90,29 @@ def test_node_feeds_the_dashboard_and_drives_the_rig(rig_peer):
         server.close()
 
 
-def test_start_without_a_coordinator_says_so_and_nobody_watching_takes_no_cloud(rig_peer):
+def test_start_without_a_coordinator_says_so_and_nobody_watching_takes_only_the_plots_streams(rig_peer):
     rig, peer = rig_peer
     keys = Keys(rig)
     node = DashboardNode(BusConfig(rig=rig, connect=locators(peer)), DashboardConfig(port=0), query_timeout_s=0.5)
-    soi, cloud = Publisher(peer, keys.perception_soi, SoiState), Publisher(peer, keys.perception_cloud, PointCloud)
+    watched = [Publisher(peer, keys.perception_soi, SoiState), Publisher(peer, keys.perception_cloud, PointCloud),
+               Publisher(peer, keys.arm_state("right"), ArmState)]
+    followed = [Publisher(peer, keys.controller_status, ControllerStatus), Publisher(peer, keys.run_state, RunState)]
     try:
         assert node.dashboard.panel.press_start() is None
         assert "nobody serves it" in node.dashboard.panel.message_md.content
-        # with no browser connected the dashboard takes the SOI but not the display cloud, so perception makes none
-        assert wait_until(lambda: soi.matched)
-        assert not cloud.matched
+        # with no browser connected the dashboard follows the plots' and the run's streams, but takes neither the
+        # SOI, the arms' states nor the display cloud (so perception makes none)
+        assert wait_until(lambda: all(p.matched for p in followed))
+        assert not any(p.matched for p in watched)
+        node.dashboard.config.draw_without_viewers = True  # as a browser connecting does
+        node._follow_viewers()
+        assert wait_until(lambda: all(p.matched for p in watched))
+        node.dashboard.config.draw_without_viewers = False  # and as its leaving does
+        node._follow_viewers()
+        assert wait_until(lambda: not any(p.matched for p in watched))
     finally:
-        soi.close()
-        cloud.close()
+        for p in watched + followed:
+            p.close()
         node.close()
 
 
