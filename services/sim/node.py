@@ -125,6 +125,7 @@ class SimNode:
         self._truth_pub = Publisher(session, keys.sim_truth, SimTruth)
         self._state_sub = Subscriber(session, keys.run_state, RunState, self._on_state)
         self._cond = threading.Condition(self._lock)
+        self._waiting_tick_only = False  # what the lockstep wait is waiting for (`_wake_if_answered`)
         self.lockstep = Lockstep(timeout_s=self.cfg.lockstep_timeout_s)
         self._lockstep_parts: list[Any] = []
         if clock == "sim":
@@ -138,11 +139,21 @@ class SimNode:
     def _on_ack(self, ack: StepAck) -> None:
         with self._cond:
             self.lockstep.on_ack(ack, time.monotonic())
-            self._cond.notify_all()
+            self._wake_if_answered()
 
     def _on_servo(self) -> None:
-        """A servo command reached a simulated controller: the lockstep wait looks at the counts again."""
+        """A servo command reached a simulated controller: the lockstep wait may be over."""
         with self._cond:
+            self._wake_if_answered()
+
+    def _wake_if_answered(self) -> None:
+        """(With _cond held.) Wake the loop's wait once what it waits for is in (`_waiting_tick_only`: the servo
+        tick's answers; else the whole step's), not at every answer: one that leaves another missing changes
+        nothing the wait acts on (each used to wake it: ~2,700 wake-ups a run of exp02). What else ends a
+        wait (a new run, a liveliness change, `stop`) wakes it directly, and a silent service's time-out is
+        looked at on the wait's own timed wake-up."""
+        self.lockstep.controllers(self.rig.servo_counts())
+        if not (self.lockstep.tick_pending() if self._waiting_tick_only else self.lockstep.pending()):
             self._cond.notify_all()
 
     def _on_alive(self, service: str, alive: bool) -> None:
@@ -402,6 +413,7 @@ class SimNode:
         `tick_only`: until the servo tick is answered, its ServoPs landed (the world may then step on),
         the frame's answers still awaited: the step is not done."""
         with self._cond:
+            self._waiting_tick_only = tick_only
             while not stop.is_set() and self._pending is None:
                 self.lockstep.controllers(self.rig.servo_counts())
                 waiting = self.lockstep.expire(time.monotonic())
