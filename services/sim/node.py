@@ -22,7 +22,8 @@ with frames sparser than the run's controller keep-alive pace, keep-alive ticks 
 and while a run is active the world steps on only when the rig has answered (`Lockstep`, from the
 services' sim/ack and the controllers' servo counts). A loaded machine then makes a run slower,
 never different. A lockstep run goes as fast as the rig answers (no faster than `speed` if set);
-between runs it is paced to the wall clock (`speed`, default real time). While the rig works on
+between runs it is paced to the wall clock (`speed`, default real time) and the world rests while no
+arm moves (`SimRig.idle`). While the rig works on
 a frame the world already steps on to the next event (`_step_ahead`: provably the same world), so
 the simulator's physics overlaps the services' work on the machine's other core; and a servo tick
 that falls with a frame is answered while that frame renders (the render reads the world at the
