@@ -255,14 +255,7 @@ class SimRig:
 
     def step(self, dt: float) -> None:
         """Advance `dt` seconds (rounded to whole world steps): controllers, then mounts, then physics."""
-        n = max(1, int(round(dt / WORLD_STEP_S)))
-        with self._loop_lock:
-            for _ in range(n):
-                for robot in self.arms.values():
-                    robot.step(WORLD_STEP_S)
-                self._sync_mounts()
-                self.world.step(WORLD_STEP_S)
-                self._still_s += WORLD_STEP_S
+        self._advance(dt, rest=False)
 
     def idle(self, dt: float) -> None:
         """`step` between runs in lockstep, where nothing waits on the world: once no arm has moved for
@@ -270,17 +263,20 @@ class SimRig:
         world's clock go on; the physics steps again from the step an arm moves. Its contact solver costs
         a core (~1 CPU s per simulated s on a 2-core VM) to move a bag that hangs from still mounts, while
         the services start beside it; a run's reset builds its world anew."""
+        self._advance(dt, rest=True)
+
+    def _advance(self, dt: float, rest: bool) -> None:
         n = max(1, int(round(dt / WORLD_STEP_S)))
         with self._loop_lock:
             for _ in range(n):
                 for robot in self.arms.values():
                     robot.step(WORLD_STEP_S)
                 self._sync_mounts()
-                if self._still_s < REST_AFTER_S:
+                if rest and self._still_s >= REST_AFTER_S:
+                    self.world.pass_time(WORLD_STEP_S)
+                else:
                     self.world.step(WORLD_STEP_S)
                     self._still_s += WORLD_STEP_S
-                else:
-                    self.world.pass_time(WORLD_STEP_S)
 
     def render_rgbd(self, seq: int = 0) -> RgbdFrame:
         """A camera frame, stamped on the rig's clock (`clock_s`)."""
