@@ -27,11 +27,11 @@ frame, when the coordinator has answered it on sim/ack (so on the stage that fra
 frame's SOI (if it made one) and the arms' states of that step, with ages on the simulator's clock;
 then it answers the frame on sim/ack with the command it sent. A tick per frame is the control
 rate when the camera runs at it, as in `bagit run`. With frames further apart than the keep-alive
-pace the simulator also sends keep-alive ticks between them (on sim/clock, and for the controller
-again on sim/clock/keepalive) (`ClockTick.keepalive`, by
-the `Schedule` `bagit run` steps by): while the run is servoed the controller ticks on its last SOI
-(a keep-alive, or a hold once that SOI is stale) and answers each as it answers a frame, so a slow
-camera gives slower motion, never a watchdog stop, and the same run as `bagit run`'s.
+pace the simulator also sends keep-alive ticks between them (`ClockTick.keepalive`, by the `Schedule`
+`bagit run` steps by; on sim/clock and again on sim/clock/keepalive, the only ticks the controller
+follows): while the run is servoed the controller ticks on its last SOI (a keep-alive, or a hold once
+that SOI is stale) and answers each as it answers a frame, so a slow camera gives slower motion,
+never a watchdog stop, and the same run as `bagit run`'s.
 """
 
 from __future__ import annotations

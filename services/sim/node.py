@@ -408,8 +408,9 @@ class SimNode:
             self._keepalive_pub.put(tick)
 
     def _wait(self, stop: threading.Event, tick_only: bool = False) -> None:
-        """Until the rig has answered this step (or a new run, or `stop`). Every answer wakes it (an ack, a
-        servo command reaching a simulated controller, a liveliness change, a new run): nothing polls;
+        """Until the rig has answered this step (or a new run, or `stop`). The last of its answers wakes it (an
+        ack, a servo command reaching a simulated controller: `_wake_if_answered`), as do a liveliness change
+        and a new run: nothing polls;
         the timed wake-up only lets `expire` drop a service silent for the lockstep time-out.
         `tick_only`: until the servo tick is answered, its ServoPs landed (the world may then step on),
         the frame's answers still awaited: the step is not done."""

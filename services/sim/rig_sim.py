@@ -239,9 +239,9 @@ class SimRig:
         for server in self.servers.values():
             server.push_feedback()
 
-    def _sync_mounts(self) -> bool:
-        """Mount targets from the flanges; only the arms whose joints moved are sent (setting one is not free).
-        Whether any moved."""
+    def _sync_mounts(self) -> None:
+        """Mount targets from the flanges; only the arms whose joints moved are sent (setting one is not free);
+        an arm that moved restarts the count of `idle`'s stillness."""
         moved: dict[ArmName, np.ndarray] = {}
         for name, robot in self.arms.items():
             q = robot.q
@@ -251,7 +251,6 @@ class SimRig:
         if moved:
             self.world.set_mount_targets(moved)
             self._still_s = 0.0
-        return bool(moved)
 
     def step(self, dt: float) -> None:
         """Advance `dt` seconds (rounded to whole world steps): controllers, then mounts, then physics."""
@@ -260,9 +259,9 @@ class SimRig:
     def idle(self, dt: float) -> None:
         """`step` between runs in lockstep, where nothing waits on the world: once no arm has moved for
         REST_AFTER_S (and in a world just built) the world is at rest, and only the controllers and the
-        world's clock go on; the physics steps again from the step an arm moves. Its contact solver costs
-        a core (~1 CPU s per simulated s on a 2-core VM) to move a bag that hangs from still mounts, while
-        the services start beside it; a run's reset builds its world anew."""
+        world's clock go on; the physics steps again from the step an arm moves. Its contact solver took
+        ~0.6 of a core at real time (a 2-core VM) to move a bag hanging from still mounts, while the
+        services start beside it; a run's reset builds its world anew."""
         self._advance(dt, rest=True)
 
     def _advance(self, dt: float, rest: bool) -> None:
