@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TextIO
 
-from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session, request_run_control
+from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, open_session, request_run_control
 from bagit.common.errors import BusError
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
@@ -200,7 +200,6 @@ class Up:
         self.run_state: LatestCache | None = None
         self.truth: LatestCache | None = None  # the simulator's ground truth, to judge a run (never given to a service)
         self.final_truths: dict[str, SimTruth] = {}  # run id -> the world as that run ended
-        self._final_truth_sub: Subscriber | None = None
         self.arm_states: LatestCache | None = None  # the arm side's event counts, for the run's result
         self.hub = ""
         self.dashboard_url: str | None = None
@@ -284,8 +283,7 @@ class Up:
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
         self.arm_states = LatestCache(self.session, self.keys.arm_state("left"), ArmState)  # one arm's: both carry the side's counts
         if "sim" in names:
-            self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth)
-            self._final_truth_sub = Subscriber(self.session, self.keys.sim_truth, SimTruth, self._on_truth)
+            self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth, self._on_truth)  # the newest, and each run's final
         for n in names:
             self.children[n] = Child(n, self._argv(n, zpath, rpath), waiting_for=AFTER.get(n) if AFTER.get(n) in names else None)
         for c in self.children.values():
@@ -481,7 +479,7 @@ class Up:
                     _signal_group(p, signal.SIGKILL)
                     codes[n] = p.wait(timeout=5)
                 _signal_group(p, signal.SIGKILL)  # anything the service started and left behind
-        for x in (self.run_state, self.truth, self._final_truth_sub, self.arm_states, self.watcher):
+        for x in (self.run_state, self.truth, self.arm_states, self.watcher):
             if x is not None:
                 x.close()
         if self.session is not None:

@@ -370,7 +370,8 @@ class SimNode:
                 next_report = wall + cfg.report_every_s
                 self._rtf_window = (rig.clock_s - start) / max(wall - wall_start, 1e-9)
             if not stepped:
-                rig.step(sched.until_next(world_t)) if self.lockstep.active else rig.idle(sched.until_next(world_t))
+                advance = rig.step if self.lockstep.active else rig.idle  # between runs a world at rest is not simulated again
+                advance(sched.until_next(world_t))
             rig.push_feedback()
             self._say_alarms()
             if cfg.speed is None and self.lockstep.active:  # a lockstep run: as fast as the rig answers
