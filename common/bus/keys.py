@@ -125,9 +125,10 @@ KEY_TABLE: tuple[KeySpec, ...] = (
             "the simulated rig's time and servo ticks: every service's clock when the bus config says `clock: sim`"),
     KeySpec("sim/clock/keepalive", ClockTick, CONTROL, "pub",
             "lockstep: sim/clock's keep-alive ticks again, for the controller, which ticks on them and on nothing else of it"),
-    KeySpec("sim/ack/*", StepAck, CONTROL, "pub",
-            "lockstep: each service's answer to a frame or servo tick, on its own key (sim/ack/<service>: a service "
-            "hears only the answers it waits for); the simulator steps on when all are in"),
+    KeySpec("sim/ack/**", StepAck, CONTROL, "pub",
+            "lockstep: each service's answer to a frame or servo tick, on its own key (sim/ack/<service>; the coordinator's "
+            "answers to the controller's statuses on sim/ack/planner/status): a service hears only the answers it waits for; "
+            "the simulator steps on when all it follows are in (perception's it knows from the coordinator's)"),
     KeySpec("sim/truth", SimTruth, DISPLAY, "pub",
             "simulator ground truth (true rim, pass-through, real-time factor) for tests and benchmarks only: no service may subscribe"),
 )
@@ -159,7 +160,7 @@ class Keys:
         self.alive_any = f"{p}/alive/*"
         self.sim_clock = f"{p}/sim/clock"
         self.sim_keepalive = f"{p}/sim/clock/keepalive"  # the keep-alive ticks of sim/clock, again (the controller's)
-        self.sim_ack = f"{p}/sim/ack/*"  # every service's answers (the simulator's wait)
+        self.sim_ack = f"{p}/sim/ack/**"  # every answer (tools; the simulator follows only those it waits on)
         self.sim_truth = f"{p}/sim/truth"  # tests and benchmarks only
         self.all = f"{p}/**"
 
@@ -174,6 +175,11 @@ class Keys:
             return f"{self.prefix}/sim/ack/{check_name(service, 'service name')}"
         except ValueError as e:
             raise BusError(str(e)) from None
+
+    def status_ack(self, service: str) -> str:
+        """The key `service` answers the controller's statuses on (sim/ack/<service>/status): apart from its
+        answers to frames, which the controller follows, so that the controller hears only those."""
+        return f"{self.step_ack(service)}/status"
 
     def alive(self, service: str) -> str:
         try:

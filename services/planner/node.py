@@ -111,8 +111,10 @@ class PlannerNode:
             Subscriber(session, keys.estop, EStop, self._on_estop),
         ]
         self._ack_pub: Publisher[StepAck] | None = None
+        self._status_ack_pub: Publisher[StepAck] | None = None
         if self.lockstep:  # the lockstep protocol: the simulator's steps in, this node's answers out
-            self._ack_pub = Publisher(session, keys.step_ack(SERVICE_NAME), StepAck)
+            self._ack_pub = Publisher(session, keys.step_ack(SERVICE_NAME), StepAck)  # to frames: the controller's and simulator's
+            self._status_ack_pub = Publisher(session, keys.status_ack(SERVICE_NAME), StepAck)  # to statuses: the simulator's
             self._subs += [Subscriber(session, keys.sim_clock, ClockTick, self._on_clock),
                            *(Subscriber(session, keys.step_ack(s), StepAck, self._on_ack) for s in ("perception", "controller"))]
         self._server = serve_run_control(session, keys, self._on_control)
@@ -208,9 +210,9 @@ class PlannerNode:
             self._flush_tick(at=ack.frame)  # the step's coordinator tick, after its control tick (as `bagit run`)
             with self._lock:
                 st = self.coord.state
-            if self._closed or self._ack_pub is None:  # (only lockstep's acks come to be answered)
+            if self._closed or self._status_ack_pub is None:  # (only lockstep's acks come to be answered)
                 return
-            self._ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, status_seq=ack.status_seq,
+            self._status_ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, status_seq=ack.status_seq,
                                       stage=st.stage, stamp=self.clock()))
 
     def _answer_frames(self) -> None:
@@ -237,6 +239,8 @@ class PlannerNode:
                     if self._planning:
                         return  # answered when the plan is in (`_plan`)
             missing = self._taken[1]
+            if ack.late:  # perception's answer went without something: the simulator hears it from this answer
+                missing = "; ".join(filter(None, (missing, f"{ack.late} (perception's)")))
             self._frames.pop(0)
             self._taken = None
             with self._lock:
@@ -374,7 +378,7 @@ class PlannerNode:
         self._watcher.close()
         with self._pub_lock:  # never undeclare a publisher in the middle of a put
             self._closed = True
-            for p in (self._state_pub, self._goal_pub, self._path_pub, self._ack_pub):
+            for p in (self._state_pub, self._goal_pub, self._path_pub, self._ack_pub, self._status_ack_pub):
                 if p is not None:
                     p.close()
         try:

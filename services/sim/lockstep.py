@@ -13,6 +13,9 @@ Two pure parts, with no bus and no clock of their own:
     -> in a servo stage, the controller's command and status for it -> the arm driver's receipt
     of the command, and the coordinator's stage once it handled the status (the run may end there);
   and of one servo tick: the arm driver's cycle, then its ServoPs landed in the controllers.
+  Perception's answer goes to the coordinator only (`ANSWERS_FOLLOWED`): the coordinator answers a
+  frame once perception has, so its answer stands for both (a silence there is booked to perception
+  first, as the chain's first link, then to the coordinator).
   A service that is gone, or silent for `timeout_s` of wall time, is dropped from the wait for
   the rest of the run and said so: the simulated clock then goes on, and the coordinator's own
   limits (on that clock) fail the run with its reason. Between runs nothing is waited for.
@@ -32,6 +35,8 @@ from bagit.common.names import FINAL_STAGES, LOCKSTEP_SERVICES, SERVO_STAGES
 EPS_S = 1e-9
 STAMP_TOL_S = 1e-6  # a frame's stamp matched in an answer
 EARLY_KEPT = 16  # answers kept for steps not announced yet (a few per step)
+# The services whose answers (sim/ack/<service>, and the coordinator's to statuses) the simulator follows.
+ANSWERS_FOLLOWED: tuple[str, ...] = ("planner", "controller", "arm-driver")
 
 
 @dataclass
@@ -96,8 +101,7 @@ class Schedule:
 @dataclass
 class _Frame:
     stamp: float
-    soi: bool | None = None  # perception answered (with an SOI or not)
-    stage: str | None = None  # the coordinator answered: its stage after the frame
+    stage: str | None = None  # the coordinator answered (after perception): its stage after the frame
     cmd_seq: int | None = None
     status_seq: int | None = None  # the controller's status for the frame
     controller: bool = False  # the controller answered
@@ -153,7 +157,7 @@ class Lockstep:
         """A keep-alive tick at `stamp` (frames sparser than the controller's keep-alive pace): in a
         servo stage (as the last frame left it) the controller's answer, its command's receipt and
         the coordinator's answer to its status (a hold's) are waited for, as for a frame's."""
-        self.frame, self.since = _Frame(stamp, soi=True, stage=self.stage or "idle"), wall
+        self.frame, self.since = _Frame(stamp, stage=self.stage or "idle"), wall
         self._take_early(wall)
 
     def _take_early(self, wall: float) -> None:
@@ -186,8 +190,6 @@ class Lockstep:
             self.commands.append(ack.cmd_seq)  # the receipt may overtake the controller's own answer
         elif f is None or (ack.frame is not None and abs(ack.frame - f.stamp) > STAMP_TOL_S):
             return
-        elif ack.service == "perception":
-            f.soi = ack.soi_seq is not None
         elif ack.service == "planner" and ack.status_seq is not None:
             f.after = ack.stage or "idle"
         elif ack.service == "planner":
@@ -229,10 +231,9 @@ class Lockstep:
         f = self.frame
         if f is None:
             return out
-        if f.soi is None and self._waits_for("perception"):
-            return out + [f"perception: frame {f.stamp:.3f}"]
         if f.stage is None and self._waits_for("planner"):
-            return out + [f"planner: frame {f.stamp:.3f}"]
+            first = "perception" if self._waits_for("perception") else "planner"  # the chain's first link still waited on
+            return out + [f"{first}: frame {f.stamp:.3f}"]
         if f.stage not in SERVO_STAGES:
             return out
         if not f.controller and self._waits_for("controller"):

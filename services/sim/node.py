@@ -51,7 +51,7 @@ from bagit.common.names import FINAL_STAGES
 from bagit.common.params import MethodParams, merge_params
 from bagit.common.scenario import Scenario
 from bagit.services.controller.session import tick_period
-from bagit.services.sim.lockstep import Lockstep, Schedule
+from bagit.services.sim.lockstep import ANSWERS_FOLLOWED, Lockstep, Schedule
 from bagit.services.sim.rig_sim import SETTLE_S, SimRig, camera_fps
 from bagit.services.sim.truth import GroundTruth
 
@@ -133,7 +133,8 @@ class SimNode:
             rig.stamp_feedback(on_servo=self._on_servo)  # the controllers' feedback stamped on the rig's clock
             self._clock_pub = Publisher(session, keys.sim_clock, ClockTick)
             self._keepalive_pub = Publisher(session, keys.sim_keepalive, ClockTick)
-            self._lockstep_parts = [self._clock_pub, self._keepalive_pub, Subscriber(session, keys.sim_ack, StepAck, self._on_ack),
+            answers = [keys.step_ack(s) for s in ANSWERS_FOLLOWED] + [keys.status_ack("planner")]
+            self._lockstep_parts = [self._clock_pub, self._keepalive_pub, *(Subscriber(session, k, StepAck, self._on_ack) for k in answers),
                                     LivelinessWatcher(session, keys, self._on_alive)]
         self._token = declare_alive(session, keys, SERVICE_NAME)
 

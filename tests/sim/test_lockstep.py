@@ -69,11 +69,11 @@ def test_a_servo_frame_waits_for_the_whole_chain_in_any_arrival_order():
     ls = Lockstep(timeout_s=5.0)
     ls.start_run("r1")
     ls.frame_published(10.0, wall=0.0)
-    assert ls.pending() == ["perception: frame 10.000"]
+    assert ls.pending() == ["perception: frame 10.000"]  # the chain's first link: the coordinator answers after it
     ls.on_ack(_ack("arm-driver", cmd_seq=4), 0.01)  # the driver's receipt may overtake the controller's answer
-    ls.on_ack(_ack("perception", 10.0, soi_seq=3), 0.02)
-    assert ls.pending() == ["planner: frame 10.000"]
-    ls.on_ack(_ack("planner", 10.0, stage="bagging"), 0.03)
+    ls.on_ack(_ack("perception", 10.0, soi_seq=3), 0.02)  # not followed: the coordinator's answer stands for it
+    assert ls.pending() == ["perception: frame 10.000"]
+    ls.on_ack(_ack("planner", 10.0, soi_seq=3, stage="bagging"), 0.03)
     assert ls.pending() == ["controller: frame 10.000"]
     ls.on_ack(_ack("controller", 10.0, cmd_seq=4, status_seq=4), 0.04)
     assert ls.pending() == ["planner: controller status 4"]
@@ -89,8 +89,7 @@ def test_outside_a_servo_stage_the_coordinator_ends_a_frame_and_no_run_waits_for
     assert ls.pending() == []  # between runs the world never waits
     ls.start_run("r1")
     ls.frame_published(2.0, wall=0.0)
-    ls.on_ack(_ack("perception", 2.0), 0.0)  # a frame without an SOI is still answered
-    ls.on_ack(_ack("planner", 2.0, stage="planning"), 0.0)
+    ls.on_ack(_ack("planner", 2.0, stage="planning"), 0.0)  # a frame without an SOI is still answered
     assert ls.pending() == [] and not ls.ended()
 
 
@@ -117,20 +116,31 @@ def test_a_tick_with_a_frame_is_answered_apart_from_the_frames_chain():
     ls.frame_published(12.0, wall=0.0)
     assert ls.tick_pending() == ["arm-driver: servo tick 40"]
     assert ls.pending() == ["arm-driver: servo tick 40", "perception: frame 12.000"]
-    ls.on_ack(_ack("perception", 12.0, soi_seq=9), 0.0)  # the frame's chain may run ahead of the tick's answer
+    ls.on_ack(_ack("planner", 12.0, soi_seq=9, stage="planning"), 0.0)  # the frame's chain may run ahead of the tick's answer
     ls.on_ack(_ack("arm-driver", tick=40, servo_sent={"left": 1, "right": 1}), 0.0)
     ls.controllers({"left": 8, "right": 7})
-    assert ls.tick_pending() == ["right CR5: the servo command of tick 40"]
+    assert ls.tick_pending() == ["right CR5: the servo command of tick 40"] == ls.pending()
     ls.controllers({"left": 8, "right": 8})
-    assert ls.tick_pending() == [] and ls.pending() == ["planner: frame 12.000"]
+    assert ls.tick_pending() == [] == ls.pending()
+
+
+def test_a_frames_silence_is_booked_to_perception_first_then_to_the_coordinator():
+    ls = Lockstep(timeout_s=2.0)
+    ls.start_run("r1")
+    ls.frame_published(5.0, wall=10.0)
+    assert ls.expire(12.5) == ["planner: frame 5.000"] and "no answer for 2 s" in ls.dropped["perception"]
+    assert ls.expire(15.0) == [] and "planner" in ls.dropped  # silent again: the coordinator itself
+    ls.start_run("r2")
+    ls.on_alive("perception", False)  # gone: the coordinator's answer (without its SOI) is still waited for
+    ls.frame_published(6.0, wall=20.0)
+    assert ls.pending() == ["planner: frame 6.000"]
 
 
 def test_a_service_gone_or_silent_is_dropped_for_the_run_and_said_so():
     ls = Lockstep(timeout_s=2.0)
     ls.start_run("r1")
     ls.frame_published(3.0, wall=100.0)
-    ls.on_ack(_ack("perception", 3.0, soi_seq=1), 100.0)
-    ls.on_ack(_ack("planner", 3.0, stage="pre-bagging"), 100.0)
+    ls.on_ack(_ack("planner", 3.0, soi_seq=1, stage="pre-bagging"), 100.0)
     ls.on_alive("controller", False)
     assert ls.pending() == [] and "controller" in ls.dropped and "liveliness" in ls.notes[-1]
     ls.servo_tick(1, {"left": 0, "right": 0}, wall=200.0)
@@ -168,7 +178,7 @@ def test_a_keep_alive_tick_in_a_servo_stage_waits_for_the_controller_and_its_com
     assert ls.pending() == []  # no frame answered yet in this run: not servoing, nothing to wait for
     ls.done_with_step()
     ls.frame_published(10.1, 0.0)
-    for a in (_ack("perception", 10.1, soi_seq=1), _ack("planner", 10.1, soi_seq=1, stage="bagging"),
+    for a in (_ack("planner", 10.1, soi_seq=1, stage="bagging"),
               _ack("controller", 10.1, cmd_seq=5, status_seq=5), _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, stage="bagging")):
         ls.on_ack(a, 0.0)
     assert ls.pending() == []
@@ -188,7 +198,7 @@ def test_an_answer_that_overtakes_the_announcement_of_its_step_still_counts():
     ls = Lockstep(timeout_s=5.0)
     ls.start_run("r1")
     ls.frame_published(10.1, 0.0)
-    for a in (_ack("perception", 10.1, soi_seq=1), _ack("planner", 10.1, soi_seq=1, stage="bagging"),
+    for a in (_ack("planner", 10.1, soi_seq=1, stage="bagging"),
               _ack("controller", 10.1, cmd_seq=5, status_seq=5), _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, stage="bagging")):
         ls.on_ack(a, 0.0)
     ls.done_with_step()
@@ -205,7 +215,7 @@ def test_a_dropped_service_or_a_late_answer_makes_the_run_inexact_until_the_next
     ls = Lockstep(timeout_s=5.0)
     ls.start_run("r1")
     ls.frame_published(10.0, wall=0.0)
-    ls.on_ack(StepAck(service="perception", run_id="r1", frame=10.0, soi_seq=3), wall=0.1)
+    ls.on_ack(StepAck(service="controller", run_id="r1", frame=9.0, cmd_seq=3), wall=0.1)  # an old step's: taken as no news
     assert ls.inexact == []
     ls.on_ack(StepAck(service="planner", run_id="r1", frame=10.0, stage="bagging", late="its SOI"), wall=0.2)
     ls.on_alive("controller", False)
