@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TextIO
 
-from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, open_session, request_run_control
+from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Polled, open_session, request_run_control
 from bagit.common.errors import BusError
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
@@ -200,7 +200,7 @@ class Up:
         self.run_state: LatestCache | None = None
         self.truth: LatestCache | None = None  # the simulator's ground truth, to judge a run (never given to a service)
         self.final_truths: dict[str, SimTruth] = {}  # run id -> the world as that run ended
-        self.arm_states: LatestCache | None = None  # the arm side's event counts, for the run's result
+        self.arm_states: Polled | None = None  # the arm side's event counts, for the run's result (read once it has ended)
         self.hub = ""
         self.dashboard_url: str | None = None
         self._supervisor: threading.Thread | None = None
@@ -281,7 +281,7 @@ class Up:
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
-        self.arm_states = LatestCache(self.session, self.keys.arm_state("left"), ArmState)  # one arm's: both carry the side's counts
+        self.arm_states = Polled(self.session, self.keys.arm_state("left"), ArmState, 1)  # one arm's: both carry the side's counts
         if "sim" in names:
             self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth, self._on_truth)  # the newest, and each run's final
         for n in names:

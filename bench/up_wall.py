@@ -143,7 +143,7 @@ def measure(scenario: str = "exp02", seed: int = 0, dashboard: bool = True, time
         t = up.truth.get() if up.truth is not None else None
         marks["end"] = (time.monotonic(), t.sim_time if t is not None else float("nan"), up.cpu_s())
         cpu_total = up.cpu_s()
-        arm = up.arm_states.get(up.keys.arm_state("left")) if up.arm_states is not None else None
+        arm = up.arm_states.latest() if up.arm_states is not None else None
         events = dict(arm.events) if arm is not None else {}
     finally:
         for s in subs:

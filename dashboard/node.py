@@ -8,6 +8,8 @@ subscribed to only while one is connected: perception makes the cloud only for a
 SOI and the arms' states come at every step of a run (about a thousand deliveries in a run of exp02),
 so a dashboard nobody looks at costs the rig neither. The plots' series (commands, errors) and the
 run's history are followed all the time: a browser that connects mid-run sees the run from its start.
+The commands and statuses (one each a step) are `Polled`: Zenoh keeps them until the render thread
+takes them (`Dashboard.feed`), so no thread here wakes for each.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from bagit.common.bus import (
     BusConfig,
     Keys,
     LivelinessWatcher,
+    Polled,
     Publisher,
     Subscriber,
     declare_alive,
@@ -47,6 +50,7 @@ from bagit.dashboard.server import Dashboard, DashboardConfig
 log = logging.getLogger("bagit.dashboard")
 
 SERVICE_NAME = "dashboard"
+FEED_CAPACITY = 512  # messages a polled stream keeps for the render thread (a step's each; 17 s of a 30 Hz run)
 
 
 class ZenohRunLink:
@@ -103,12 +107,15 @@ class DashboardNode:
             for key, msg_type, cb in (
                 (k.planner_goal, Goal, d.on_goal),
                 (k.planner_path, Path, d.on_path),
-                (k.controller_cmd, Command, d.on_command),
-                (k.controller_status, ControllerStatus, d.on_controller_status),
                 (k.run_state, RunState, d.on_run_state),
                 (k.estop, EStop, d.on_estop),
             ):
                 self._closers.append(Subscriber(self.session, key, msg_type, cb))
+            cmds = Polled(self.session, k.controller_cmd, Command, FEED_CAPACITY)
+            statuses = Polled(self.session, k.controller_status, ControllerStatus, FEED_CAPACITY)
+            self._closers += [cmds, statuses]
+            d.feed(cmds.take, d.on_command)
+            d.feed(statuses.take, d.on_controller_status)
             d.server.on_client_connect(lambda _client: self._follow_viewers())
             d.server.on_client_disconnect(lambda _client: self._follow_viewers())
             self._follow_viewers()

@@ -126,6 +126,7 @@ class Dashboard:
         self._render_errors: dict[str, int] = {}
         self._last_error: dict[str, str] = {}
         self._next = {"panel": 0.0, "plots": 0.0, "slow": 0.0}
+        self._feeds: list[tuple[Callable[[], list[Any]], Callable[[Any], None]]] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         if start:
@@ -212,6 +213,17 @@ class Dashboard:
         if msg.may_act():  # a release from anyone but the dashboard or the CLI leaves the latch shown
             self.panel.note_estop(msg)
 
+    def feed(self, take: Callable[[], list[Any]], on: Callable[[Any], None]) -> None:
+        """A stream the render thread takes at its own pace (at least `command_hz` while a browser watches,
+        the panel's rate otherwise), each message given to `on`: for streams that come at every step and
+        need no Zenoh thread woken for each message (the plots' commands and statuses: `bagit.common.bus.Polled`)."""
+        self._feeds.append((take, on))
+
+    def _take_feeds(self) -> None:
+        for take, on in self._feeds:
+            for msg in take():
+                on(msg)
+
     def on_camera_info(self, info: CameraInfo) -> None:
         self._slots.put("camera", info)
 
@@ -271,7 +283,9 @@ class Dashboard:
                 sc.draw_scenario(s)
 
     def render_once(self, force: bool = False) -> int:
-        """Draw every due layer and, when due, refresh the panel. Returns the number of layers drawn."""
+        """Take what the feeds hold, draw every due layer and, when due, refresh the panel. Returns the number
+        of layers drawn."""
+        self._take_feeds()
         items = self._slots.take_due(force=force, hold=self._held())
         for key, item in items.items():
             try:
@@ -318,6 +332,8 @@ class Dashboard:
             held = self._held()
             due = self._slots.next_due_in(hold=held)
             panel_in = max(0.0, self._next["panel"] - self._clock())
+            if self._feeds and not held:  # the feeds' live layer (the command) at its rate
+                panel_in = min(panel_in, 1 / self.config.command_hz)
             if due is None and held:
                 self._stop.wait(min(panel_in, 0.1) if panel_in > 0 else 0.005)  # a browser may connect: look again soon
             elif due is None:

@@ -191,7 +191,7 @@ def run_result(up: Any, run_id: str | None, state: Any, stop: Any, args: argpars
     res = RunResult.model_validate(state.result) if state.result else RunResult(
         run_id=run_id, scenario=state.scenario, seed=args.seed, stage_reached=state.stage, reason=state.reason)
     truth, final_rim, sim_truth = _truth(up, state, stop)
-    arm = up.arm_states.get(up.keys.arm_state("left")) if up.arm_states is not None else None
+    arm = up.arm_states.latest() if up.arm_states is not None else None
     events = {k: int((arm.events if arm is not None else {}).get(k, 0)) for k in ARM_EVENT_KINDS}
     ok = res.success and (truth is None or truth.success)
     reason = res.reason if not res.success else (None if truth is None else truth.reason)

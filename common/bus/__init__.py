@@ -40,7 +40,7 @@ from bagit.common.bus.keys import (
     key_table_markdown,
 )
 from bagit.common.bus.liveliness import LivelinessWatcher, declare_alive
-from bagit.common.bus.pubsub import LatestCache, Publisher, Subscriber, encoding_for
+from bagit.common.bus.pubsub import LatestCache, Polled, Publisher, Subscriber, encoding_for
 from bagit.common.bus.query import Server, request, request_run_control, serve_run_control
 from bagit.common.bus.session import DEFAULT_ROUTER_PORT, BusConfig, config_value, locators, open_session, parse_bus_config
 from bagit.common.bus.sim_time import rig_clock
@@ -64,6 +64,7 @@ __all__ = [
     "Keys",
     "LatestCache",
     "LivelinessWatcher",
+    "Polled",
     "Publisher",
     "QoS",
     "Server",

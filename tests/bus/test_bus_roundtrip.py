@@ -13,8 +13,10 @@ from bus_support import assert_same_message, example_message, wait_until
 
 from bagit.common.bus import (
     KEY_TABLE,
+    DropCounters,
     Keys,
     LatestCache,
+    Polled,
     Publisher,
     Server,
     Subscriber,
@@ -23,7 +25,7 @@ from bagit.common.bus import (
     serve_run_control,
 )
 from bagit.common.errors import BagItError, BusError
-from bagit.common.messages import MESSAGE_TYPES, ArmState, EStop, RunControl, RunControlReply, SoiState
+from bagit.common.messages import MESSAGE_TYPES, ArmState, ControllerStatus, EStop, RunControl, RunControlReply, SoiState
 
 
 def _key_for(keys: Keys, msg_type) -> str:
@@ -194,6 +196,31 @@ def test_latest_cache_keeps_newest_per_arm_with_age(pair):
     assert cache.wait(0.05, key=keys.arm_state("left"), newer_than=time.monotonic()) is None
     left.put(ArmState(arm="left", command_id=5, q=np.zeros(6), qd=np.zeros(6), tool_pose=np.zeros(6)))
     assert cache.wait(2.0, key=keys.arm_state("left"), newer_than=t_recv).command_id == 5
+
+
+def test_polled_keeps_the_last_messages_for_its_owner_in_order_and_drops_garbage(pair):
+    a, b = pair
+    keys = Keys("polled")
+    counters = DropCounters()
+    polled = Polled(b, keys.controller_status, ControllerStatus, 3, counters=counters)
+    assert polled.take() == [] and polled.latest() is None
+    pub = Publisher(a, keys.controller_status, ControllerStatus)
+    assert wait_until(lambda: pub.matched)
+    pub.put(ControllerStatus(seq=1))
+    a.put(keys.controller_status, b"not a message")  # garbage: counted and dropped, never taken
+    pub.put(ControllerStatus(seq=2))
+    taken: list[int] = []
+    assert wait_until(lambda: taken.extend(m.seq for m in polled.take()) or taken == [1, 2])
+    assert polled.dropped == 1 and counters.count(keys.controller_status) == 1
+    for i in range(3, 9):  # more than it keeps, with no one taking: the oldest go (no producer waits)
+        pub.put(ControllerStatus(seq=i))
+    assert wait_until(lambda: polled.latest() is not None and polled.latest().seq == 8)
+    pub.put(ControllerStatus(seq=9))
+    pub.put(ControllerStatus(seq=10))
+    assert wait_until(lambda: taken.extend(m.seq for m in polled.take()) or taken[-1:] == [10])
+    assert taken[2:] == [9, 10] and polled.latest().seq == 10  # in order, and the newest kept once taken
+    polled.close()
+    assert polled.take() == []  # undeclared: nothing more, no error
 
 
 def test_callback_exception_does_not_stop_the_subscriber(pair):
