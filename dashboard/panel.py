@@ -15,7 +15,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path as FilePath
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import viser
@@ -34,6 +34,8 @@ from bagit.dashboard.scene import LAYER_LABELS, LAYERS, SceneView
 from bagit.dashboard.series import Series
 
 log = logging.getLogger("bagit.dashboard")
+
+B = TypeVar("B", viser.GuiButtonHandle, viser.GuiUploadButtonHandle)
 
 ARM_STOPPED_RAD_S = 1e-3  # every joint slower than this: the arm has stopped
 MAX_UPLOAD_BYTES = 1_000_000
@@ -100,6 +102,8 @@ class Panel:
         self._plot_versions: dict[str, int] = {}
         self._shown: dict[str, Any] = {}
         self.estop_calls: list[float] = []  # monotonic times the E-STOP handler sent the stop
+        self._icons: list[tuple[viser.GuiButtonHandle | viser.GuiUploadButtonHandle, viser.IconName]] = []  # not shown yet
+        self.server.on_client_connect(lambda _client: self._show_icons())
         self._build()
         # The picker starts on the rig's scenario (an exact name or a unique prefix, e.g. `exp02`), else the first.
         match = [k for k in self._bundled if initial is not None and (k == initial or k.startswith(initial))]
@@ -109,10 +113,21 @@ class Panel:
 
     # --- layout --------------------------------------------------------------------------------
 
+    def _iconned(self, button: B, icon: viser.IconName) -> B:
+        """`button`, its icon given when the first browser connects (`_show_icons`): viser reads each icon
+        out of a 5,000-entry zip (~20 ms here), a cost a rig nobody watches need not pay at its start."""
+        self._icons.append((button, icon))
+        return button
+
+    def _show_icons(self) -> None:
+        icons, self._icons = self._icons, []
+        for button, icon in icons:
+            button.icon = icon
+
     def _build(self) -> None:
         gui = self.server.gui
         gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False, dark_mode=False)
-        self.estop_button = gui.add_button("E-STOP", color="red", icon=viser.Icon.ALERT_OCTAGON, hint="stop both arms now (latching)")
+        self.estop_button = self._iconned(gui.add_button("E-STOP", color="red", hint="stop both arms now (latching)"), viser.Icon.ALERT_OCTAGON)
         self.estop_button.on_click(self._estop_clicked)
         uid = getattr(getattr(self.estop_button, "_impl", None), "uuid", None)
         if uid:  # make it large: style the button by its element id
@@ -120,7 +135,7 @@ class Panel:
                 f"<style>[id='{uid}'] {{ height: 4.2rem !important; --button-height: 4.2rem; font-size: 1.6rem !important;"
                 f" --button-fz: 1.6rem; letter-spacing: 0.12em; }}</style>"
             )
-        self.release_button = gui.add_button("Release E-stop", color="gray", disabled=True, icon=viser.Icon.LOCK_OPEN)
+        self.release_button = self._iconned(gui.add_button("Release E-stop", color="gray", disabled=True), viser.Icon.LOCK_OPEN)
         self.release_button.on_click(lambda _e: self.press_release())
         self.status_md = gui.add_markdown("**Stage:** idle")
         self.progress = gui.add_progress_bar(0.0, color="blue")
@@ -131,13 +146,13 @@ class Panel:
             self.picker.on_update(self._on_pick)
             self.controller_pick = gui.add_dropdown("Controller", (RIG_DEFAULT, *CONTROLLER_NAMES), initial_value=RIG_DEFAULT,
                                                     hint="the run's controller; rig default: the one `bagit up --controller` named (mpc)")
-            self.upload = gui.add_upload_button("Upload scenario", icon=viser.Icon.UPLOAD, mime_type=".yaml,.yml,.json,text/yaml,application/json")
+            self.upload = self._iconned(gui.add_upload_button("Upload scenario", mime_type=".yaml,.yml,.json,text/yaml,application/json"), viser.Icon.UPLOAD)
             self.upload.on_upload(self._on_upload)
-            self.start_button = gui.add_button("Start", color="green", icon=viser.Icon.PLAYER_PLAY)
+            self.start_button = self._iconned(gui.add_button("Start", color="green"), viser.Icon.PLAYER_PLAY)
             self.start_button.on_click(self._on_start)
-            self.stop_button = gui.add_button("Stop", color="orange", icon=viser.Icon.PLAYER_STOP)
+            self.stop_button = self._iconned(gui.add_button("Stop", color="orange"), viser.Icon.PLAYER_STOP)
             self.stop_button.on_click(self._on_stop)
-            self.reset_button = gui.add_button("Reset", icon=viser.Icon.REFRESH)
+            self.reset_button = self._iconned(gui.add_button("Reset"), viser.Icon.REFRESH)
             self.reset_button.on_click(self._on_reset)
 
         with gui.add_folder("Live plots"):
@@ -191,7 +206,7 @@ class Panel:
                 cb = gui.add_checkbox(LAYER_LABELS[layer], True)
                 cb.on_update(self._layer_toggle(layer))
                 self.layer_boxes[layer] = cb
-            self.reset_view_button = gui.add_button("Reset camera view", icon=viser.Icon.CAMERA)
+            self.reset_view_button = self._iconned(gui.add_button("Reset camera view"), viser.Icon.CAMERA)
             self.reset_view_button.on_click(lambda _e: self.scene.reset_view())
 
     # --- the E-STOP ----------------------------------------------------------------------------

@@ -62,6 +62,9 @@ def browser(dashboard_url):
 def test_page_loads_and_shows_the_cloud_and_the_soi(browser):
     b = browser
     b.wait_text("E-STOP")
+    # the buttons' icons, given once a browser connected (none are read for a dashboard nobody watches)
+    b.page.locator("button", has_text="E-STOP").locator("svg").first.wait_for(timeout=10_000)
+    assert b.page.locator("button", has_text="Reset camera view").locator("svg").count() == 1
     b.settle(2.5)
     on = b.canvas_pixels()
     green_on = count_color(on, CLOUD_RGB, tol=45)

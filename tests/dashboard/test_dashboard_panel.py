@@ -264,3 +264,10 @@ def test_the_picker_starts_on_the_rigs_scenario(link):
         assert str(d.panel.picker.value).startswith("exp02-")
     with Dashboard(link, DashboardConfig(port=0, scenario="exp"), start=False) as d:  # ambiguous: the first
         assert str(d.panel.picker.value).startswith("exp01-")
+
+
+def test_no_button_icon_is_read_before_a_browser_connects(dash):
+    # each icon is read out of viser's icon zip: a dashboard nobody watches pays none (the browser test sees them come)
+    p = dash.panel
+    buttons = (p.estop_button, p.release_button, p.upload, p.start_button, p.stop_button, p.reset_button, p.reset_view_button)
+    assert [b.icon for b in buttons] == [None] * 7
