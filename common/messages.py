@@ -130,11 +130,20 @@ class SoiState(Message):
     n_points: int = 0
     inlier_fraction: float = 1.0
     solve_ms: float = 0.0
+    # Lockstep: an SOI is also perception's answer to its frame (`answer`; a frame with none gets a StepAck):
+    # the frame gave an ObjectDetection too (its stamp), and what perception went without (StepAck.late).
+    object_stamp: float | None = Field(None, allow_inf_nan=False)
+    late: str | None = Field(None, max_length=1000)
 
     @field_validator("rim")
     @classmethod
     def _rim(cls, v: np.ndarray) -> np.ndarray:
         return _check_points(v, "rim")
+
+    def answer(self) -> StepAck:
+        """Perception's answer to the frame this SOI was made from, which the SOI stands for in lockstep."""
+        return StepAck(service="perception", frame=self.source_stamp, soi_seq=self.seq, object_stamp=self.object_stamp,
+                       late=self.late, stamp=self.source_stamp)
 
 
 class EllipseParams(BaseModel):
@@ -325,7 +334,8 @@ class StepAck(Message):
     """A service's answer to one step of a lockstep simulator (sim/ack): it is done with it.
 
     The simulator steps on once every answer it needs is in (see bagit.services.sim.lockstep):
-    perception for a frame (`frame` = its stamp, `soi_seq` the SOI it made, None if none), the
+    perception for a frame (`frame` = its stamp, `soi_seq` the SOI it made, None if none; a frame with
+    an SOI is answered by the SOI itself, `SoiState.answer`), the
     coordinator for that frame (`stage` after it, planning included), the controller for it
     (`cmd_seq` the command it sent, `status_seq` its status, None if none), the coordinator again once
     it has handled that status (`status_seq`, `stage` after it: the run may be over), the arm driver for

@@ -28,9 +28,10 @@ perception/object: the object's V in the world, or ok=False with the reason (no 
 id), counted and reported on stderr. Its own thread and its own newest-wins slot: the SOI path
 never waits for it.
 
-With `clock="sim"` (a lockstep simulator) every frame is answered on sim/ack once its SOI is out
-(`soi_seq`; None when the frame gave none), and the marker detection due on that frame runs in
-the SOI's thread before the answer, so the coordinator has heard both before the world steps on.
+With `clock="sim"` (a lockstep simulator) every frame is answered: by its SOI itself, which says whether
+the frame gave an object detection too and what perception went without (`SoiState.answer`), or, when
+the frame gave none, on sim/ack (`soi_seq` None). The marker detection due on that frame runs in the
+SOI's thread right after it, so the coordinator has heard both before the world steps on.
 Every message a frame's step needs travels reliably in lockstep, so nothing is sent twice; a frame
 that came twice all the same would be answered again, not redone. The start hint is waited for
 (`common.lockstep.StepWait`, the lockstep time-out), never fitted without on a short wall-clock bound.
@@ -42,6 +43,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -358,7 +360,6 @@ class PerceptionNode:
             self._answer(frame, done[1], done[2], done[3])
             return
         seq, late = None, None
-        detected = False
         # A frame of a new run's world may come before that run's run/state (they travel on their own
         # links): its bag (n_x, kind, colour) and the tracker's cold start are that run's, so wait for it.
         run = frame.run_id
@@ -372,16 +373,27 @@ class PerceptionNode:
                     if self._rim is not None:
                         self._rim.reset()
                 self._tracked_run = run
+        detected: bool | None = None
+
+        def due() -> bool:  # whether the frame goes to the detector too: asked once
+            nonlocal detected
+            if detected is None:
+                with self._mcond:
+                    detected = self._marker_due(frame)
+            return detected
+
+        def answer(hint_late: str | None) -> dict[str, Any]:  # the SOI stands for the frame's answer
+            return {"object_stamp": frame.stamp if due() else None, "late": late or hint_late}
+
         try:
-            seq, hint_late = self._soi(frame)
+            seq, hint_late = self._soi(frame, answer)
             late = late or hint_late
         finally:
-            with self._mcond:
-                detected = self._marker_due(frame)
-            if detected:
+            if due():
                 self._detect(frame)
-            self._answered = (frame.stamp, seq, detected, late)
-            self._answer(frame, seq, detected, late)
+            self._answered = (frame.stamp, seq, bool(detected), late)
+            if seq is None:  # no SOI to stand for the answer
+                self._answer(frame, seq, bool(detected), late)
 
     def _answer(self, frame: RgbdFrame, soi_seq: int | None, detected: bool = False, late: str | None = None) -> None:
         """Perception is done with `frame`: its SOI (seq), whether it gave an object detection too, and what it
@@ -390,9 +402,10 @@ class PerceptionNode:
         self._ack.put(StepAck(service=SERVICE_NAME, run_id=self._run_id, frame=frame.stamp, soi_seq=soi_seq,
                               object_stamp=frame.stamp if detected else None, stamp=frame.stamp, late=late))
 
-    def _soi(self, frame: RgbdFrame) -> tuple[int | None, str | None]:
-        """The frame's SOI, published; its seq, or None (the frame counted bad with the reason); and what
-        the lockstep wait for the start hint went without (None: nothing)."""
+    def _soi(self, frame: RgbdFrame, answer: Callable[[str | None], dict[str, Any]] | None = None) -> tuple[int | None, str | None]:
+        """The frame's SOI, published (lockstep: with `answer(hint_late)`'s fields, as the frame's answer); its
+        seq, or None (the frame counted bad with the reason); and what the lockstep wait for the start hint
+        went without (None: nothing)."""
         hint, late = self._hint(frame)
         tracker = self._tracker()
         self.counters["processed"] += 1
@@ -402,7 +415,7 @@ class PerceptionNode:
             # stamped once made: on the wall clock its age when sent (stamp - source_stamp, both this host's)
             # counts the extraction, which the controller adds to its time since arrival; in lockstep the
             # frame's time, as before (processing takes no simulated time)
-            soi = soi.model_copy(update={"stamp": self.clock.step_time(frame.stamp)})
+            soi = soi.model_copy(update={"stamp": self.clock.step_time(frame.stamp), **(answer(late) if answer is not None else {})})
         except BagItError as e:
             self.counters["cold"] += tracker.cold - cold
             self._bad(frame, f"no SOI: {e}")

@@ -8,7 +8,8 @@ one lock; publishing happens outside it.
 
 With `clock="sim"` (a lockstep simulator) the coordinator's time is the simulator's: it ticks on each
 sim/clock message (limits, the marker wait), and answers each frame on sim/ack once perception has
-answered it and the SOI it made has been handled, with the stage that follows. A frame that starts
+answered it (with the SOI itself, or on sim/ack when it made none) and the SOI has been handled, with
+the stage that follows. A frame that starts
 a plan is answered when the plan is in, so planning takes no simulated time, as in `bagit run`.
 """
 
@@ -142,6 +143,7 @@ class PlannerNode:
             self._sois[soi.source_stamp] = soi
             while len(self._sois) > MAX_HELD_SOIS:  # (answered frames take theirs; this only bounds strays)
                 self._sois.pop(min(self._sois))
+            self._frames.append((soi.answer(), time.monotonic()))  # the SOI is perception's answer to its frame too
             self._answer_frames()
 
     # -- lockstep ------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from log_support import LogLines
 from bagit.cli import main
 from bagit.common.bus import BusConfig, Keys, LivelinessWatcher, Publisher, Subscriber, locators, open_session
 from bagit.common.geometry import points_to_polyline_distance
-from bagit.common.messages import PointCloud, RgbdFrame, SoiState
+from bagit.common.messages import ObjectDetection, PointCloud, RgbdFrame, SoiState, StepAck
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.perception.node import PerceptionNode, PerceptionServiceConfig
@@ -109,6 +109,34 @@ def test_frames_on_camera_rgbd_give_the_soi_and_a_bad_frame_is_counted(sim):
         for soi in sois:
             assert soi.rim.shape == (24, 3) and soi.seq >= 100 and soi.source_stamp in sent
             assert points_to_polyline_distance(soi.rim, true_rim).max() < 0.01
+
+
+@pytest.mark.slow
+def test_in_lockstep_a_frames_soi_is_its_answer_and_a_frame_without_one_is_answered_on_sim_ack(sim):
+    frames, _, _ = sim
+    for a, b in session_pair("pnlock"):
+        keys = Keys("pnlock")
+        node = PerceptionNode(a, keys, PerceptionServiceConfig(source=SourceConfig(kind="zenoh"), n_x=24), clock="sim")
+        try:
+            sois: list[SoiState] = []
+            acks: list[StepAck] = []
+            dets: list[ObjectDetection] = []
+            Subscriber(b, keys.perception_soi, SoiState, sois.append)
+            Subscriber(b, keys.step_ack("perception"), StepAck, acks.append)
+            Subscriber(b, keys.perception_object, ObjectDetection, dets.append)
+            pub = Publisher(b, keys.camera_rgbd, RgbdFrame, lockstep=True)
+            assert wait_until(lambda: pub.matched)
+            pub.put(frames[0].model_copy(update={"stamp": 5.0, "seq": 7}))
+            assert wait_until(lambda: len(sois) == 1 and len(dets) == 1)
+            pub.put(frames[1].model_copy(update={"stamp": 5.1, "seq": 8, "color": frames[1].color[:, :-1]}))  # gives no SOI
+            assert wait_until(lambda: len(acks) == 1)
+            time.sleep(0.2)  # nothing more comes
+        finally:
+            node.close()
+    assert len(sois) == 1 and [(x.frame, x.soi_seq) for x in acks] == [(5.1, None)]  # the frame with an SOI: no StepAck
+    answer = sois[0].answer()  # what the coordinator takes the SOI for: the frame's detection (due at the first frame) to wait for
+    assert (answer.service, answer.frame, answer.soi_seq, answer.object_stamp, answer.late) == ("perception", 5.0, 7, 5.0, None)
+    assert [d.source_stamp for d in dets] == [5.0] and acks[0].object_stamp is None  # the marker's rate: none due 0.1 s later
 
 
 def test_no_camera_is_a_one_line_error(capsys):
