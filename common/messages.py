@@ -249,6 +249,16 @@ class ControllerStatus(Message):
     solve_ms: float = 0.0
     done: bool = False
     ticks: int = Field(0, ge=0, description="control ticks of this run so far")
+    # Lockstep: the last status of a tick is also the controller's answer to its step (`answer`; a tick
+    # that sent none answers on sim/ack): the step's time, the command the tick sent, what it went without.
+    frame: float | None = Field(None, allow_inf_nan=False)
+    cmd_seq: int | None = None
+    late: str | None = Field(None, max_length=1000)
+
+    def answer(self) -> StepAck:
+        """The controller's answer to the step this status ends (`frame` set), which the status stands for in lockstep."""
+        return StepAck(service="controller", run_id=self.run_id, frame=self.frame, cmd_seq=self.cmd_seq, status_seq=self.seq,
+                       late=self.late, stamp=self.frame if self.frame is not None else self.stamp)
 
 
 class RunState(Message):
@@ -337,8 +347,10 @@ class StepAck(Message):
     perception for a frame (`frame` = its stamp, `soi_seq` the SOI it made, None if none; a frame with
     an SOI is answered by the SOI itself, `SoiState.answer`), the
     coordinator for that frame (`stage` after it, planning included), the controller for it
-    (`cmd_seq` the command it sent, `status_seq` its status, None if none), the coordinator again once
-    it has handled that status (`status_seq`, `stage` after it: the run may be over), the arm driver for
+    (`cmd_seq` the command it sent, `status_seq` its status, None if none; a tick that sent a status is
+    answered by its last status, `ControllerStatus.answer`, which only the coordinator hears), the
+    coordinator again once it has handled that status (`status_seq`, `stage` after it: the run may be
+    over; `cmd_seq`, the tick's command, which the simulator waits for the driver to have), the arm driver for
     a command it received (`cmd_seq`) and for a servo tick (`tick`, `servo_sent`: the ServoP/ServoJ it
     sent each arm)."""
 

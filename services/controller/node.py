@@ -135,6 +135,7 @@ class ControllerNode:
         self._ack: Publisher[StepAck] | None = None
         self._sent: int | None = None  # the seq of the last command a tick sent
         self._status_sent: int | None = None  # ... and of its status
+        self._held_statuses: list[ControllerStatus] | None = None  # lockstep: a step's statuses, sent as it ends (`_answer`)
         # The schedule of the ticks (what the loop runs in both is `_tick`, i.e. `ServoRuns`, as in `bagit run`):
         # on the wall clock a timer and each new SOI; in lockstep the simulator's steps, answered on sim/ack.
         loop = self._loop
@@ -213,6 +214,7 @@ class ControllerNode:
                 self._sent, self._status_sent, late = answered[2:]
             else:
                 self._sent = self._status_sent = None
+                self._held_statuses = []
                 try:
                     if ack.service == KEEPALIVE_TICK:
                         late = self._keepalive_tick(ack.frame, ack.run_id)
@@ -223,6 +225,12 @@ class ControllerNode:
                     self.counters["errors"] += 1
                     self._hold(f"controller node error: {type(e).__name__}: {e}", self._run, ack.frame)
                 answered = (ack.service, ack.frame, self._sent, self._status_sent, late)
+                statuses, self._held_statuses = self._held_statuses, None
+                if statuses:  # the step's last status is its answer (only the coordinator waits for it)
+                    *before, last = statuses
+                    for st in (*before, last.model_copy(update={"frame": ack.frame, "cmd_seq": self._sent, "late": late})):
+                        self._put_status(st)
+                    continue
             assert self._ack is not None
             self._ack.put(StepAck(service=SERVICE_NAME, run_id=ack.run_id, frame=ack.frame, cmd_seq=self._sent,
                                   status_seq=self._status_sent, stamp=ack.frame, late=late))
@@ -391,9 +399,15 @@ class ControllerNode:
         self._publish_status_msg(ControllerStatus(run_id=run_id, seq=self._seq, **kw))
 
     def _publish_status_msg(self, st: ControllerStatus) -> None:
+        self._status_sent = st.seq
+        if self._held_statuses is not None:  # lockstep: sent when the step is done, the last one as its answer
+            self._held_statuses.append(st)
+            return
+        self._put_status(st)
+
+    def _put_status(self, st: ControllerStatus) -> None:
         try:
             self._status.put(st)
-            self._status_sent = st.seq
         except Exception as e:  # noqa: BLE001
             log.warning(f"cannot publish the status: {type(e).__name__}: {e}")
 

@@ -214,8 +214,9 @@ class PlannerNode:
                 st = self.coord.state
             if self._closed or self._status_ack_pub is None:  # (only lockstep's acks come to be answered)
                 return
+            late = f"{ack.late} (the controller's)" if ack.late else None  # the simulator hears the controller's answer here
             self._status_ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, status_seq=ack.status_seq,
-                                      stage=st.stage, stamp=self.clock()))
+                                             cmd_seq=ack.cmd_seq, late=late, stage=st.stage, stamp=self.clock()))
 
     def _answer_frames(self) -> None:
         """Take perception's frames in order, as `bagit run` does within one: the frame's object detection
@@ -271,6 +272,8 @@ class PlannerNode:
             self._held_statuses[st.seq] = st
             while len(self._held_statuses) > MAX_HELD_SOIS:
                 self._held_statuses.pop(min(self._held_statuses))
+            if st.frame is not None:  # the tick's last status: the controller's answer to its step too
+                self._statuses.append(st.answer())
             self._answer_statuses()
 
     def _on_estop(self, msg: EStop) -> None:

@@ -15,7 +15,9 @@ Two pure parts, with no bus and no clock of their own:
   and of one servo tick: the arm driver's cycle, then its ServoPs landed in the controllers.
   Perception's answer goes to the coordinator only (`ANSWERS_FOLLOWED`): the coordinator answers a
   frame once perception has, so its answer stands for both (a silence there is booked to perception
-  first, as the chain's first link, then to the coordinator).
+  first, as the chain's first link, then to the coordinator). So does the controller's, when its tick
+  sent a status (the status is its answer): the coordinator's answer to that status names the tick's
+  command; a tick with no status the controller answers itself.
   A service that is gone, or silent for `timeout_s` of wall time, is dropped from the wait for
   the rest of the run and said so: the simulated clock then goes on, and the coordinator's own
   limits (on that clock) fail the run with its reason. Between runs nothing is waited for.
@@ -190,8 +192,9 @@ class Lockstep:
             self.commands.append(ack.cmd_seq)  # the receipt may overtake the controller's own answer
         elif f is None or (ack.frame is not None and abs(ack.frame - f.stamp) > STAMP_TOL_S):
             return
-        elif ack.service == "planner" and ack.status_seq is not None:
+        elif ack.service == "planner" and ack.status_seq is not None:  # it stands for the controller's answer too
             f.after = ack.stage or "idle"
+            f.controller, f.cmd_seq, f.status_seq = True, ack.cmd_seq, ack.status_seq
         elif ack.service == "planner":
             f.stage = ack.stage or "idle"
         elif ack.service == "controller":

@@ -127,6 +127,8 @@ def run_node(model: SyntheticRim, state: RunState, path: Path, evs: list[tuple[s
                         target[m.frame] = m
                 else:
                     target.append(m)
+                    if isinstance(m, ControllerStatus) and m.frame is not None:  # a tick's last status is its answer
+                        answers[m.frame] = m.answer()
         return put
 
     subs = [Subscriber(b, keys.controller_cmd, Command, on(cmds)), Subscriber(b, keys.controller_status, ControllerStatus, on(statuses)),
@@ -188,7 +190,11 @@ def test_a_control_tick_sequence_gives_the_same_commands_and_statuses_in_bagit_r
     # the hosts part only at the run's end: `bagit run` stops stepping, the node holds the arms once
     assert cmds_b[-1].mode == "hold" and cmds_b[-1].reason == "run aborted: operator stop"
     assert strip(cmds_a) == strip(cmds_b[:-1])
-    assert strip(st_a, frozenset({"stamp"})) == strip(st_b[:-1], frozenset({"stamp"}))  # a status is stamped when made (wall)
+    # a status is stamped when made (wall); in lockstep a tick's last status also answers its step (frame, cmd_seq, late)
+    answer = frozenset({"frame", "cmd_seq", "late"})
+    assert strip(st_a, frozenset({"stamp"}) | answer) == strip(st_b[:-1], frozenset({"stamp"}) | answer)
+    answering = [x for x in st_b if x.frame is not None]
+    assert all(x.frame is None for x in st_a) and answering and {x.cmd_seq for x in answering} <= {c.seq for c in cmds_b}
     # ... and the sequence went through every kind of tick
     reasons = [c.reason for c in cmds_a]
     assert sum(c.mode == "servo" and c.reason != KEEPALIVE for c in cmds_a) >= 30

@@ -75,12 +75,23 @@ def test_a_servo_frame_waits_for_the_whole_chain_in_any_arrival_order():
     assert ls.pending() == ["perception: frame 10.000"]
     ls.on_ack(_ack("planner", 10.0, soi_seq=3, stage="bagging"), 0.03)
     assert ls.pending() == ["controller: frame 10.000"]
-    ls.on_ack(_ack("controller", 10.0, cmd_seq=4, status_seq=4), 0.04)
-    assert ls.pending() == ["planner: controller status 4"]
-    ls.on_ack(_ack("planner", 9.0, status_seq=4, stage="done"), 0.05)  # another frame's: not this one's answer
-    assert ls.pending() == ["planner: controller status 4"]
-    ls.on_ack(_ack("planner", 10.0, status_seq=4, stage="done"), 0.05)
+    ls.on_ack(_ack("planner", 9.0, status_seq=4, cmd_seq=4, stage="done"), 0.05)  # another frame's: not this one's answer
+    assert ls.pending() == ["controller: frame 10.000"]
+    # the coordinator's answer to the tick's status stands for the controller's (the status was its answer)
+    ls.on_ack(_ack("planner", 10.0, status_seq=4, cmd_seq=4, stage="done"), 0.05)
     assert ls.pending() == [] and ls.ended()
+
+
+def test_a_controller_answer_on_sim_ack_still_waits_for_the_coordinators_answer_to_its_status():
+    ls = Lockstep(timeout_s=5.0)
+    ls.start_run("r1")
+    ls.frame_published(10.0, wall=0.0)
+    ls.on_ack(_ack("planner", 10.0, soi_seq=3, stage="bagging"), 0.0)
+    ls.on_ack(_ack("controller", 10.0, cmd_seq=4, status_seq=4), 0.0)  # e.g. a step answered again
+    assert ls.pending() == ["arm-driver: command 4", "planner: controller status 4"]
+    ls.on_ack(_ack("arm-driver", cmd_seq=4), 0.0)
+    ls.on_ack(_ack("planner", 10.0, status_seq=4, cmd_seq=4, stage="bagging"), 0.0)
+    assert ls.pending() == [] and not ls.ended()
 
 
 def test_outside_a_servo_stage_the_coordinator_ends_a_frame_and_no_run_waits_for_nothing():
@@ -179,7 +190,7 @@ def test_a_keep_alive_tick_in_a_servo_stage_waits_for_the_controller_and_its_com
     ls.done_with_step()
     ls.frame_published(10.1, 0.0)
     for a in (_ack("planner", 10.1, soi_seq=1, stage="bagging"),
-              _ack("controller", 10.1, cmd_seq=5, status_seq=5), _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, stage="bagging")):
+              _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, cmd_seq=5, stage="bagging")):
         ls.on_ack(a, 0.0)
     assert ls.pending() == []
     ls.done_with_step()
@@ -199,7 +210,7 @@ def test_an_answer_that_overtakes_the_announcement_of_its_step_still_counts():
     ls.start_run("r1")
     ls.frame_published(10.1, 0.0)
     for a in (_ack("planner", 10.1, soi_seq=1, stage="bagging"),
-              _ack("controller", 10.1, cmd_seq=5, status_seq=5), _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, stage="bagging")):
+              _ack("arm-driver", cmd_seq=5), _ack("planner", 10.1, status_seq=5, cmd_seq=5, stage="bagging")):
         ls.on_ack(a, 0.0)
     ls.done_with_step()
     ls.on_ack(_ack("controller", 10.1, cmd_seq=5, status_seq=5), 0.0)  # a repeat of an answered step: nothing to take up
