@@ -161,6 +161,12 @@ class UpOptions:
     extra_args: dict[str, list[str]] = field(default_factory=dict)
 
 
+def follow_arm_events(session: Any, keys: Keys) -> Polled[ArmState]:
+    """Where a run's result reads the arm side's event counts (`RunResult.arm_events`) once the run has ended:
+    the newest left arm state (both arms' carry the side's counts), kept by Zenoh, no thread woken per state."""
+    return Polled(session, keys.arm_state("left"), ArmState, 1)
+
+
 @dataclass
 class Child:
     name: str
@@ -281,7 +287,7 @@ class Up:
         self.session = open_session(BusConfig(rig=self.opts.rig, listen=[self.hub], lease_ms=self.lease_ms))
         self.watcher = LivelinessWatcher(self.session, self.keys, self._on_alive)
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
-        self.arm_states = Polled(self.session, self.keys.arm_state("left"), ArmState, 1)  # one arm's: both carry the side's counts
+        self.arm_states = follow_arm_events(self.session, self.keys)
         if "sim" in names:
             self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth, self._on_truth)  # the newest, and each run's final
         for n in names:

@@ -55,7 +55,7 @@ from bagit.bench.common import RESULTS_DIR, machine
 from bagit.bench.stop_time import TARGET_S
 from bagit.common.errors import BagItError
 from bagit.forkserver import child_setup
-from bagit.up import NICED, OFF_PATH_NICENESS
+from bagit.up import NICED, OFF_PATH_NICENESS, follow_arm_events
 
 log = logging.getLogger("bagit.bench.multihost")
 
@@ -449,7 +449,7 @@ class Console:
 
     def __init__(self, lab: Lab) -> None:
         from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Subscriber, open_session
-        from bagit.common.messages import ArmState, Command, RecorderStatus, RunState, SimTruth
+        from bagit.common.messages import Command, RecorderStatus, RunState, SimTruth
         from bagit.common.netns import entered_netns
 
         etc = lab.etc("plan")
@@ -462,7 +462,7 @@ class Console:
         self.watcher = LivelinessWatcher(self.session, self.keys)
         self.run_state = LatestCache(self.session, self.keys.run_state, RunState)
         self.truth = LatestCache(self.session, self.keys.sim_truth, SimTruth)
-        self.arm_states = LatestCache(self.session, self.keys.arm_state_any, ArmState)
+        self.arm_states = follow_arm_events(self.session, self.keys)
         self.recorder = LatestCache(self.session, self.keys.recorder_status, RecorderStatus)
         self.final_truths: dict[str, SimTruth] = {}
         self.cmds: list[tuple[float, Command]] = []
