@@ -163,7 +163,7 @@ class UpOptions:
 
 def follow_arm_events(session: Any, keys: Keys) -> Polled[ArmState]:
     """Where a run's result reads the arm side's event counts (`RunResult.arm_events`) once the run has ended:
-    the newest left arm state (both arms' carry the side's counts), kept by Zenoh, no thread woken per state."""
+    the newest left arm state (both arms' states carry the side's counts), kept by Zenoh, no thread woken per state."""
     return Polled(session, keys.arm_state("left"), ArmState, 1)
 
 

@@ -135,7 +135,7 @@ class ControllerNode:
         self._ack: Publisher[StepAck] | None = None
         self._sent: int | None = None  # the seq of the last command a tick sent
         self._status_sent: int | None = None  # ... and of its status
-        self._held_statuses: list[ControllerStatus] | None = None  # lockstep: a step's statuses, sent as it ends (`_answer`)
+        self._held_statuses: list[ControllerStatus] | None = None  # lockstep: a step's statuses, sent when it ends (the last as its answer)
         # The schedule of the ticks (what the loop runs in both is `_tick`, i.e. `ServoRuns`, as in `bagit run`):
         # on the wall clock a timer and each new SOI; in lockstep the simulator's steps, answered on sim/ack.
         loop = self._loop
