@@ -43,7 +43,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -373,27 +372,17 @@ class PerceptionNode:
                     if self._rim is not None:
                         self._rim.reset()
                 self._tracked_run = run
-        detected: bool | None = None
-
-        def due() -> bool:  # whether the frame goes to the detector too: asked once
-            nonlocal detected
-            if detected is None:
-                with self._mcond:
-                    detected = self._marker_due(frame)
-            return detected
-
-        def answer(hint_late: str | None) -> dict[str, Any]:  # the SOI stands for the frame's answer
-            return {"object_stamp": frame.stamp if due() else None, "late": late or hint_late}
-
+        with self._mcond:  # the marker's schedule is on the frames' stamps: asked once, before the SOI that says so
+            detected = self._marker_due(frame)
         try:
-            seq, hint_late = self._soi(frame, answer)
+            seq, hint_late = self._soi(frame, (frame.stamp if detected else None, late))
             late = late or hint_late
         finally:
-            if due():
+            if detected:
                 self._detect(frame)
-            self._answered = (frame.stamp, seq, bool(detected), late)
+            self._answered = (frame.stamp, seq, detected, late)
             if seq is None:  # no SOI to stand for the answer
-                self._answer(frame, seq, bool(detected), late)
+                self._answer(frame, seq, detected, late)
 
     def _answer(self, frame: RgbdFrame, soi_seq: int | None, detected: bool = False, late: str | None = None) -> None:
         """Perception is done with `frame`: its SOI (seq), whether it gave an object detection too, and what it
@@ -402,10 +391,10 @@ class PerceptionNode:
         self._ack.put(StepAck(service=SERVICE_NAME, run_id=self._run_id, frame=frame.stamp, soi_seq=soi_seq,
                               object_stamp=frame.stamp if detected else None, stamp=frame.stamp, late=late))
 
-    def _soi(self, frame: RgbdFrame, answer: Callable[[str | None], dict[str, Any]] | None = None) -> tuple[int | None, str | None]:
-        """The frame's SOI, published (lockstep: with `answer(hint_late)`'s fields, as the frame's answer); its
-        seq, or None (the frame counted bad with the reason); and what the lockstep wait for the start hint
-        went without (None: nothing)."""
+    def _soi(self, frame: RgbdFrame, answer: tuple[float | None, str | None] | None = None) -> tuple[int | None, str | None]:
+        """The frame's SOI, published (lockstep: as the frame's answer, `answer` = the stamp of the detection it
+        also gave and what it went without so far, the start hint's wait added); its seq, or None (the frame
+        counted bad with the reason); and what the lockstep wait for the start hint went without (None: nothing)."""
         hint, late = self._hint(frame)
         tracker = self._tracker()
         self.counters["processed"] += 1
@@ -415,7 +404,8 @@ class PerceptionNode:
             # stamped once made: on the wall clock its age when sent (stamp - source_stamp, both this host's)
             # counts the extraction, which the controller adds to its time since arrival; in lockstep the
             # frame's time, as before (processing takes no simulated time)
-            soi = soi.model_copy(update={"stamp": self.clock.step_time(frame.stamp), **(answer(late) if answer is not None else {})})
+            fields = {} if answer is None else {"object_stamp": answer[0], "late": answer[1] or late}
+            soi = soi.model_copy(update={"stamp": self.clock.step_time(frame.stamp), **fields})
         except BagItError as e:
             self.counters["cold"] += tracker.cold - cold
             self._bad(frame, f"no SOI: {e}")
