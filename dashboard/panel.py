@@ -540,6 +540,10 @@ class Panel:
             self._set(self.warning_md, "content", "  \n".join(f"**Warning: {w}**" for w in warnings))
             self._set(self.history_md, "content", history_markdown(self.history))
 
+    def forget_notices(self) -> None:
+        """Drop the pending notices: with no browser connected they reach nobody (as `_notify` would send them)."""
+        self._notices.clear()
+
     def _notify(self, title: str, body: str, color: NotificationColor) -> None:
         for client in self.server.get_clients().values():
             try:

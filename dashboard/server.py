@@ -64,8 +64,9 @@ class DashboardConfig(BaseModel):
     slow_hz: float = Field(1.0, gt=0, le=10, description="health and history tables")
     plot_capacity: int = Field(1800, ge=10, le=100_000, description="samples kept per live plot")
     draw_without_viewers: bool = Field(
-        False, description="draw the live layers (cloud, SOI, arms, command) with no browser connected; False: they wait in their "
-        "latest-wins slots and the first browser to connect gets the newest at once (a rig nobody watches spends no CPU on them)")
+        False, description="draw the live layers (cloud, SOI, arms, command) and the panel with no browser connected; False: the "
+        "layers wait in their latest-wins slots, and the first browser to connect gets the newest and the panel redrawn at once "
+        "(a rig nobody watches spends no CPU on them)")
 
 
 def _percentiles(x: list[float]) -> dict[str, float]:
@@ -126,6 +127,7 @@ class Dashboard:
         self._render_errors: dict[str, int] = {}
         self._last_error: dict[str, str] = {}
         self._next = {"panel": 0.0, "plots": 0.0, "slow": 0.0}
+        self._panel_behind = False  # the panel was skipped while no browser watched (`_held`): redrawn whole for the next
         self._feeds: list[tuple[Callable[[], list[Any]], Callable[[Any], None]]] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -286,7 +288,8 @@ class Dashboard:
         """Take what the feeds hold, draw every due layer and, when due, refresh the panel. Returns the number
         of layers drawn."""
         self._take_feeds()
-        items = self._slots.take_due(force=force, hold=self._held())
+        held = self._held()
+        items = self._slots.take_due(force=force, hold=held)
         for key, item in items.items():
             try:
                 self._draw(key, item.value)
@@ -302,11 +305,16 @@ class Dashboard:
             q.append(self._clock() - item.received)
         now = self._clock()
         c = self.config
-        if force or now >= self._next["panel"]:
-            plots = force or now >= self._next["plots"]
-            slow = force or now >= self._next["slow"]
-            self.panel.refresh(plots=plots, slow=slow)
+        if force or now >= self._next["panel"] or (self._panel_behind and not held):
             self._next["panel"] = now + 1 / c.panel_hz
+            if held and not force:  # nobody to show it to: redrawn whole on the first pass a browser sees
+                self._panel_behind = True
+                self.panel.forget_notices()
+                return len(items)
+            whole, self._panel_behind = force or self._panel_behind, False
+            plots = whole or now >= self._next["plots"]
+            slow = whole or now >= self._next["slow"]
+            self.panel.refresh(plots=plots, slow=slow)
             if plots:
                 self._next["plots"] = now + 1 / c.plot_hz
             if slow:

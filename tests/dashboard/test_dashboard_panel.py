@@ -199,6 +199,32 @@ def test_estop_failure_is_reported(dash, link):
     assert "E-STOP could NOT be sent: zenoh session closed" in dash.panel.message_md.content
 
 
+def test_with_no_browser_the_panel_waits_and_the_first_one_gets_it_whole(link):
+    """No browser connected: the render passes leave the panel as it was (nobody would see it) and drop the notices
+    at its period (they would reach nobody); the first pass a browser sees redraws all of it, tables included."""
+    now = [100.0]
+    dash = Dashboard(link, DashboardConfig(port=0), start=False, clock=lambda: now[0])
+    try:
+        p = dash.panel
+        dash.render_once()  # the first pass: no browser yet
+        before = (p.status_md.content, p.history_md.content, p.progress.value)
+        feed_run(dash, "run-008", "exp01-coffee-box", "bagging", 0.4)
+        p.note_service_lost("perception")
+        for _ in range(3):
+            now[0] += 1.0  # past the panel's, the plots' and the tables' periods
+            dash.render_once()
+        assert (p.status_md.content, p.history_md.content, p.progress.value) == before
+        assert not p._notices
+        dash.config.draw_without_viewers = True  # as a browser connecting does
+        now[0] += 0.01  # at once: not at the panel's next period
+        dash.render_once()
+        assert "`run-008`" in p.status_md.content and "40 %" in p.status_md.content
+        assert p.progress.value == pytest.approx(40.0)
+        assert "run-008" in p.history_md.content
+    finally:
+        dash.close()
+
+
 def test_run_state_progress_elapsed_and_failure_reason(dash):
     p = dash.panel
     dash.flush()
