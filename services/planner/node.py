@@ -68,6 +68,11 @@ class PlannerServiceConfig(BaseModel):
     bus: dict[str, Any] = Field(default_factory=dict, description="BusConfig fields (the command-line flags override them)")
 
 
+def _carried(own: str | None, theirs: str | None, whose: str) -> str | None:
+    """What this answer went without, with what the answer it stands for went without (`theirs`, from `whose`)."""
+    return "; ".join(filter(None, (own, f"{theirs} ({whose}'s)" if theirs else None))) or None
+
+
 class PlannerNode:
     """The coordinator wired to the bus (see the module docstring)."""
 
@@ -214,7 +219,7 @@ class PlannerNode:
                 st = self.coord.state
             if self._closed or self._status_ack_pub is None:  # (only lockstep's acks come to be answered)
                 return
-            late = f"{ack.late} (the controller's)" if ack.late else None  # the simulator hears the controller's answer here
+            late = _carried(None, ack.late, "the controller")  # the simulator hears the controller's answer here
             self._status_ack_pub.put(StepAck(service=SERVICE_NAME, run_id=st.run_id, frame=ack.frame, status_seq=ack.status_seq,
                                              cmd_seq=ack.cmd_seq, late=late, stage=st.stage, stamp=self.clock()))
 
@@ -242,8 +247,7 @@ class PlannerNode:
                     if self._planning:
                         return  # answered when the plan is in (`_plan`)
             missing = self._taken[1]
-            if ack.late:  # perception's answer went without something: the simulator hears it from this answer
-                missing = "; ".join(filter(None, (missing, f"{ack.late} (perception's)")))
+            missing = _carried(missing, ack.late, "perception")  # the simulator hears perception's answer here
             self._frames.pop(0)
             self._taken = None
             with self._lock:
