@@ -1,9 +1,9 @@
 """`bagit up`: the whole rig on one machine, every service its own process, on loopback.
 
 The composition root of the distributed rig. It writes, in a scratch folder, a Zenoh config
-(peers on 127.0.0.1, multicast scouting off, a 1 s lease on the wall clock and a 60 s one in lockstep,
-every peer connected to the hub session
-this process listens with), a rig YAML (free ports for the simulated CR5s) and an arm-driver
+(peers, multicast scouting off, a 1 s lease on the wall clock and a 60 s one in lockstep, every peer
+connected to the hub session this process listens with; each process listens on a Unix socket in that
+folder, `local_endpoint`), a rig YAML (free ports for the simulated CR5s) and an arm-driver
 config (link time-outs for controllers that share the CPU, `SIM_DRIVER_TIMEOUTS`), then starts
 the services as child processes running `bagit <service> ...`: forked by `bagit.forkserver`, a fork of
 `bagit up` made before it starts a thread, with what they share imported once (`--no-fork-server`: `python -m bagit.cli <service>`
@@ -73,6 +73,7 @@ WATCHERS = ("dashboard",)
 WALL_TIME_LIMIT_S = 360.0  # --clock wall: a run's servoing limit, wide for a simulator slower than real time
 WALL_LEASE_MS = 1000  # --clock wall: the links' lease (a silent service is declared gone after it)
 SIM_DRIVER_TIMEOUTS = {"feedback_timeout_s": 1.0, "reply_timeout_s": 2.0}
+UNIX_PATH_MAX = 107  # a Unix socket's path, in bytes (Linux's sun_path less its NUL); a deeper --workdir links over TCP
 
 
 def free_port() -> int:
@@ -80,6 +81,17 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def local_endpoint(folder: Path, name: str) -> str | None:
+    """A Zenoh endpoint on the Unix socket `folder/name.sock`, or None when its path is too long for one.
+
+    The rig's processes link over these rather than loopback TCP: the same messages for a few per cent less CPU
+    (no TCP stack under each of a run's ~9,000 deliveries), and reachable only by whoever may enter the
+    folder (`mkdtemp` makes it its user's alone), never from the network. Zenoh removes a socket left by a
+    killed process when the next one binds it (its `.lock` file), so a restarted service listens again."""
+    path = folder.resolve() / f"{name}.sock"
+    return f"unixsock-stream/{path}" if len(os.fsencode(path)) <= UNIX_PATH_MAX else None
 
 
 def free_ports(n: int) -> list[int]:
@@ -229,7 +241,7 @@ class Up:
 
     def _write_configs(self) -> tuple[Path, Path]:
         hub_port, *cr5 = free_ports(5)
-        self.hub = f"tcp/127.0.0.1:{hub_port}"
+        self.hub = local_endpoint(self.dir, "hub") or f"tcp/127.0.0.1:{hub_port}"
         zpath = self.dir / "zenoh.json5"
         zpath.write_text(json.dumps(zenoh_config(self.hub, self.lease_ms), indent=2), encoding="utf-8")
         rig = RigConfig(name=self.opts.rig)
@@ -248,6 +260,8 @@ class Up:
     def _argv(self, name: str, zpath: Path, rpath: Path) -> list[str]:
         o = self.opts
         bus = ["--rig", o.rig, "--zenoh-config", str(zpath), "--clock", "sim" if o.clock == "lockstep" else "wall"]
+        listen = local_endpoint(self.dir, name)
+        bus += ["--listen", listen] if listen else []  # else the config's loopback TCP
         if name == "sim":
             args = ["sim", o.scenario or o.world, "--rig-config", str(rpath), "--seed", str(o.seed)]
             args += ["--fps", f"{o.fps:g}"] if o.fps is not None else []

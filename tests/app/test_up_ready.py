@@ -7,9 +7,14 @@ fills, as the bus would. The whole path, services included, is tests/app/test_up
 from __future__ import annotations
 
 import io
+import os
 import threading
 
-from bagit.up import SERVICES, WATCHERS, Child, Up, UpOptions
+from bus_support import assert_same_message, example_message, wait_until
+
+from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, open_session
+from bagit.common.messages import SoiState
+from bagit.up import SERVICES, UNIX_PATH_MAX, WATCHERS, Child, Up, UpOptions, local_endpoint
 
 
 class Alive:
@@ -66,3 +71,29 @@ def test_a_wait_for_services_wakes_when_the_last_comes_up(tmp_path):
             _come_up(up, watcher, n)
     t.join(30.0)
     assert got == [[]]
+
+
+def test_the_rigs_processes_link_over_unix_sockets_in_its_folder_and_over_tcp_when_the_path_is_too_long(tmp_path):
+    up = Up(UpOptions(scenario="exp02", workdir=tmp_path), log=io.StringIO())
+    up._write_configs()  # noqa: SLF001 - the hub and the configs, no process started
+    assert up.hub == f"unixsock-stream/{tmp_path.resolve()}/hub.sock"
+    argv = up._argv("perception", tmp_path / "zenoh.json5", tmp_path / "rig.yaml")  # noqa: SLF001
+    listen = argv[argv.index("--listen") + 1]
+    assert listen == local_endpoint(tmp_path, "perception") == f"unixsock-stream/{tmp_path.resolve()}/perception.sock"
+    # a message crosses such a link: one session listening on the service's socket, one connected to it
+    with open_session(BusConfig(rig="t", listen=[listen])) as a, open_session(BusConfig(rig="t", listen=[], connect=[listen])) as b:
+        got: list[SoiState] = []
+        key = Keys("t").perception_soi
+        sub = Subscriber(b, key, SoiState, got.append)
+        pub = Publisher(a, key, SoiState)
+        msg = example_message("soi")
+        assert wait_until(lambda: (pub.put(msg), bool(got))[1], timeout=10.0)
+        assert_same_message(got[0], msg)
+        sub.close()
+    deep = tmp_path / ("d" * (UNIX_PATH_MAX - len(os.fsencode(tmp_path.resolve())) - 6))
+    deep.mkdir()
+    assert local_endpoint(deep, "perception") is None  # sun_path has no room: loopback TCP instead
+    deep_up = Up(UpOptions(scenario="exp02", workdir=deep), log=io.StringIO())
+    deep_up._write_configs()  # noqa: SLF001
+    assert deep_up.hub.startswith("tcp/127.0.0.1:")
+    assert "--listen" not in deep_up._argv("perception", deep / "zenoh.json5", deep / "rig.yaml")  # noqa: SLF001
