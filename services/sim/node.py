@@ -112,7 +112,10 @@ class SimNode:
         self._rtf_window = 1.0  # simulated over wall seconds over the last report window (periodic truth)
         self._run_t0 = (0.0, time.monotonic())  # the current run's start: rig clock, wall (monotonic)
         self._step_truth: GroundTruth | None = None  # lockstep: the truth of the step the world stepped ahead of
-        self._idle_frame = float("-inf")  # lockstep: the world time of the last frame (between runs, IDLE_FPS of them)
+        # lockstep: the world time of the last frame (between runs, IDLE_FPS of them). The first comes an idle
+        # period after the start: a run asked at once (`bagit up SCENARIO`) then renders first in its own world,
+        # and the start-up world never pays a renderer (~0.1 CPU s of GL context and noise, beside services starting)
+        self._idle_frame = self.rig.time
         self._lock = threading.Lock()
         self._pending: tuple[str, dict[str, Any], int, str | None, dict[str, Any]] | None = None
         self._keep_s: float | None = None  # lockstep: the run's controller keep-alive pace (`tick_period`)
