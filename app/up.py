@@ -1,4 +1,4 @@
-"""`bagit up`: the whole rig on one machine, every service its own process, on loopback.
+"""`bagit up`: the whole rig on one machine, every service its own process.
 
 The composition root of the distributed rig. It writes, in a scratch folder, a Zenoh config
 (peers, multicast scouting off, a 1 s lease on the wall clock and a 60 s one in lockstep, every peer
@@ -86,8 +86,8 @@ def free_port() -> int:
 def local_endpoint(folder: Path, name: str) -> str | None:
     """A Zenoh endpoint on the Unix socket `folder/name.sock`, or None when its path is too long for one.
 
-    The rig's processes link over these rather than loopback TCP: the same messages for a few per cent less CPU
-    (no TCP stack under each of a run's ~9,000 deliveries), and reachable only by whoever may enter the
+    The rig's processes link over these rather than loopback TCP: the same messages for a few per cent less
+    CPU (no TCP stack under each of a run's thousands of messages), and reachable only by whoever may enter the
     folder (`mkdtemp` makes it its user's alone), never from the network. Zenoh removes a socket left by a
     killed process when the next one binds it (its `.lock` file), so a restarted service listens again."""
     path = folder.resolve() / f"{name}.sock"

@@ -21,14 +21,13 @@ import numpy as np
 import pytest
 import yaml
 from bus_support import wait_until
-from suite_support import HANG_S
+from suite_support import HANG_S, exp12_in_a_bag_too_small
 from up_support import ENV, rig_up
 from up_support import alive as _alive
 from up_support import start_up as _up
 from up_support import up_log as _log
 from up_support import wait_status as _status
 
-from bagit.common.geometry import closed_polyline_length
 from bagit.common.results import RunResult
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
@@ -87,14 +86,8 @@ def test_bad_input_is_a_one_line_error(tmp_path):
 
 
 def test_a_scenario_whose_object_does_not_fit_is_refused_before_its_run_and_the_services_started_meanwhile_stop(tmp_path):
-    s = Scenario.from_file(find_scenario("exp12"))
-    rim = s.bag.g0()
-    c = rim.mean(axis=0)
-    tight = c + (rim - c) * (0.568 / closed_polyline_length(rim))  # the planner's own test of a bag too small
-    doc = s.model_dump(mode="json", exclude_none=True)
-    doc["bag"].update(initial_rim=tight.tolist(), rim_perimeter=0.568)
     path = tmp_path / "small.yaml"
-    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    path.write_text(yaml.safe_dump(exp12_in_a_bag_too_small().model_dump(mode="json", exclude_none=True)), encoding="utf-8")
     argv = [sys.executable, "-m", "bagit.cli", "up", str(path), "--exit-when-done", "--no-dashboard", "--workdir", str(tmp_path / "rig")]
     r = subprocess.run(argv, capture_output=True, text=True, env=ENV, timeout=HANG_S)
     assert r.returncode == 2, r.stderr[-2000:]
