@@ -18,7 +18,6 @@ from bagit.commands import _args
 from bagit.common.names import CONTROLLER_NAMES, DEFAULT_CONTROLLER, DEFAULT_PLANNER, PLANNER_NAMES
 
 if TYPE_CHECKING:
-    from bagit.common.scenario import Scenario
     from bagit.up import UpOptions
 
 RECORDER_STATUS_WAIT_S = 3.0  # the recorder's status before a run and after it: at most this long to come
@@ -68,7 +67,11 @@ def options(args: argparse.Namespace) -> UpOptions:
     if args.exit_when_done and not args.scenario:
         raise BadScenario("--exit-when-done needs a SCENARIO to run")
     if args.scenario:
-        scenario_of(args.scenario)  # a bad file (a goal out of reach: `check_goal`, once the services are starting)
+        from bagit.common.scenario import Scenario
+        from bagit.scenarios import find_scenario
+        from bagit.services.planner.plan import check_scenario_goal
+
+        check_scenario_goal(Scenario.from_file(find_scenario(args.scenario)))  # a bad file, or a goal out of reach
     try:
         RigConfig(name=args.rig)
     except ValidationError as e:
@@ -86,23 +89,6 @@ def options(args: argparse.Namespace) -> UpOptions:
                      services=services, record=args.record, fps=args.fps, dashboard_port=args.dashboard_port, workdir=args.workdir,
                      status_file=args.status_file, clock=args.clock, speed=args.speed,
                      fork_server=not args.no_fork_server)
-
-
-def scenario_of(name: str) -> Scenario:
-    """The scenario `name` (a bundled one or a file); BadScenario for a bad one."""
-    from bagit.common.scenario import Scenario
-    from bagit.scenarios import find_scenario
-
-    return Scenario.from_file(find_scenario(name))
-
-
-def check_goal(name: str) -> None:
-    """InfeasibleGoal when the scenario's object does not fit its bag (`check_scenario_goal`), as `bagit run`
-    refuses it. Made while the services start, not before: its goal takes ~0.3 CPU s, which the services'
-    start-up hides on a second core, and the run it guards has not started."""
-    from bagit.services.planner.plan import check_scenario_goal
-
-    check_scenario_goal(scenario_of(name))
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -129,8 +115,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     up = Up(opts, forks=forks, t0=t0)
     try:
         up.start()
-        if args.scenario:
-            check_goal(args.scenario)  # refused here stops the services just started, before any run
         if up.dashboard_url:
             up.say(f"dashboard: {up.dashboard_url}")
         # A scenario's run starts once the services it needs are up; the dashboard joins it as it comes up

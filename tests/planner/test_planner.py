@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
-from suite_support import exp12_in_a_bag_too_small
 
 from bagit.common.errors import InfeasibleGoal
+from bagit.common.geometry import closed_polyline_length
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario, list_scenarios
 from bagit.services.planner import PLANNERS, plan_scenario
@@ -94,8 +94,14 @@ def test_unreachable_goal_fails_before_any_search_with_reason():
 
 
 def test_a_bag_the_object_does_not_fit_is_refused_before_anything_moves_by_the_planners_own_rule():
-    check_scenario_goal(Scenario.from_file(find_scenario("exp12")))  # the bundled bag fits
-    small = exp12_in_a_bag_too_small()
+    s = Scenario.from_file(find_scenario("exp12"))
+    check_scenario_goal(s)  # the bundled bag fits
+    rim = s.bag.g0()
+    c = rim.mean(axis=0)
+    tight = c + (rim - c) * (0.568 / closed_polyline_length(rim))  # a bag whose ellipse holds V under C1, barely
+    doc = s.model_dump(exclude_none=True)
+    doc["bag"].update(initial_rim=tight.tolist(), rim_perimeter=0.568)
+    small = Scenario.from_dict(doc)
     with pytest.raises(InfeasibleGoal, match=r"does not fit the bag: from the start rim, g\* touches the object"):
         check_scenario_goal(small)
     res = plan_scenario(small, "cbirrt", 0)  # the planner, from the same rim, by the same rule
