@@ -240,8 +240,10 @@ class Up:
         return LOCKSTEP_LEASE_MS if self.opts.clock == "lockstep" else WALL_LEASE_MS
 
     def _write_configs(self) -> tuple[Path, Path]:
-        hub_port, *cr5 = free_ports(5)
-        self.hub = local_endpoint(self.dir, "hub") or f"tcp/127.0.0.1:{hub_port}"
+        hub = local_endpoint(self.dir, "hub")
+        ports = free_ports(4 if hub else 5)  # the CR5s' four, and a TCP port for the hub only when it cannot have a socket
+        cr5 = ports[:4]
+        self.hub = hub or f"tcp/127.0.0.1:{ports[4]}"
         zpath = self.dir / "zenoh.json5"
         zpath.write_text(json.dumps(zenoh_config(self.hub, self.lease_ms), indent=2), encoding="utf-8")
         rig = RigConfig(name=self.opts.rig)
