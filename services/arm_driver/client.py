@@ -28,6 +28,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 
@@ -244,6 +245,16 @@ class DobotClient:
     def send(self, text: str) -> PendingReply:
         """Send one command without waiting; the returned handle's `wait()` gives its reply. Queued for its
         reply and put on the wire in one turn of the send lock, so the replies' order is the wire's."""
+        return cast(PendingReply, self._put(text, None))  # nothing says no
+
+    def send_unless(self, text: str, stop: Callable[[], bool]) -> PendingReply | None:
+        """`send`, unless `stop()` says no when it is this command's turn on the wire (None: not sent). What
+        latches `stop` before sending on this connection (the e-stop) then finds this command ahead of it, or
+        never sent. Asked last before the write: a pause of this process between an answer and the wire
+        (SIGSTOP, a starved thread) is then a few instructions wide, not a whole cycle's bookkeeping."""
+        return self._put(text, stop)
+
+    def _put(self, text: str, unless: Callable[[], bool] | None) -> PendingReply | None:
         try:
             data = text.encode("ascii")
         except UnicodeEncodeError:
@@ -251,6 +262,8 @@ class DobotClient:
         pending = PendingReply(text)
         with self._send_lock:
             with self._lock:
+                if unless is not None and unless():
+                    return None
                 sock = self._dash
                 if sock is None or not self.connected:
                     raise ConnectionLost(f"{self.name}: not connected ({self.last_error or 'never connected'})")
@@ -263,13 +276,6 @@ class DobotClient:
                 self.drop(f"send failed: {e.strerror or e}", epoch)
                 pending._resolve(error=ConnectionLost(f"{self.name}: send failed: {e.strerror or e}"))
         return pending
-
-    def send_unless(self, text: str, stop: Callable[[], bool]) -> PendingReply | None:
-        """`send`, unless `stop()` says no when it is this command's turn on the wire (None: not sent). What
-        latches `stop` before sending on this connection (the e-stop) then finds this command ahead of it, or
-        never sent."""
-        with self._send_lock:
-            return None if stop() else self.send(text)
 
     def wait(self, pending: PendingReply, timeout: float | None = None) -> Reply:
         """The reply to a sent command (ProtocolError on time-out, malformed reply or lost link)."""

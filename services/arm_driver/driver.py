@@ -352,11 +352,12 @@ class ArmDriver:
                 self._dispatch(m.FaultRaised(out.fault))
             return None if out.poses is None else (out, made)
 
-    def send_cycle(self, out: Cycle) -> list[ArmName]:
+    def send_cycle(self, out: Cycle, stale: Callable[[], bool] | None = None) -> list[ArmName]:
         """The cycle's ServoPs, each unless the e-stop has latched by its turn on its connection: `estop`
         latches before its EmergencyStop goes out on the same connections, so a ServoP made before the latch
-        goes out before the EmergencyStop or not at all (and no arm's e-stop waits for the other arm's link)."""
-        return self.links.send(out.servo, self._dispatch, lambda: self.state.estop)
+        goes out before the EmergencyStop or not at all (and no arm's e-stop waits for the other arm's link).
+        Nor once `stale()` says its poses are too old, asked last before each write."""
+        return self.links.send(out.servo, self._dispatch, lambda: self.state.estop or (stale is not None and stale()))
 
     def _check_stall(self, now: float) -> None:
         """A loop that has not run for `ServoPath.stall_s` (the arms stopped at the last target; with the lock held): `stalled`."""

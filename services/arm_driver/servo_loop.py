@@ -31,7 +31,7 @@ class CycleHost(Protocol):
     """What the loop needs of the driver."""
 
     def make_cycle(self) -> tuple[Cycle, float] | None: ...  # one period's ServoPs and when they were made (None: nothing)
-    def send_cycle(self, out: Cycle) -> list[ArmName]: ...  # the arms its ServoPs went to
+    def send_cycle(self, out: Cycle, stale: Callable[[], bool] | None = None) -> list[ArmName]: ...  # the arms its ServoPs went to (none once `stale()`)
     def stalled(self, why: str, unsent: bool = False) -> None: ...  # the loop did not run in time / `unsent`: the poses made were too old to send
     def cycle_failed(self, e: Exception) -> None: ...  # a cycle raised: a fault
     def step_ready(self, t: float) -> bool: ...  # lockstep: both arms' feedback shows the step at `t`
@@ -95,17 +95,26 @@ class ServoLoop:
                 out, made_at = made
                 if spaced and (wait := self.last_send + self.period - time.monotonic()) > 0:
                     time.sleep(wait)
-                if spaced and (late := time.monotonic() - made_at) > self.watchdog_s:
-                    self.host.stalled(f"this period's poses were {late * 1000:.0f} ms old when they could go out (the "
-                                      "process was paused or starved): not sent; a new command starts a new stream", unsent=True)
-                else:
-                    self.last_send = time.monotonic()
-                    self.send_times.append(self.last_send)
-                    arms = self.host.send_cycle(out)  # none once the e-stop has latched
-                    for a in arms:
-                        self.counters["servo_sent"] += 1
-                        self.servo_sent[a] += 1
-                    sent = bool(arms)
+                late: list[float] = []  # how old the poses were when an arm's turn on the wire came, if too old
+
+                def stale() -> bool:  # asked last before each write: a pause anywhere before it is caught
+                    if (age := time.monotonic() - made_at) > self.watchdog_s:
+                        late.append(age)
+                        return True
+                    return False
+
+                t_send = time.monotonic()
+                arms = self.host.send_cycle(out, stale if spaced else None)  # none once the e-stop has latched
+                if arms:
+                    self.last_send = t_send
+                    self.send_times.append(t_send)
+                for a in arms:
+                    self.counters["servo_sent"] += 1
+                    self.servo_sent[a] += 1
+                sent = bool(arms)
+                if late:
+                    self.host.stalled(f"this period's poses were {late[0] * 1000:.0f} ms old when they could go out (the "
+                                      "process was paused or starved): not sent; a new command starts a new stream", unsent=not arms)
         except Exception as e:  # never let the loop die: whatever went wrong becomes a fault
             self.host.cycle_failed(e)
         self.cycle_ms.append((time.monotonic() - t0) * 1000.0)

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from bagit.common.bus import BusConfig, Keys, LatestCache, Publisher, locators, 
 from bagit.common.messages import ArmState, Command, RunState
 from bagit.common.rig import ARMS
 from bagit.harness import stop_process
+from bagit.services.arm_driver.client import DobotClient
 from bagit.services.arm_driver.driver import ArmDriver
 from bagit.services.arm_driver.gate import STALE
 
@@ -98,6 +100,42 @@ def test_a_frozen_servo_loop_sends_no_new_target_until_a_fresh_command_comes():
     finally:
         for r in rec.values():
             r.close()
+        drv.close()
+        sims.close()
+
+
+@pytest.mark.slow
+def test_a_pause_between_a_cycles_check_and_the_wire_sends_nothing_stale(monkeypatch):
+    # CI, 2026-11-29: a SIGSTOP landed after the cycle's age check and before its ServoP's write, which then
+    # went out 2 s late and moved an arm 1.2 mm after the run had failed. The age is asked last before each
+    # write now: a pause while the cycle formats its first ServoP (here a sleep, as a starved or stopped
+    # thread) sends neither arm's, and the loop stalls as when the poses were too old to send.
+    sims = start_sims()
+    drv = ArmDriver(sims.rig, SIM_CFG)
+    freeze = threading.Event()
+    frozen: list[float] = []
+    servo_text = DobotClient.servo_text
+
+    def starved(*args: Any, **named: Any) -> str:
+        if freeze.is_set() and not frozen:
+            frozen.append(time.monotonic())
+            time.sleep(2 * drv.limits.watchdog_s)
+        return servo_text(*args, **named)
+
+    monkeypatch.setattr(DobotClient, "servo_text", staticmethod(starved))
+    try:
+        drv.start()
+        _stream(drv, 0.5)
+        assert drv.mode == "streaming"
+        stalls = drv.counters["stalls"]  # a loaded machine may starve the stream's loop past a ServoP on its own
+        freeze.set()  # the next cycle freezes as it formats the left arm's ServoP, the path still moving
+        assert wait_until(lambda: drv.mode == "holding")
+        assert frozen and drv.counters["stalls"] >= stalls + 1, drv.status()
+        assert any(k == "stalled" and "old when they could go out" in d for _, k, d in drv.events), drv.events
+        for a, srv in sims.servers.items():
+            ts, _ = servo_positions(srv, t0=frozen[0])
+            assert ts.size == 0, f"{a}: {ts.size} ServoP made before the pause went out after it"
+    finally:
         drv.close()
         sims.close()
 
