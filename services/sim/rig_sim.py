@@ -55,6 +55,7 @@ class World(Protocol):
 
     def step(self, dt: float) -> None: ...
     def pass_time(self, dt: float) -> None: ...
+    def set_time(self, t: float) -> None: ...
     def mount_home_poses(self) -> dict[ArmName, np.ndarray]: ...
     def set_mount_targets(self, T_world_mount: Mapping[ArmName, np.ndarray]) -> None: ...
     def mount_poses(self) -> dict[ArmName, np.ndarray]: ...
@@ -97,6 +98,23 @@ class RealtimeStats:
     frames: int
 
 
+def _world_key(scenario: Scenario | None, seed: int) -> tuple[str, int] | None:
+    """What a world is built from (the rig aside, which a SimRig keeps): its scenario, whole, and its seed."""
+    return None if scenario is None else (scenario.model_dump_json(), int(seed))
+
+
+@dataclass(frozen=True)
+class _Settled:
+    """A world just built, as `SimRig.settle` left it: what it was built from, the settle, the world's time
+    and physics steps after it, and where the arms held."""
+
+    key: tuple[str, int]
+    dt: float
+    world_t: float
+    physics_steps: int
+    start: dict[ArmName, np.ndarray]
+
+
 class SimRig:
     """The world plus two SimulatedCR5s (and, optionally, their TCP servers)."""
 
@@ -111,6 +129,7 @@ class SimRig:
         world: World | None = None,
     ):
         self.rig = rig or RigConfig()
+        self._built = _world_key(scenario, seed) if world is None else None  # the world's scenario and seed (None: given a world)
         if world is None:
             if scenario is None:
                 raise BadScenario("SimRig needs a scenario or a world")
@@ -133,6 +152,8 @@ class SimRig:
         self._on_servo: Callable[[], None] | None = None
         self._loop_lock = threading.Lock()
         self._synced_q: dict[ArmName, np.ndarray] = {}
+        self._physics_steps = 0  # the world's physics steps since it was built
+        self._settled: _Settled | None = None  # how `settle` left a world just built (`resettle`)
         if with_servers:
             self.start_servers(ephemeral_ports)
         self._sync_mounts()
@@ -155,6 +176,7 @@ class SimRig:
     def reset(self, scenario: Scenario, seed: int = 0, world: World | None = None) -> None:
         """A new world for `scenario` with the arms re-placed at its start; the controllers and
         their TCP servers (and their clients' connections) stay. On BadScenario the old world stays."""
+        built = world is None
         if world is None:
             from bagit.services.sim.world import SimWorld
 
@@ -165,15 +187,61 @@ class SimRig:
             world.close()
             raise
         with self._loop_lock:
-            self.epoch = next_epoch(self.clock_s)  # the new world's time begins at 0: the clock goes on
             old, self.world = self.world, world
-            for name, q in start.items():
-                self.arms[name].teleport(q)
-            self._sync_clock_offsets()
-            self._synced_q = {}
-            self._sync_mounts()
-            self._still_s = REST_AFTER_S
+            self._begin(start)
+            self._built = _world_key(scenario, seed) if built else None
+            self._physics_steps, self._settled = 0, None
         old.close()
+
+    def _begin(self, start: Mapping[ArmName, np.ndarray], world_t: float = 0.0) -> None:
+        """(With the loop lock held.) The world's time begins again: a new epoch, the arms re-placed at
+        `start`, their clocks stamped from `world_t` (the world's time at its beginning), the mounts on them."""
+        self.epoch = next_epoch(self.clock_s)  # the new world's time begins at 0: the clock goes on
+        for name, q in start.items():
+            self.arms[name].teleport(q)
+        self._sync_clock_offsets(world_t)
+        self._synced_q = {}
+        self._sync_mounts()
+        self._still_s = REST_AFTER_S
+
+    def settle(self, dt: float) -> None:
+        """`step(dt)` after a (re)set: the bag comes to hang still from the held arms. A world built and
+        settled so, and not stepped since, can stand in for a reset to it and its settle (`resettle`)."""
+        key, start = self._built, None
+        if key is not None and self._physics_steps == 0 and self.world.time == 0.0:  # built and untouched
+            start = self._start_angles(self.world)  # where a reset to this world puts the arms
+        self.step(dt)
+        if key is not None and start is not None and self._held(start):
+            self._settled = _Settled(key, dt, self.world.time, self._physics_steps, start)
+
+    def _held(self, q: Mapping[ArmName, np.ndarray]) -> bool:
+        """Both arms at `q` now, and their mounts set from there (`_sync_mounts`)."""
+        return all(n in self._synced_q and np.array_equal(self._synced_q[n], q[n]) and np.array_equal(self.arms[n].q, q[n]) for n in ARMS)
+
+    def resettle(self, scenario: Scenario, seed: int, dt: float) -> bool:
+        """`reset(scenario, seed)` then `settle(dt)`, the world's part already done: True if this world is
+        `scenario` at `seed`, settled `dt` right after it was built and not stepped since (the simulator
+        settles the world it starts with, which `bagit up SCENARIO` runs first, while the services start).
+        The world is then as the reset and settle would leave it, bit for bit: a held arm does not move
+        after its teleport, so its mount stood still through the world's settle whenever that ran, and the
+        arms' controllers step now as they would have stepped beside it. False, nothing done, otherwise."""
+        s = self._settled
+        if s is None or s.key != _world_key(scenario, seed) or s.dt != dt or s.physics_steps != self._physics_steps:
+            return False
+        with self._loop_lock:
+            self._settled = None
+            self._begin(s.start)
+            moved = False
+            for _ in range(max(1, int(round(dt / WORLD_STEP_S)))):  # `_advance`'s steps, the world's left out
+                for robot in self.arms.values():
+                    robot.step(WORLD_STEP_S)
+                moved = self._sync_mounts() or moved
+                self._still_s += WORLD_STEP_S
+            self.world.set_time(s.world_t)
+        if moved:  # an arm moved while its controller stepped (a command came): the settle was not this one
+            self.reset(scenario, seed)
+            self.step(dt)
+        return True
 
     # -- servers ---------------------------------------------------------------------------------
 
@@ -226,9 +294,11 @@ class SimRig:
         self._sync_clock_offsets()
         self._configure_servers()
 
-    def _sync_clock_offsets(self) -> None:
+    def _sync_clock_offsets(self, world_t: float | None = None) -> None:
+        """Each controller's stamps on the rig's clock (lockstep): the world at `world_t` (None: now) is its time now."""
+        t = float(self.world.time) if world_t is None else world_t
         for robot in self.arms.values():
-            robot.clock_offset = (self.epoch + float(self.world.time) - robot.time) if self._stamp_feedback else None
+            robot.clock_offset = (self.epoch + t - robot.time) if self._stamp_feedback else None
 
     def servo_counts(self) -> dict[str, int]:
         """Each simulated controller's servo commands (ServoP/ServoJ) received so far."""
@@ -239,9 +309,9 @@ class SimRig:
         for server in self.servers.values():
             server.push_feedback()
 
-    def _sync_mounts(self) -> None:
+    def _sync_mounts(self) -> bool:
         """Mount targets from the flanges; only the arms whose joints moved are sent (setting one is not free);
-        an arm that moved restarts the count of `idle`'s stillness."""
+        an arm that moved restarts the count of `idle`'s stillness. True if one moved."""
         moved: dict[ArmName, np.ndarray] = {}
         for name, robot in self.arms.items():
             q = robot.q
@@ -251,6 +321,7 @@ class SimRig:
         if moved:
             self.world.set_mount_targets(moved)
             self._still_s = 0.0
+        return bool(moved)
 
     def step(self, dt: float) -> None:
         """Advance `dt` seconds (rounded to whole world steps): controllers, then mounts, then physics."""
@@ -276,6 +347,7 @@ class SimRig:
                 else:
                     self.world.step(WORLD_STEP_S)
                     self._still_s += WORLD_STEP_S
+                    self._physics_steps += 1
 
     def render_rgbd(self, seq: int = 0) -> RgbdFrame:
         """A camera frame, stamped on the rig's clock (`clock_s`)."""

@@ -178,6 +178,10 @@ class SimWorld:
         for _ in range(max(1, int(round(dt / TIMESTEP)))):
             self.data.time += TIMESTEP
 
+    def set_time(self, t: float) -> None:
+        """The clock at `t` with nothing moving: a settled world begun again (`SimRig.resettle`)."""
+        self.data.time = float(t)
+
     def _warning_counts(self) -> tuple[int, ...]:
         return tuple(int(w.number) for w in self._warnings)
 

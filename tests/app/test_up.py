@@ -180,6 +180,7 @@ def test_a_full_simulated_run_of_its_own_bag_through_bagit_up_with_services_paus
     assert truth.success and not truth.passed_through and truth.error_cm < 2.0 and res.error_cm == truth.error_cm, truth
     assert (res.ticks, res.duration_s, res.error_cm, res.final_rim) == (alone.ticks, alone.duration_s, alone.error_cm, alone.final_rim)
     assert res.arm_events == alone.arm_events and res.arms == alone.arms == "cr5"
+    assert "the world it started with, settled then" in r.stderr  # settled while the services started (`SimRig.resettle`)
 
 
 def test_a_service_killed_in_lockstep_fails_the_run_with_the_reason_in_bounded_wall_time(tmp_path):

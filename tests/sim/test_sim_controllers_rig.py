@@ -180,3 +180,53 @@ def test_between_runs_the_world_rests_until_an_arm_moves_and_for_a_while_after(s
         settled, t1 = rig.world.bag_vertices().copy(), rig.time
         rig.idle(0.2)
         assert np.array_equal(rig.world.bag_vertices(), settled) and rig.time == pytest.approx(t1 + 0.2)
+
+
+def _world_state(rig: SimRig) -> tuple[np.ndarray, ...]:
+    d = rig.world.data  # type: ignore[attr-defined]
+    return d.qpos.copy(), d.qvel.copy(), d.qacc_warmstart.copy(), d.mocap_pos.copy(), d.mocap_quat.copy(), np.array([d.time])
+
+
+def _after_settle(rig: SimRig) -> tuple[np.ndarray, ...]:
+    """The world after a reset's settle and a second of a stream, and how the arms' stamps read the rig's clock."""
+    stamps = [robot.time + robot.clock_offset - rig.clock_s for robot in rig.arms.values()]
+    state = _world_state(rig)
+    for arm in rig.arms.values():
+        assert arm.enable() == 0
+    servo_both(rig, {"left": [0, -40, 20], "right": [0, 40, 20]}, 1.0)
+    return (*state, np.array(stamps), _world_state(rig)[0], np.array([rig.clock_s - rig.epoch]))
+
+
+def test_a_world_settled_at_start_stands_in_for_a_reset_to_it_bit_for_bit(scenario):
+    """`bagit up SCENARIO`'s simulator settles the world it starts with while the services start; the run's
+    reset to that scenario and seed then takes it as it is (`resettle`): the same world as a reset and settle."""
+    other = Scenario.from_file(find_scenario("exp02"))
+    with SimRig(other, seed=3, camera=False) as fresh, SimRig(scenario, seed=3, camera=False) as reused:
+        fresh.stamp_feedback()
+        reused.stamp_feedback()
+        fresh.idle(0.4)  # the services start: the world rests, its clock runs
+        fresh.reset(scenario, 3)  # the run's world, built when the run asks for it
+        fresh.settle(1.0)
+        reused.settle(1.0)  # the run's world at start, settled before the run asks for it
+        reused.idle(0.7)
+        assert not reused.resettle(scenario, 4, 1.0) and not reused.resettle(scenario, 3, 0.5)  # another seed, another settle
+        assert reused.resettle(scenario, 3, 1.0)
+        assert not reused.resettle(scenario, 3, 1.0)  # once: it is now the run's
+        for a, b in zip(_after_settle(fresh), _after_settle(reused), strict=True):
+            assert np.array_equal(a, b)
+
+
+def test_a_settled_world_that_stepped_since_is_built_again(scenario):
+    with SimRig(scenario, seed=0, camera=False) as rig:
+        rig.settle(1.0)
+        for arm in rig.arms.values():
+            assert arm.enable() == 0
+        pose = rig.arms["left"].get_pose6()
+        pose[2] += 5.0
+        assert rig.arms["left"].servo_p(pose, t=0.3) == 0
+        rig.idle(0.3)  # between runs an arm moved: the physics stepped
+        assert not rig.resettle(scenario, 0, 1.0)
+    with SimRig(scenario, seed=0, camera=False) as rig:
+        rig.idle(0.3)
+        rig.settle(1.0)  # not right after it was built: its clock ran
+        assert not rig.resettle(scenario, 0, 1.0)
