@@ -111,6 +111,12 @@ class SimClock:
         with self._cond:
             return self._t
 
+    @property
+    def heard(self) -> bool:
+        """Whether the simulator has said the time yet (before that, `now()` is `t0`, no time of the rig's)."""
+        with self._cond:
+            return self._event[0] > float("-inf")
+
     def step_time(self, t: float) -> float:
         """When a service handles what happened at `t`: at `t` itself, as the world waits for the services
         (processing takes no simulated time, as in `bagit run`)."""

@@ -132,6 +132,10 @@ class PlannerNode:
     # -- events --------------------------------------------------------------------------------
 
     def _on_control(self, req: RunControl) -> RunControlReply:
+        if req.action == "start" and isinstance(self._clock, SimClock) and not self._clock.heard:
+            # its start would be stamped 0 and its first tick (2**30 s on) would time it out at once
+            log.info("run/control start -> refused (no sim/clock yet)")
+            return RunControlReply(accepted=False, reason="the simulator's clock has not ticked yet: is `bagit sim` up?")
         with self._pub_lock:  # as in _apply
             with self._lock:
                 rep, effects = self.coord.handle(req, self.clock())

@@ -141,7 +141,10 @@ class SimNode:
             answers = [keys.step_ack(s) for s in ANSWERS_FOLLOWED] + [keys.status_ack("planner")]
             self._lockstep_parts = [self._clock_pub, self._keepalive_pub, *(Subscriber(session, k, StepAck, self._on_ack) for k in answers),
                                     LivelinessWatcher(session, keys, self._on_alive)]
-        self._token = declare_alive(session, keys, SERVICE_NAME)
+        self._session = session
+        # lockstep: alive once its clock has ticked (`_run_lockstep`): a run started on a clock never heard would
+        # take 0 for its start, and its first tick (2**30 s on) for a time-out long past
+        self._token: zenoh.LivelinessToken | None = None if clock == "sim" else declare_alive(session, keys, SERVICE_NAME)
 
     def _on_ack(self, ack: StepAck) -> None:
         with self._cond:
@@ -319,8 +322,10 @@ class SimNode:
         period = float(rig.rig.safety.servo_period_s)
         # The events fall on the world's time (as `bagit run` steps by it, so both round the steps
         # alike); what goes out is stamped on the rig's clock, which never goes back.
+        self._publish_clock(rig.clock_s, None)
+        self._token = declare_alive(self._session, self.keys, SERVICE_NAME)
         if cfg.settle_s > 0:  # the world it starts with settles now, as a run's reset would: a run of it need not (`_reset`)
-            rig.settle(cfg.settle_s)
+            rig.settle(cfg.settle_s, between=rig.push_feedback)  # an arm driver coming up meanwhile sees its arms
         sched = Schedule.starting(rig.time, 1.0 / self._fps, period)
         t_sim0, t_wall0 = rig.clock_s, time.monotonic()
         start, wall_start = rig.clock_s, time.monotonic()
@@ -459,6 +464,7 @@ class SimNode:
         for x in (self._state_sub, self._frame_pub, self._truth_pub, *self._lockstep_parts):
             x.close()
         try:
-            self._token.undeclare()
+            if self._token is not None:
+                self._token.undeclare()
         except zenoh.ZError:
             pass

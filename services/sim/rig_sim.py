@@ -36,6 +36,7 @@ from bagit.services.sim.scene import TIMESTEP as WORLD_STEP_S
 
 SETTLE_S = 1.0  # simulated seconds the bag hangs still after a (re)set before the camera's first frame
 REST_AFTER_S = SETTLE_S  # between runs in lockstep: the physics steps on this long after an arm last moved (`idle`)
+SETTLE_CHUNK_STEPS = 10  # `SimRig.settle` with a `between`: world steps between its calls
 WALL_FPS = 10.0  # on the wall clock: camera frames per simulated second a 2-core machine keeps up with beside every service
 
 
@@ -204,13 +205,20 @@ class SimRig:
         self._sync_mounts()
         self._still_s = REST_AFTER_S
 
-    def settle(self, dt: float) -> None:
+    def settle(self, dt: float, between: Callable[[], None] | None = None) -> None:
         """`step(dt)` after a (re)set: the bag comes to hang still from the held arms. A world built and
-        settled so, and not stepped since, can stand in for a reset to it and its settle (`resettle`)."""
+        settled so, and not stepped since, can stand in for a reset to it and its settle (`resettle`).
+        `between()` is called every SETTLE_CHUNK_STEPS steps (the same steps; a lockstep simulator at start
+        pushes the controllers' feedback, which an arm driver bringing its arms up waits for)."""
         key, start = self._built, None
         if key is not None and self._physics_steps == 0 and self.world.time == 0.0:  # built and untouched
             start = self._start_angles(self.world)  # where a reset to this world puts the arms
-        self.step(dt)
+        n = max(1, int(round(dt / WORLD_STEP_S)))
+        chunk = n if between is None else SETTLE_CHUNK_STEPS
+        for k in range(0, n, chunk):
+            self._advance(min(chunk, n - k) * WORLD_STEP_S, rest=False)
+            if between is not None:
+                between()
         if key is not None and start is not None and self._held(start):
             self._settled = _Settled(key, dt, self.world.time, self._physics_steps, start)
 

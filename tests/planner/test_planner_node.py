@@ -15,7 +15,7 @@ from bus_support import wait_until
 from test_planner_coordinator import sample_g0
 
 from bagit.common.bus import Keys, LatestCache, Publisher, declare_alive, request_run_control
-from bagit.common.messages import ControllerStatus, Goal, Path, RunControl, RunState, SoiState
+from bagit.common.messages import ClockTick, ControllerStatus, Goal, Path, RunControl, RunState, SoiState
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.planner.coordinator import CoordinatorConfig
@@ -117,6 +117,24 @@ def test_malformed_run_control_is_refused_not_fatal(pair):
         replies = list(b.get(keys.run_control, payload=b"\x00garbage", timeout=3))
         assert replies and replies[0].ok is not None  # answered with a refusal, the node lives on
         assert request_run_control(b, keys, RunControl(action="reset")).accepted
+
+
+def test_in_lockstep_a_start_before_the_simulators_first_tick_is_refused_then_accepted_after_it(pair):
+    # A run started on a clock never heard would start at 0 and time out at the first tick (2**30 s on).
+    a, b = pair
+    keys = _rig(pair)
+    with PlannerNode(a, keys, clock="sim") as node:
+        tokens = [declare_alive(b, keys, s) for s in ("controller", "arm-driver", "perception", "sim")]
+        rep = request_run_control(b, keys, RunControl(action="start", scenario="exp02"))
+        assert not rep.accepted and "clock has not ticked" in rep.reason
+        with Publisher(b, keys.sim_clock, ClockTick) as clock:
+            assert wait_until(lambda: clock.matched)
+            clock.put(ClockTick(t=2.0**30, stamp=2.0**30))
+            assert wait_until(lambda: node.clock() == 2.0**30)
+            rep = request_run_control(b, keys, RunControl(action="start", scenario="exp02"))
+            assert rep.accepted, rep.reason
+        for t in tokens:
+            t.undeclare()
 
 
 def test_no_run_state_says_pre_bagging_before_the_path_is_out(pair):

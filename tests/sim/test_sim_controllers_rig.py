@@ -207,7 +207,9 @@ def test_a_world_settled_at_start_stands_in_for_a_reset_to_it_bit_for_bit(scenar
         fresh.idle(0.4)  # the services start: the world rests, its clock runs
         fresh.reset(scenario, 3)  # the run's world, built when the run asks for it
         fresh.settle(1.0)
-        reused.settle(1.0)  # the run's world at start, settled before the run asks for it
+        pushed: list[float] = []
+        reused.settle(1.0, between=lambda: pushed.append(reused.time))  # the run's world at start, settled before the run asks for it
+        assert len(pushed) == 25 and pushed[-1] == reused.time  # every 10 steps of 4 ms
         reused.idle(0.7)
         assert not reused.resettle(scenario, 4, 1.0) and not reused.resettle(scenario, 3, 0.5)  # another seed, another settle
         assert reused.resettle(scenario, 3, 1.0)
