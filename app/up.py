@@ -42,7 +42,7 @@ from bagit.common.bus import BusConfig, Keys, LatestCache, LivelinessWatcher, Po
 from bagit.common.errors import BusError
 from bagit.common.lockstep import LOCKSTEP_LEASE_MS
 from bagit.common.messages import ArmState, RunControl, RunControlReply, RunState, SimTruth
-from bagit.common.names import FINAL_STAGES, SIM_TIME_LIMIT_S
+from bagit.common.names import FINAL_STAGES, NO_SIM_CLOCK_YET, SIM_TIME_LIMIT_S
 from bagit.common.rig import RigConfig
 from bagit.forkserver import ForkedProcess, ForkServer, child_env, child_setup
 
@@ -55,6 +55,7 @@ SERVICES = ("sim", "perception", "planner", "controller", "arm-driver", "dashboa
 AFTER = {"arm-driver": "sim"}
 SUPERVISE_S = 1.0  # the supervisor's backstop wake-up (events wake it first)
 STOP_CHECK_S = 0.25  # how often a wait woken by the bus also looks at its `stop` event (Ctrl-C)
+CLOCK_RETRY_S = 0.05  # a start refused for the simulator's clock not yet heard is asked again this soon
 # The recorder, which no step waits for, runs at this niceness (its process and its autogroup: see
 # `forkserver.renice`): on a busy machine the simulator and the services a step waits for come first. Not
 # the dashboard, which carries the E-STOP button: niced, a press took 81-194 ms to reach the bus during a
@@ -453,9 +454,16 @@ class Up:
     # -- runs ------------------------------------------------------------------------------------
 
     def start_run(self, scenario: str, timeout: float = 10.0) -> RunControlReply:
+        """Ask the coordinator to start `scenario`; asked again while it has not heard the simulator's clock
+        (a lockstep start just after "all up"), at most `timeout` s in all."""
         o = self.opts
         req = RunControl(action="start", scenario=scenario, controller=o.controller, planner=o.planner, seed=o.seed)
-        return request_run_control(self.session, self.keys, req, timeout=timeout)
+        deadline = time.monotonic() + timeout
+        while True:
+            rep = request_run_control(self.session, self.keys, req, timeout=max(0.1, deadline - time.monotonic()))
+            if rep.accepted or not (rep.reason or "").startswith(NO_SIM_CLOCK_YET) or time.monotonic() > deadline:
+                return rep
+            time.sleep(CLOCK_RETRY_S)
 
     def wait_run(self, run_id: str, stop: threading.Event, timeout: float | None = None) -> RunState | None:
         """Follow run/state until run `run_id` ends (done, failed, aborted); None if stopped first."""

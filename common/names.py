@@ -18,6 +18,10 @@ FAILED_STAGES: tuple[str, ...] = ("failed", "aborted")  # final, without success
 # What a controller tick did (`ControllerStatus.mode`): explored J, servoed, settled still at g†, held, or finished.
 ServoMode = Literal["explore", "servo", "settle", "hold", "done"]
 
+# The planner's refusal of a start in lockstep before the simulator's first sim/clock tick (the run would start
+# at 0 and time out at that tick, 2**30 s on); `bagit up` asks again while it gets this one.
+NO_SIM_CLOCK_YET = "the simulator's clock has not ticked yet"
+
 # Who may release the e-stop (EStop(engage=False) with this `source`): the operator's own tools, the
 # dashboard and the CLI. An engage is taken from anyone. On the secure rig these are also the only
 # identities the router lets put on `estop` (deploy/secure/zenoh-router-secure.json5).

@@ -48,7 +48,7 @@ from bagit.common.messages import (
     SoiState,
     StepAck,
 )
-from bagit.common.names import SERVO_STAGES
+from bagit.common.names import NO_SIM_CLOCK_YET, SERVO_STAGES
 from bagit.services.planner.coordinator import Coordinator, CoordinatorConfig, Effect, PlanJob, compute_plan
 
 log = logging.getLogger("bagit.planner")
@@ -135,7 +135,7 @@ class PlannerNode:
         if req.action == "start" and isinstance(self._clock, SimClock) and not self._clock.heard:
             # its start would be stamped 0 and its first tick (2**30 s on) would time it out at once
             log.info("run/control start -> refused (no sim/clock yet)")
-            return RunControlReply(accepted=False, reason="the simulator's clock has not ticked yet: is `bagit sim` up?")
+            return RunControlReply(accepted=False, reason=f"{NO_SIM_CLOCK_YET}: is `bagit sim` up?")
         with self._pub_lock:  # as in _apply
             with self._lock:
                 rep, effects = self.coord.handle(req, self.clock())

@@ -1,7 +1,8 @@
 """`bagit up`'s readiness: what a run waits for, and when the rig is said to be all up.
 
-The supervisor's bookkeeping only (no process, no bus): the liveliness watcher is a set the test
-fills, as the bus would. The whole path, services included, is tests/app/test_up.py's.
+The supervisor's bookkeeping (no process): the liveliness watcher is a set the test fills, as the bus
+would; the start's retry asks a coordinator of the test's on two in-process peers. The whole path,
+services included, is tests/app/test_up.py's.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ import threading
 
 from bus_support import assert_same_message, example_message, wait_until
 
-from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, open_session
-from bagit.common.messages import SoiState
+from bagit.common.bus import BusConfig, Keys, Publisher, Subscriber, open_session, serve_run_control
+from bagit.common.messages import RunControl, RunControlReply, SoiState
+from bagit.common.names import NO_SIM_CLOCK_YET
 from bagit.up import SERVICES, UNIX_PATH_MAX, WATCHERS, Child, Up, UpOptions, local_endpoint
 
 
@@ -97,3 +99,24 @@ def test_the_rigs_processes_link_over_unix_sockets_in_its_folder_and_over_tcp_wh
     deep_up._write_configs()  # noqa: SLF001
     assert deep_up.hub.startswith("tcp/127.0.0.1:")
     assert "--listen" not in deep_up._argv("perception", deep / "zenoh.json5", deep / "rig.yaml")  # noqa: SLF001
+
+
+def test_a_start_refused_for_the_simulators_clock_not_yet_heard_is_asked_again_and_any_other_refusal_is_final(tmp_path, pair):
+    # In lockstep the coordinator refuses a start before the simulator's first tick (NO_SIM_CLOCK_YET), which
+    # "all up" can precede on a loaded machine; `bagit up` asks again until it is heard.
+    a, b = pair
+    up, _, _ = _up(tmp_path)
+    up.session, up.keys = a, Keys(up.opts.rig)
+    asked: list[RunControl] = []
+
+    def coordinator(req: RunControl) -> RunControlReply:
+        asked.append(req)
+        if len(asked) < 3:
+            return RunControlReply(accepted=False, reason=f"{NO_SIM_CLOCK_YET}: is `bagit sim` up?")
+        return RunControlReply(accepted=len(asked) == 3, run_id="r1", reason=None if len(asked) == 3 else "a run is in progress")
+
+    with serve_run_control(b, up.keys, coordinator):
+        rep = up.start_run("exp02")
+        assert rep.accepted and rep.run_id == "r1" and len(asked) == 3 and asked[-1].scenario == "exp02"
+        rep = up.start_run("exp02")
+        assert not rep.accepted and rep.reason == "a run is in progress" and len(asked) == 4  # at once: no retry

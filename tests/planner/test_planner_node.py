@@ -16,6 +16,7 @@ from test_planner_coordinator import sample_g0
 
 from bagit.common.bus import Keys, LatestCache, Publisher, declare_alive, request_run_control
 from bagit.common.messages import ClockTick, ControllerStatus, Goal, Path, RunControl, RunState, SoiState
+from bagit.common.names import NO_SIM_CLOCK_YET
 from bagit.common.scenario import Scenario
 from bagit.scenarios import find_scenario
 from bagit.services.planner.coordinator import CoordinatorConfig
@@ -126,7 +127,7 @@ def test_in_lockstep_a_start_before_the_simulators_first_tick_is_refused_then_ac
     with PlannerNode(a, keys, clock="sim") as node:
         tokens = [declare_alive(b, keys, s) for s in ("controller", "arm-driver", "perception", "sim")]
         rep = request_run_control(b, keys, RunControl(action="start", scenario="exp02"))
-        assert not rep.accepted and "clock has not ticked" in rep.reason
+        assert not rep.accepted and rep.reason.startswith(NO_SIM_CLOCK_YET)
         with Publisher(b, keys.sim_clock, ClockTick) as clock:
             assert wait_until(lambda: clock.matched)
             clock.put(ClockTick(t=2.0**30, stamp=2.0**30))
