@@ -325,7 +325,7 @@ class SimNode:
         self._publish_clock(rig.clock_s, None)
         self._token = declare_alive(self._session, self.keys, SERVICE_NAME)
         if cfg.settle_s > 0:  # the world it starts with settles now, as a run's reset would: a run of it need not (`_reset`)
-            rig.settle(cfg.settle_s, between=lambda: self._settling(rig.clock_s))
+            rig.settle(cfg.settle_s, between=self._settling)
         sched = Schedule.starting(rig.time, 1.0 / self._fps, period)
         t_sim0, t_wall0 = rig.clock_s, time.monotonic()
         start, wall_start = rig.clock_s, time.monotonic()
@@ -404,12 +404,12 @@ class SimNode:
         self.stats.realtime_factor = self.stats.sim_s / wall if wall > 0 else 0.0
         return self.stats
 
-    def _settling(self, now: float) -> None:
+    def _settling(self) -> None:
         """Between the start-up settle's steps: the controllers' feedback (an arm driver coming up waits for its
         arms') and the clock (a run is started on it: its first tick may have gone out before anyone's
         subscription reached this session)."""
         self.rig.push_feedback()
-        self._publish_clock(now, None)
+        self._publish_clock(self.rig.clock_s, None)
 
     def _step_ahead(self, dt: float) -> bool:
         """Lockstep, after a frame (or keep-alive tick) went out: step the world on to the next event while

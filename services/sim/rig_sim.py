@@ -194,13 +194,13 @@ class SimRig:
             self._physics_steps, self._settled = 0, None
         old.close()
 
-    def _begin(self, start: Mapping[ArmName, np.ndarray], world_t: float = 0.0) -> None:
+    def _begin(self, start: Mapping[ArmName, np.ndarray]) -> None:
         """(With the loop lock held.) The world's time begins again: a new epoch, the arms re-placed at
-        `start`, their clocks stamped from `world_t` (the world's time at its beginning), the mounts on them."""
+        `start`, their clocks stamped from the world's time 0, the mounts on them."""
         self.epoch = next_epoch(self.clock_s)  # the new world's time begins at 0: the clock goes on
         for name, q in start.items():
             self.arms[name].teleport(q)
-        self._sync_clock_offsets(world_t)
+        self._sync_clock_offsets(0.0)
         self._synced_q = {}
         self._sync_mounts()
         self._still_s = REST_AFTER_S
