@@ -12,13 +12,13 @@ without the shared imports (a service's own heavy imports, MuJoCo, Open3D, viser
 child, in parallel with the others). Nothing of a run is computed here, so results cannot differ.
 
 A child gets what `bagit up` gives a process it starts itself: its own session and process group
-(`setsid`), its niceness, the parent-death signal (the server's own is `bagit up`'s: a SIGKILLed
+(`setsid`), its niceness, the CPUs it may run on, the parent-death signal (the server's own is `bagit up`'s: a SIGKILLed
 `bagit up` takes the server down and the server its children), stdin on /dev/null and stdout and
 stderr on the pipe `bagit up` passed with the request. The server reaps its children and reports
 each exit status (as `subprocess` gives it: negative for a signal) on the socket; it leaves when
 the socket closes and its last child has exited, so every child's CPU time reaches `bagit up`'s.
 
-Protocol (SOCK_SEQPACKET, one JSON object a packet): request {"argv": [...], "niceness": n} with the
+Protocol (SOCK_SEQPACKET, one JSON object a packet): request {"argv": [...], "niceness": n, "cpus": [...] or null} with the
 output pipe's write end as SCM_RIGHTS; replies {"pid": p} (in request order) and {"exit": p, "code": c}.
 Only `bagit up` uses it: a deployed rig (Procfiles, systemd units) starts `bagit SERVICE` as before.
 """
@@ -36,7 +36,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import IO, Any
 
 # What every service imports before it does anything of its own (seen with `python -X importtime`): the
@@ -72,12 +72,20 @@ def child_env() -> dict[str, str]:
     return dict(headless_gl(dict(os.environ, PYTHONUNBUFFERED="1")))
 
 
-def child_setup(niceness: int = 0, death_signal: int = signal.SIGTERM) -> None:  # pragma: no cover - runs in a child between fork and exec/run
-    """Its own session and process group, its niceness, and `death_signal` when its parent dies (Linux)."""
+def child_setup(  # pragma: no cover - runs in a child between fork and exec/run
+    niceness: int = 0, death_signal: int = signal.SIGTERM, cpus: Collection[int] | None = None
+) -> None:
+    """Its own session and process group, its niceness, the CPUs it may run on (None: its parent's), and
+    `death_signal` when its parent dies (Linux)."""
     import ctypes
 
     os.setsid()
     renice(niceness)
+    if cpus:
+        try:
+            os.sched_setaffinity(0, cpus)  # its threads, started later, inherit it
+        except OSError:  # a CPU gone offline since it was chosen: the parent's CPUs, as without
+            pass
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, death_signal)  # PR_SET_PDEATHSIG
     except OSError:
@@ -122,6 +130,13 @@ def preload(modules: Sequence[str] = PRELOAD) -> None:
     build_parser()
 
 
+def _cpus(value: Any) -> set[int] | None:
+    """A request's CPU set: a list of CPU numbers, else None (the server's CPUs)."""
+    if isinstance(value, list) and value and all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in value):
+        return set(value)
+    return None
+
+
 def _send(sock: socket.socket, msg: dict[str, Any]) -> None:
     try:
         sock.send(json.dumps(msg).encode())
@@ -163,7 +178,7 @@ def serve(sock: socket.socket) -> list[str] | None:
                 for fd in (wake_r, wake_w):
                     os.close(fd)
                 sock.close()
-                child_setup(int(req.get("niceness", 0)))
+                child_setup(int(req.get("niceness", 0)), cpus=_cpus(req.get("cpus")))
                 if os.getppid() != server:  # the server died before the parent-death signal was set
                     os._exit(1)
                 out = fds[0]
@@ -339,14 +354,15 @@ class ForkServer:
             if "exit" in msg and self.on_exit is not None:
                 self.on_exit(int(msg["exit"]), int(msg["code"]))
 
-    def spawn(self, argv: Sequence[str], niceness: int = 0) -> ForkedProcess:
-        """Fork `bagit ARGV...` (its output on a new pipe, read from the returned process's stdout). Waits for
+    def spawn(self, argv: Sequence[str], niceness: int = 0, cpus: Collection[int] | None = None) -> ForkedProcess:
+        """Fork `bagit ARGV...` (its output on a new pipe, read from the returned process's stdout), on `cpus`
+        (None: the server's). Waits for
         the server to answer however long its imports take (a request given up on would still be forked:
         a service twice); OSError if the server is gone."""
         r, w = os.pipe()
         try:
             with self._spawn_lock:
-                socket.send_fds(self._sock, [json.dumps({"argv": list(argv), "niceness": niceness}).encode()], [w])
+                socket.send_fds(self._sock, [json.dumps({"argv": list(argv), "niceness": niceness, "cpus": sorted(cpus) if cpus else None}).encode()], [w])
                 with self._cond:
                     self._cond.wait_for(lambda: self._pids or self._closed)
                     if not self._pids:

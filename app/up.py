@@ -33,7 +33,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TextIO
@@ -62,6 +62,21 @@ CLOCK_RETRY_S = 0.05  # a start refused for the simulator's clock not yet heard 
 # wall-clock run on 2 cores, against 24 ms at the rig's niceness (tests/app/test_up_browser.py, 2026-11-28).
 OFF_PATH_NICENESS = 10
 NICED = ("recorder",)
+# With the simulator among the children and two CPUs or more, it keeps the first of them to itself: the
+# other services run on the rest (`child_cpus`). Its main thread, a lockstep run's critical path (physics,
+# render, noise), is then neither preempted by a service nor moved between cores, and the services' messages
+# to one another wake them where they run. On 2 cores (exp02, 5 pairs alternating, 2026-11-29 11:41 UTC):
+# 14.53 s / 20.27 CPU s against 15.06 / 21.20 sharing both. `--shared-cores` (UpOptions.sim_core) turns it off.
+
+
+def child_cpus(name: str, names: Collection[str], available: Collection[int]) -> frozenset[int] | None:
+    """The CPUs child `name` may run on (None: all of `available`, bagit up's own): every CPU but the first
+    for a service beside the simulator, on two CPUs or more; the simulator's render threads use them all."""
+    if name == "sim" or "sim" not in names or len(available) < 2:
+        return None
+    return frozenset(sorted(available)[1:])
+
+
 # Services a run does not wait for: the dashboard shows a run from its next message on, so a scenario's
 # run starts once the others are up (the recorder is waited for: it records the run from its start).
 WATCHERS = ("dashboard",)
@@ -171,6 +186,7 @@ class UpOptions:
     # Start the services as forks of one interpreter that imported what they share (`bagit.forkserver`),
     # not as an interpreter each: the same commands, a fraction of the start-up CPU.
     fork_server: bool = True
+    sim_core: bool = True  # the simulator keeps a CPU to itself (`child_cpus`)
     extra_args: dict[str, list[str]] = field(default_factory=dict)
 
 
@@ -317,16 +333,17 @@ class Up:
 
     def _spawn(self, c: Child) -> None:
         niceness = OFF_PATH_NICENESS if c.name in NICED else 0
+        cpus = child_cpus(c.name, self.children, os.sched_getaffinity(0)) if self.opts.sim_core else None
         c.proc = None
         if self.forks is not None and self.forks.alive:
             try:
-                c.proc = self.forks.spawn(c.argv, niceness)
+                c.proc = self.forks.spawn(c.argv, niceness, cpus)
             except OSError as e:  # the server is gone: an interpreter of its own, as without it
                 self.say(f"fork server: {e}; starting {c.name} as a process of its own")
         if c.proc is None:
             c.proc = subprocess.Popen(
                 [sys.executable, "-m", "bagit.cli", *c.argv], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT, env=child_env(), preexec_fn=functools.partial(child_setup, niceness),
+                stderr=subprocess.STDOUT, env=child_env(), preexec_fn=functools.partial(child_setup, niceness, cpus=cpus),
                 text=True, errors="replace", bufsize=1,
             )
         threading.Thread(target=self._pump, args=(c.name, c.proc), name=f"log-{c.name}", daemon=True).start()

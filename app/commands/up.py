@@ -51,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "dropped from the wait, an answer made without what it waited for); by default that exits 1")
     p.add_argument("--no-fork-server", action="store_true",
                    help="start every service as an interpreter of its own (default: forks of one that imported what they share)")
+    p.add_argument("--shared-cores", action="store_true",
+                   help="run every service on every CPU (default: with the simulator and two CPUs or more, the simulator keeps the first "
+                        "to itself and the other services run on the rest)")
     p.add_argument("--workdir", type=Path, help="folder for the generated Zenoh config and rig YAML (default: a temporary one)")
 
 
@@ -88,7 +91,7 @@ def options(args: argparse.Namespace) -> UpOptions:
     return UpOptions(scenario=args.scenario, controller=args.controller, planner=args.planner, seed=args.seed, rig=args.rig,
                      services=services, record=args.record, fps=args.fps, dashboard_port=args.dashboard_port, workdir=args.workdir,
                      status_file=args.status_file, clock=args.clock, speed=args.speed,
-                     fork_server=not args.no_fork_server)
+                     fork_server=not args.no_fork_server, sim_core=not args.shared_cores)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

@@ -178,6 +178,26 @@ def test_the_camera_rate_is_the_runs_control_rate_in_lockstep_unless_given(tmp_p
     assert argv[argv.index("--fps") + 1] == "12"
 
 
+def test_beside_the_simulator_every_service_runs_on_every_cpu_but_the_first_and_the_flag_turns_it_off():
+    """`bagit up`: the simulator keeps the first CPU to itself (its main thread is a lockstep run's critical path)
+    and runs on all of them; without a simulator among the children, or on one CPU, nobody is confined."""
+    import argparse
+
+    from bagit.commands.up import add_arguments, options
+    from bagit.up import SERVICES, child_cpus
+
+    names = SERVICES
+    assert child_cpus("sim", names, {0, 1}) is None
+    assert all(child_cpus(n, names, {0, 1}) == {1} for n in names if n != "sim")
+    assert child_cpus("recorder", (*names, "recorder"), {4, 2, 7}) == {4, 7}  # bagit up's own CPUs, whichever they are
+    assert child_cpus("perception", ("perception", "planner"), {0, 1}) is None  # no simulator: a real rig's services
+    assert child_cpus("perception", names, {3}) is None  # one CPU: nothing to keep
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    assert options(p.parse_args(["exp02"])).sim_core is True
+    assert options(p.parse_args(["exp02", "--shared-cores"])).sim_core is False
+
+
 def test_up_gives_the_arm_driver_link_timeouts_for_simulated_controllers(tmp_path):
     """`bagit up` drives simulated CR5s that share the CPU: its arm driver waits longer for their
     feedback and replies than the defaults for a real CR5, and every motion limit stays the rig's."""

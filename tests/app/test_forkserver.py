@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from suite_support import HANG_S, wait_until
 
-from bagit.forkserver import PRELOAD, ForkServer, child_env
+from bagit.forkserver import PRELOAD, ForkServer, _cpus, child_env
 
 pytestmark = [pytest.mark.processes, pytest.mark.timeout(180)]
 
@@ -60,8 +60,9 @@ def _ready(p) -> list[str]:
     return lines
 
 
-def test_a_service_forked_by_the_server_is_a_fork_in_its_own_group_niced_and_stops_on_sigterm(server, planner_argv):
-    p = server.spawn(planner_argv, niceness=1)  # a little: a loaded machine leaves a niced stop little CPU
+def test_a_service_forked_by_the_server_is_a_fork_in_its_own_group_niced_on_its_cpus_and_stops_on_sigterm(server, planner_argv):
+    cpus = sorted(os.sched_getaffinity(0))
+    p = server.spawn(planner_argv, niceness=1, cpus=cpus[-1:])  # a little: a loaded machine leaves a niced stop little CPU
     _ready(p)
     st = _stat(p.pid)
     assert int(st[1]) == server.proc.pid  # forked by the server, no interpreter of its own
@@ -71,6 +72,8 @@ def test_a_service_forked_by_the_server_is_a_fork_in_its_own_group_niced_and_sto
     group = Path(f"/proc/{p.pid}/autogroup")
     if group.exists():  # its session is a scheduling group of its own: the group is niced too, or the niceness counts for nothing
         assert group.read_text().split()[-1] == "1", group.read_text()
+    assert os.sched_getaffinity(p.pid) == {cpus[-1]}  # the CPUs asked for, its threads' too
+    assert all(os.sched_getaffinity(int(t.name)) == {cpus[-1]} for t in Path(f"/proc/{p.pid}/task").iterdir())
     with pytest.raises(subprocess.TimeoutExpired):
         p.wait(0.2)  # still running: wait gives up as Popen's does
     os.killpg(p.pid, signal.SIGTERM)
@@ -133,3 +136,9 @@ def test_bagit_up_forks_its_services_from_the_server_unless_told_not_to(tmp_path
     finally:
         assert stop_process(proc) == 0
     assert "stopped: planner " in up_log(tmp_path)  # its exit status reached bagit up
+
+
+def test_a_requests_cpus_are_a_list_of_cpu_numbers_or_the_servers_own():
+    assert _cpus([1, 3]) == {1, 3}
+    for bad in (None, [], [-1], [True], ["1"], [1.0], "1", {"1": 1}):
+        assert _cpus(bad) is None, bad

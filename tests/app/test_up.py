@@ -45,6 +45,10 @@ def test_sigterm_stops_every_child_and_sigkill_leaves_no_orphans(tmp_path):
         pids = list(d["children"].values())
         assert wait_until(lambda: "all services up" in _log(tmp_path), 120, 0.2), _log(tmp_path)
         assert "[planner]" in _log(tmp_path) and "[sim]" in _log(tmp_path)  # prefixed child output
+        cpus = sorted(os.sched_getaffinity(0))
+        if len(cpus) > 1:  # the simulator keeps the first CPU to itself: the planner runs on the rest, the simulator on all
+            assert os.sched_getaffinity(d["children"]["sim"]) == set(cpus)
+            assert os.sched_getaffinity(d["children"]["planner"]) == set(cpus[1:])
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(60) == 0
         assert not any(_alive(p) for p in pids), _log(tmp_path)
@@ -73,6 +77,8 @@ def test_a_dead_child_is_restarted_and_its_new_pid_published(tmp_path):
 
         assert wait_until(restarted, 60, 0.2), _log(tmp_path)
         assert wait_until(lambda: _log(tmp_path).count("[up] service planner up") >= 2, 60, 0.2), _log(tmp_path)
+        new = json.loads(status.read_text())["children"]["planner"]
+        assert os.sched_getaffinity(new) == os.sched_getaffinity(0)  # no simulator among the children: every CPU
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(60)
