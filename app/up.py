@@ -62,11 +62,13 @@ CLOCK_RETRY_S = 0.05  # a start refused for the simulator's clock not yet heard 
 # wall-clock run on 2 cores, against 24 ms at the rig's niceness (tests/app/test_up_browser.py, 2026-11-28).
 OFF_PATH_NICENESS = 10
 NICED = ("recorder",)
-# With the simulator among the children and two CPUs or more, it keeps the first of them to itself: the
-# other services run on the rest (`child_cpus`). Its main thread, a lockstep run's critical path (physics,
-# render, noise), is then neither preempted by a service nor moved between cores, and the services' messages
-# to one another wake them where they run. On 2 cores (exp02, 5 pairs alternating, 2026-11-29 11:41 UTC):
-# 14.53 s / 20.27 CPU s against 15.06 / 21.20 sharing both. `--shared-cores` (UpOptions.sim_core) turns it off.
+# In lockstep, with the simulator among the children and two CPUs or more, it keeps the first of them to
+# itself: the other services run on the rest (`child_cpus`). Its main thread, a lockstep run's critical path
+# (physics, render, noise), is then neither preempted by a service nor moved between cores, and the services'
+# messages to one another wake them where they run. On 2 cores (exp02, 5 pairs alternating, 2026-11-29 11:41
+# UTC): 14.53 s / 20.27 CPU s against 15.06 / 21.20 sharing both. Not on the wall clock, where a service's
+# timing is its own (the arm driver's servo period beside perception on one core was not measured there).
+# `--shared-cores` (UpOptions.sim_core) turns it off.
 
 
 def child_cpus(name: str, names: Collection[str], available: Collection[int]) -> frozenset[int] | None:
@@ -186,7 +188,7 @@ class UpOptions:
     # Start the services as forks of one interpreter that imported what they share (`bagit.forkserver`),
     # not as an interpreter each: the same commands, a fraction of the start-up CPU.
     fork_server: bool = True
-    sim_core: bool = True  # the simulator keeps a CPU to itself (`child_cpus`)
+    sim_core: bool = True  # in lockstep, the simulator keeps a CPU to itself (`child_cpus`)
     extra_args: dict[str, list[str]] = field(default_factory=dict)
 
 
@@ -333,7 +335,8 @@ class Up:
 
     def _spawn(self, c: Child) -> None:
         niceness = OFF_PATH_NICENESS if c.name in NICED else 0
-        cpus = child_cpus(c.name, self.children, os.sched_getaffinity(0)) if self.opts.sim_core else None
+        keep = self.opts.sim_core and self.opts.clock == "lockstep"
+        cpus = child_cpus(c.name, self.children, os.sched_getaffinity(0)) if keep else None
         c.proc = None
         if self.forks is not None and self.forks.alive:
             try:

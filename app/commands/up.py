@@ -52,8 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-fork-server", action="store_true",
                    help="start every service as an interpreter of its own (default: forks of one that imported what they share)")
     p.add_argument("--shared-cores", action="store_true",
-                   help="run every service on every CPU (default: with the simulator and two CPUs or more, the simulator keeps the first "
-                        "to itself and the other services run on the rest)")
+                   help="run every service on every CPU (default: in lockstep, with the simulator and two CPUs or more, the simulator "
+                        "keeps the first to itself and the other services run on the rest)")
     p.add_argument("--workdir", type=Path, help="folder for the generated Zenoh config and rig YAML (default: a temporary one)")
 
 

@@ -221,6 +221,7 @@ def test_killing_the_controller_mid_run_holds_the_arms_fails_the_run_and_a_resta
     # all while it waits for the dead controller: the test above).
     with rig_up(tmp_path, "--no-dashboard", "--clock", "wall") as rig:
         d, status, session, keys, state, cmds = rig.status, rig.status_path, rig.session, rig.keys, rig.state, rig.cmds
+        assert os.sched_getaffinity(d["children"]["arm-driver"]) == os.sched_getaffinity(0)  # on the wall clock no CPU is kept
         seen: list[tuple[float, ArmState]] = []  # every arm state from now on, with its receive time
         arms = Subscriber(session, keys.arm_state_any, ArmState, lambda m: seen.append((time.monotonic(), m)))
         rep = request_run_control(session, keys, RunControl(action="start", scenario="exp02"), timeout=10)
