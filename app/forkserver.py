@@ -355,10 +355,9 @@ class ForkServer:
                 self.on_exit(int(msg["exit"]), int(msg["code"]))
 
     def spawn(self, argv: Sequence[str], niceness: int = 0, cpus: Collection[int] | None = None) -> ForkedProcess:
-        """Fork `bagit ARGV...` (its output on a new pipe, read from the returned process's stdout), on `cpus`
-        (None: the server's). Waits for
-        the server to answer however long its imports take (a request given up on would still be forked:
-        a service twice); OSError if the server is gone."""
+        """Fork `bagit ARGV...` on `cpus` (None: the server's), its output on a new pipe (read from the returned
+        process's stdout). Waits for the server to answer however long its imports take (a request given up on
+        would still be forked: a service twice); OSError if the server is gone."""
         r, w = os.pipe()
         try:
             with self._spawn_lock:

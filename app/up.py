@@ -71,10 +71,10 @@ NICED = ("recorder",)
 # `--shared-cores` (UpOptions.sim_core) turns it off.
 
 
-def child_cpus(name: str, names: Collection[str], available: Collection[int]) -> frozenset[int] | None:
-    """The CPUs child `name` may run on (None: all of `available`, bagit up's own): every CPU but the first
-    for a service beside the simulator, on two CPUs or more; the simulator's render threads use them all."""
-    if name == "sim" or "sim" not in names or len(available) < 2:
+def child_cpus(name: str, names: Collection[str], available: Collection[int], lockstep: bool = True) -> frozenset[int] | None:
+    """The CPUs child `name` may run on (None: all of `available`, bagit up's own): in lockstep, every CPU but
+    the first for a service beside the simulator, on two CPUs or more; the simulator's render threads use them all."""
+    if not lockstep or name == "sim" or "sim" not in names or len(available) < 2:
         return None
     return frozenset(sorted(available)[1:])
 
@@ -335,8 +335,7 @@ class Up:
 
     def _spawn(self, c: Child) -> None:
         niceness = OFF_PATH_NICENESS if c.name in NICED else 0
-        keep = self.opts.sim_core and self.opts.clock == "lockstep"
-        cpus = child_cpus(c.name, self.children, os.sched_getaffinity(0)) if keep else None
+        cpus = child_cpus(c.name, self.children, os.sched_getaffinity(0), self.opts.clock == "lockstep") if self.opts.sim_core else None
         c.proc = None
         if self.forks is not None and self.forks.alive:
             try:
