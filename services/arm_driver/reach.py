@@ -44,6 +44,8 @@ Lag = Callable[[Poses, float], Poses]  # (cmd, share s of the wrist's rotation m
 
 BISECTIONS = 10  # the fraction sent is within 1/1024 of the longest that can be followed
 ELBOW_MARGIN_RAD = cr5.ELBOW_MARGIN_RAD  # the driver keeps the elbow this far from straight
+# ... or, where it already is closer (`elbow_floor`), no straighter than its seed less this (the IK's round-off).
+ELBOW_SLACK_RAD = 1e-9
 # Damping of the wrist's rotation step (rad of joint per rad of tool turn): a rotation the joints make with
 # a gain below it (about the singular axis, J5 within ~6 deg of 0) is made only in part, 1 / (2 LAG_DAMPING)
 # rad of joint per rad at most.
@@ -74,6 +76,14 @@ def interpolate(prev: Poses, cmd: Poses, s: float) -> Poses:
     return out
 
 
+def elbow_floor(seed: np.ndarray) -> float:
+    """How far from straight the elbow of a solution nearest `seed (6,)` must stay: ELBOW_MARGIN_RAD, or
+    where the seed already is when closer. Creeping at the edge of the reach puts each pose sent ever
+    nearer the margin, and the ServoP's 6 decimals put the controller's target up to ~3e-7 rad inside
+    it: a restart from that target holds there and may leave it, never straighten the elbow further."""
+    return min(ELBOW_MARGIN_RAD, abs(float(seed[2])) - ELBOW_SLACK_RAD)
+
+
 def arm_solver(
     frames: dict[ArmName, ArmFrames], seeds: Joints, mount_offsets: dict[ArmName, np.ndarray], max_joint_step_rad: float
 ) -> ArmSolver:
@@ -82,7 +92,7 @@ def arm_solver(
     def solve_arm(a: ArmName, pose: np.ndarray) -> tuple[np.ndarray | None, str | None]:
         seed = seeds[a]
         q = cr5.ik(frames[a].flange_in_base(pose), seed)
-        if q is None or abs(q[2]) < ELBOW_MARGIN_RAD:
+        if q is None or abs(q[2]) < elbow_floor(seed):
             return None, f"{a}: out of the arm's reach"
         step = np.abs(q - seed)
         if step.max() > max_joint_step_rad:
@@ -101,7 +111,7 @@ def joint_solver(
 ) -> Solver:
     """Solve each arm in `frames` nearest its `seeds`; refuse a step no joint could follow in a period.
 
-    Refused: a pose out of reach (or with the elbow within `ELBOW_MARGIN_RAD` of straight), one where
+    Refused: a pose out of reach (or with the elbow closer to straight than `elbow_floor`), one where
     some joint moves more than `max_joint_step_rad` from its seed, or one that puts the tool
     (`mount_offsets`, in the flange frame) against the arm's body.
     """

@@ -461,6 +461,8 @@ def test_servoj_streams_through_the_cr5_inverse_kinematics(rig):
 @pytest.mark.slow
 def test_a_target_out_of_reach_is_approached_slowly_and_never_passed_without_a_fault(rig):
     sims, drv = rig()
+    kinds: list[str] = []  # every event (the status keeps the last few: a starved loop's stalls push a slow-down out)
+    drv.on_event = lambda kind, detail: kinds.append(kind)
     drv.start()
     u = np.zeros(12)
     u[[0, 2, 6, 8]] = 0.1 / 30  # both mounts out and up, inside the workspace boxes but past the arms' reach
@@ -474,7 +476,7 @@ def test_a_target_out_of_reach_is_approached_slowly_and_never_passed_without_a_f
     feed.stop()
     st = drv.status()
     assert st["fault"] is None and drv.mode in ("streaming", "stopping", "holding"), st
-    assert any("slowed" in e for e in st["events"]), st["events"]
+    assert "slowed" in kinds, kinds
     for a in ARMS:  # at the edge of the reach the arms creep at most, the controller pushing on
         assert np.linalg.norm(after[a] - before[a]) < 0.02, (a, before[a], after[a])
     for a, r in sims.robots.items():
