@@ -319,6 +319,20 @@ def test_cycles_made_but_never_sent_leave_the_next_stream_where_the_arms_were_se
     assert a <= LIM.max_tcp_accel_mps2 * (1 + 1e-6)  # from rest: no jump over the steps never sent
 
 
+def _cycles(path: ServoPath, u: np.ndarray, now: float, periods: int) -> tuple[list[tuple[object, bool]], float]:
+    """`periods` servo cycles from `now`, none a fault, with `u (12,)` submitted every fourth (about 30 Hz):
+    each cycle with whether its step was shortened, and the time after the last."""
+    outs = []
+    for k in range(periods):
+        if k % 4 == 0:
+            path.submit(u, 1 / 30, now)
+        out = path.cycle(now)
+        assert out.fault is None, out.fault
+        outs.append((out, path.slowing))
+        now += T
+    return outs, now
+
+
 def test_a_restart_from_a_target_a_hair_inside_the_elbow_margin_holds_there_and_can_pull_back():
     """Seen in CI, with the machine busy: creeping at the edge of the reach puts each pose sent ever closer
     to the elbow's margin from straight, and the ServoP's 6 decimals put the controller's target up to
@@ -327,14 +341,8 @@ def test_a_restart_from_a_target_a_hair_inside_the_elbow_margin_holds_there_and_
     path = restarted(ServoPath(RIG))
     out_and_up = np.zeros(12)
     out_and_up[[0, 2, 6, 8]] = 0.1 / 30  # both mounts out and up, past the arms' reach (inside the boxes)
-    now, fractions = 0.0, []
-    for k in range(450):  # 3.6 s: to the edge, then creeping at it
-        if k % 4 == 0:
-            path.submit(out_and_up, 1 / 30, now)
-        assert path.cycle(now).fault is None
-        fractions.append(path.slowing)
-        now += T
-    assert all(fractions[-50:])  # at the edge: every step shortened
+    outs, now = _cycles(path, out_and_up, 0.0, 450)  # 3.6 s: to the edge, then creeping at it
+    assert all(slowed for _, slowed in outs[-50:])  # at the edge: every step shortened
     q_edge = path.q_seed["left"]
     assert 0.0 <= abs(q_edge[2]) - ELBOW_MARGIN_RAD < 1e-5  # crept up to the margin
     # the controller's target, as the wire's rounding can leave it: 3e-7 rad inside the margin
@@ -345,27 +353,15 @@ def test_a_restart_from_a_target_a_hair_inside_the_elbow_margin_holds_there_and_
     path.halt()  # a stall: the stream dropped, a new one restarts from the controllers' targets
     assert path.restart(records) == []
     held = path.commanded()["left"]
-    for k in range(40):
-        if k % 4 == 0:
-            path.submit(out_and_up, 1 / 30, now)
-        out = path.cycle(now)
-        assert out.fault is None, out.fault
+    outs, now = _cycles(path, out_and_up, now, 40)  # pushed on: held where it is, the elbow never straighter
+    for out, _ in outs:
         if out.poses is not None:
-            assert np.linalg.norm(out.poses["left"][:3, 3] - held[:3, 3]) < 1e-9  # held where it was
-            assert abs(out.joints["left"][2]) >= abs(q_ctrl[2]) - 1e-9  # never straighter
-        now += T
+            assert np.linalg.norm(out.poses["left"][:3, 3] - held[:3, 3]) < 1e-9
+            assert abs(out.joints["left"][2]) >= abs(q_ctrl[2]) - 1e-9
     path.halt()
-    back = -out_and_up
-    moved = 0.0
-    for k in range(40):
-        if k % 4 == 0:
-            path.submit(back, 1 / 30, now)
-        out = path.cycle(now)
-        assert out.fault is None, out.fault
-        if out.poses is not None:
-            moved = np.linalg.norm(out.poses["left"][:3, 3] - held[:3, 3])
-        now += T
-    assert moved > 0.001  # pulled back in from the edge
+    outs, _ = _cycles(path, -out_and_up, now, 40)  # pulled back in from the edge
+    last = [out.poses["left"] for out, _ in outs if out.poses is not None][-1]
+    assert np.linalg.norm(last[:3, 3] - held[:3, 3]) > 0.001
 
 
 def test_a_restart_from_arms_a_following_error_past_a_limit_is_no_fault_and_the_stream_pulls_them_in():
