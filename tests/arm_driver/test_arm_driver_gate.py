@@ -164,6 +164,7 @@ def test_the_arms_hold_when_the_run_they_streamed_for_ends_while_its_commands_ke
     assert wait_until(lambda: len(states.items()) == 2 and cmd.matched and run.matched)
     run.put(RunState(run_id="r1", stage="bagging"))
     assert wait_until(lambda: _heard(node, "r1", "bagging"))
+    t_start = time.monotonic()
     _send(cmd, "r1", 12)
     assert node.driver.mode == "streaming"
     run.put(RunState(run_id="r1", stage="failed", reason="perception gone"))  # a controller that has not noticed yet
@@ -176,9 +177,11 @@ def test_the_arms_hold_when_the_run_they_streamed_for_ends_while_its_commands_ke
     ended = events.index("hold: run r1 failed: perception gone")
     assert not [e for e in events[ended:] if e.startswith("watchdog")], events
     assert node.status()["rejections"].get(NO_ACTIVE_RUN, 0) >= 10
-    for srv in sims.servers.values():  # braked to rest, then nothing more moves (how soon: bench/stop_time.py)
-        assert wait_until(lambda: stream_at_rest(srv, t_end))
-        t_rest = servo_positions(srv, t0=t_end)[0][-1]
+    # braked to rest, then nothing more moves (how soon: bench/stop_time.py). The stream is judged from its start:
+    # the arms may have reached their last target before the run ended, and the hold then sends no ServoP at all
+    for srv in sims.servers.values():
+        assert wait_until(lambda: stream_at_rest(srv, t_start)), (servo_positions(srv, t0=t_end)[1][-4:], list(node.events))
+        t_rest = servo_positions(srv, t0=t_start)[0][-1]
         time.sleep(0.2)
         _, xyz = servo_positions(srv, t0=t_rest)
         assert np.linalg.norm(xyz - xyz[0], axis=1).max() < 1e-4
