@@ -15,7 +15,7 @@ from bagit.common.so3 import so3_exp
 from bagit.services.arm_driver.config import DriverConfig
 from bagit.services.arm_driver.limits import Envelope, violations
 from bagit.services.arm_driver.reach import ELBOW_MARGIN_RAD
-from bagit.services.arm_driver.servo_path import ServoPath
+from bagit.services.arm_driver.servo_path import Cycle, ServoPath
 from bagit.services.arm_driver.smoothing import RuckigSmoother
 from bagit.services.arm_driver.targets import TargetIntegrator
 
@@ -319,7 +319,7 @@ def test_cycles_made_but_never_sent_leave_the_next_stream_where_the_arms_were_se
     assert a <= LIM.max_tcp_accel_mps2 * (1 + 1e-6)  # from rest: no jump over the steps never sent
 
 
-def _cycles(path: ServoPath, u: np.ndarray, now: float, periods: int) -> tuple[list[tuple[object, bool]], float]:
+def _cycles(path: ServoPath, u: np.ndarray, now: float, periods: int) -> tuple[list[tuple[Cycle, bool]], float]:
     """`periods` servo cycles from `now`, none a fault, with `u (12,)` submitted every fourth (about 30 Hz):
     each cycle with whether its step was shortened, and the time after the last."""
     outs = []
